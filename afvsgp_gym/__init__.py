@@ -1,0 +1,18 @@
+"""afvsgp-gym: Franka Panda obstacle-avoidance environments and a learned HOCBF safety filter.
+
+Importing the package registers the Gymnasium ids (string entry points: MuJoCo is only
+imported when an environment is made):
+
+- ``afvsgp_gym/FrankaObstacleStatic-v0``
+- ``afvsgp_gym/FrankaObstacleDynamic-v0``
+- ``afvsgp_gym/FrankaObstacleRandom-v0``
+- ``afvsgp_gym/PointMassObstacle-v0``
+"""
+
+from afvsgp_gym.envs.registration import register_envs
+
+__version__ = "0.1.0"
+
+register_envs()
+
+__all__ = ["__version__", "register_envs"]

@@ -1,0 +1,1 @@
+"""afvsgp_gym.gp."""
