@@ -1,0 +1,355 @@
+"""Standalone learned HOCBF safety controller (paper Algorithm 1), no simulator needed.
+
+Example
+-------
+>>> import numpy as np
+>>> from afvsgp_gym.types import BarrierTerms
+>>> ctrl = SafetyController(-np.ones(2), np.ones(2), learner="none", alpha=2.0)
+>>> terms = [BarrierTerms(np.array([0.1, -0.2]), 0.0, np.array([1.0, 0.0]), np.zeros(3))]
+>>> res = ctrl.filter(np.array([-1.0, 0.5]), terms)
+>>> res.feasible, bool(res.active), np.round(res.u, 3).tolist()
+(True, True, [0.4, 0.5])
+
+In a real robot loop: ``res = ctrl.filter(u_nom, terms)``; apply ``res.u`` for one control
+period ``dt``; read the new terms; ``ctrl.observe(terms, res.u, new_terms, dt)``.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from afvsgp_gym.cbf.hocbf import HOCBF
+from afvsgp_gym.cbf.learners import LEARNING, check_learner_name, make_learner
+from afvsgp_gym.cbf.measurement import measure
+from afvsgp_gym.cbf.socp import SOCPFilter
+from afvsgp_gym.types import BarrierTerms
+
+#: Default confidence multiplier of the chance constraint. Eq. 49's bound (Castaneda et al.
+#: 2021, Thm. 2) is far too conservative to be feasible in practice (it grows with
+#: ln^3(P / delta)); like Castaneda et al. we use a constant. beta = 2 is a one-sided 97.7 %
+#: Gaussian quantile per step.
+DEFAULT_BETA = 2.0
+
+
+@dataclass(frozen=True)
+class FilterResult:
+    """One filtered action.
+
+    Attributes
+    ----------
+    u : ndarray of shape (m,)
+        Safe action, finite and inside the bounds.
+    feasible : bool
+        False when the fallback (max worst margin) was used.
+    active : bool
+        True when the filter changed the (clipped) proposed action, or fell back.
+    status : str
+        ``"inactive"``, the solver status, ``"fallback:..."`` or ``"invalid_input"``.
+    margins : ndarray of shape (K,)
+        Chance-constraint margins at ``u``.
+    delta_b_mean, delta_b_std : ndarray of shape (K,)
+        Learned mean and standard deviation of ``Delta B^(r)`` at ``u`` (eq. 51).
+    solve_time_s : float
+        Wall time of prediction and cone program.
+    warmup : bool
+        True while Algorithm 1's warm-up collects its first samples (nominal-only filter plus
+        exploration noise).
+    """
+
+    u: np.ndarray
+    feasible: bool
+    active: bool
+    status: str
+    margins: np.ndarray
+    delta_b_mean: np.ndarray
+    delta_b_std: np.ndarray
+    solve_time_s: float
+    warmup: bool = False
+
+
+def _cone_matrix(sigma: np.ndarray, beta: float) -> np.ndarray:
+    """``G = beta L'`` with ``Sigma = L L'`` (eigen-factor: robust for singular PSD Sigma)."""
+    sigma = 0.5 * (sigma + sigma.T)
+    w, v = np.linalg.eigh(sigma)
+    return (beta * np.sqrt(np.clip(w, 0.0, None)))[:, None] * v.T
+
+
+class SafetyController:
+    """Learned HOCBF safety filter: chance-constrained SOCP + one learner per obstacle.
+
+    Parameters
+    ----------
+    action_low, action_high : array_like of shape (m,)
+        Action bounds (the filter never leaves them).
+    n_obstacles : int
+        Number of barriers; one learner and one cone each.
+    relative_degree : int
+        Relative degree ``r`` of every barrier (2 for the provided envs).
+    learner : str
+        One of :data:`afvsgp_gym.cbf.LEARNERS`.
+    alpha : float or sequence of float
+        Linear class-K gains ``a_1..a_r`` of the HOCBF chain (default 4.0).
+    beta : float
+        Chance-constraint multiplier on the predicted standard deviation (eq. 49; default
+        :data:`DEFAULT_BETA`). ``beta = 0`` gives the mean-only QP.
+    warmup_samples : int
+        ``P``: samples collected before the offline hyperparameter fit (Algorithm 1; 200).
+    exploration_noise : float
+        Std of the Gaussian noise added to the action during warm-up, as a fraction of the
+        half range of the bounds (default 0.3).
+    learner_kwargs : dict or None
+        Passed to the learner's constructor.
+    learn_hyperparameters : bool
+        Maximise the bound at the end of warm-up (True) or keep the given kernel.
+    dataset : tuple or list of tuples or None
+        ``(xi (N, b), u (N, m), z (N,))`` recorded beforehand (one tuple for every obstacle,
+        or one per obstacle): the learners are fitted at construction and warm-up is skipped.
+    online : bool
+        Update the learners with every observed sample after warm-up (``learning``).
+    qp_solver : str or None
+        qpsolvers backend for the plain-QP case (None: clarabel directly).
+    seed : int or None
+        Seed of the exploration noise.
+    """
+
+    def __init__(
+        self,
+        action_low,
+        action_high,
+        n_obstacles: int = 1,
+        relative_degree: int = 2,
+        learner: str = "afvsgp",
+        *,
+        alpha: float | Sequence[float] = 4.0,
+        beta: float = DEFAULT_BETA,
+        warmup_samples: int = 200,
+        exploration_noise: float = 0.3,
+        learner_kwargs: dict | None = None,
+        learn_hyperparameters: bool = True,
+        dataset=None,
+        online: bool = True,
+        qp_solver: str | None = None,
+        seed: int | None = None,
+    ):
+        self.learner_name = check_learner_name(learner)
+        if not isinstance(n_obstacles, (int, np.integer)) or n_obstacles < 1:
+            raise ValueError(f"n_obstacles must be a positive integer. Got: {n_obstacles!r}")
+        if not (np.isfinite(beta) and beta >= 0):
+            raise ValueError(f"beta must be finite and >= 0. Got: {beta!r}")
+        if not isinstance(warmup_samples, (int, np.integer)) or warmup_samples < 2:
+            raise ValueError(f"warmup_samples must be an integer >= 2. Got: {warmup_samples!r}")
+        if not (np.isfinite(exploration_noise) and exploration_noise >= 0):
+            raise ValueError(f"exploration_noise must be >= 0. Got: {exploration_noise!r}")
+        self.hocbf = HOCBF(relative_degree, alpha)
+        self.socp = SOCPFilter(action_low, action_high, n_obstacles, qp_solver=qp_solver)
+        self.low, self.high = self.socp.low, self.socp.high
+        self.action_dim = self.socp.m
+        self.n_obstacles = int(n_obstacles)
+        self.relative_degree = int(relative_degree)
+        self.beta = float(beta)
+        self.warmup_samples = int(warmup_samples)
+        self.exploration_noise = float(exploration_noise)
+        self.learn_hyperparameters = bool(learn_hyperparameters)
+        self.learning = bool(online)
+        self._learner_kwargs = dict(learner_kwargs or {})
+        self.learners = [
+            make_learner(self.learner_name, self.action_dim, **self._learner_kwargs)
+            for _ in range(self.n_obstacles)
+        ]
+        self._rng = np.random.default_rng(seed)
+        self._buffer: list[list[tuple[np.ndarray, np.ndarray, float]]] = [
+            [] for _ in range(self.n_obstacles)
+        ]
+        self.fitted = self.learner_name not in LEARNING
+        self.n_update_failures = 0
+        self.n_skipped_samples = 0
+        self.last_error: str | None = None
+        if dataset is not None and self.learner_name in LEARNING:
+            self.fit(dataset)
+
+    # ------------------------------------------------------------------ state
+    @property
+    def warming_up(self) -> bool:
+        """True until the learners are fitted (Algorithm 1 warm-up)."""
+        return not self.fitted
+
+    def dataset(self) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """Warm-up samples collected so far, one ``(xi, u, z)`` tuple per obstacle."""
+        out = []
+        for buf in self._buffer:
+            if buf:
+                xi, u, z = zip(*buf, strict=True)
+                out.append((np.array(xi), np.array(u), np.array(z)))
+            else:
+                out.append((np.zeros((0, 0)), np.zeros((0, self.action_dim)), np.zeros(0)))
+        return out
+
+    def fit(self, dataset) -> SafetyController:
+        """Fit every learner offline on ``dataset`` (one tuple, or one per obstacle)."""
+        if isinstance(dataset, tuple):
+            dataset = [dataset] * self.n_obstacles
+        if len(dataset) != self.n_obstacles:
+            raise ValueError(
+                f"dataset must hold one (xi, u, z) tuple or {self.n_obstacles}. Got: {len(dataset)}"
+            )
+        for k, (xi, u, z) in enumerate(dataset):
+            xi = np.asarray(xi, np.float64)
+            u = np.asarray(u, np.float64).reshape(len(xi), self.action_dim)
+            z = np.asarray(z, np.float64).ravel()
+            ok = np.all(np.isfinite(xi), axis=1) & np.all(np.isfinite(u), axis=1)
+            ok &= np.isfinite(z)
+            self.learners[k].fit(
+                xi[ok], u[ok], z[ok], learn_hyperparameters=self.learn_hyperparameters
+            )
+        self.fitted = True
+        return self
+
+    # ------------------------------------------------------------------ filter
+    def _terms_ok(self, terms: Sequence[BarrierTerms]) -> np.ndarray:
+        ok = np.ones(self.n_obstacles, dtype=bool)
+        for k, t in enumerate(terms):
+            ok[k] = bool(
+                np.all(np.isfinite(t.derivatives))
+                and np.isfinite(t.lf)
+                and np.all(np.isfinite(t.lg))
+                and np.all(np.isfinite(t.xi))
+            )
+        return ok
+
+    def filter(
+        self,
+        u_nom,
+        terms: Sequence[BarrierTerms],
+        true_terms: Sequence[BarrierTerms] | None = None,
+    ) -> FilterResult:
+        """Project ``u_nom`` onto the (chance-)constrained safe set (eq. 05).
+
+        ``terms`` are the nominal barrier terms (one per obstacle); the oracle learner uses
+        ``true_terms`` instead. Never raises for NaN values: they give the flagged fallback.
+        """
+        t0 = time.perf_counter()
+        K, m = self.n_obstacles, self.action_dim
+        if len(terms) != K:
+            raise ValueError(f"terms must hold {K} BarrierTerms. Got: {len(terms)}")
+        if self.learner_name == "oracle":
+            if true_terms is None:
+                raise ValueError("learner 'oracle' needs true_terms")
+            if len(true_terms) != K:
+                raise ValueError(f"true_terms must hold {K} BarrierTerms. Got: {len(true_terms)}")
+            terms = true_terms
+        u_nom = np.array(u_nom, dtype=np.float64).ravel()  # a copy
+        if u_nom.shape != (m,):
+            raise ValueError(f"u_nom must have shape ({m},). Got: {u_nom.shape}")
+        warm = self.warming_up
+        if warm and self.exploration_noise > 0 and np.all(np.isfinite(u_nom)):
+            half = 0.5 * (self.high - self.low)
+            u_nom = u_nom + self.exploration_noise * half * self._rng.standard_normal(m)
+            u_nom = np.clip(u_nom, self.low, self.high)
+
+        ok = self._terms_ok(terms)
+        a0 = np.full(K, np.nan)
+        a = np.full((K, m), np.nan)
+        bs = np.zeros((K, m + 1))
+        G = np.zeros((K, m + 1, m + 1))
+        sig = np.zeros((K, m + 1, m + 1))
+        use_cone = False
+        for k, t in enumerate(terms):
+            if not ok[k]:
+                continue
+            try:
+                c0, c = self.hocbf.constraint(t)
+                a0[k], a[k] = c0, c
+                if not warm and self.learner_name in LEARNING:
+                    b, s = self.learners[k].predict_affine(np.asarray(t.xi, np.float64)[None])
+                    bs[k], sig[k] = b[0], s[0]
+                    a0[k] += b[0, 0]
+                    a[k] += b[0, 1:]
+                    if self.beta > 0:
+                        G[k] = _cone_matrix(s[0], self.beta)
+                        use_cone = True
+            except ValueError:
+                raise
+            except Exception as exc:  # a learner failure must not stop the loop
+                self.last_error = f"{type(exc).__name__}: {exc}"
+                a0[k] = np.nan
+        res = self.socp.solve(u_nom, a0, a, G if use_cone else None)
+        u = res.u
+        ubar = np.concatenate([[1.0], u])
+        mean = bs @ ubar
+        std = np.sqrt(np.clip(np.einsum("i,kij,j->k", ubar, sig, ubar), 0.0, None))
+        return FilterResult(
+            u=u,
+            feasible=res.feasible,
+            active=res.status != "inactive",
+            status=res.status,
+            margins=res.margins,
+            delta_b_mean=mean,
+            delta_b_std=std,
+            solve_time_s=time.perf_counter() - t0,
+            warmup=warm,
+        )
+
+    # ------------------------------------------------------------------ learning
+    def observe(
+        self,
+        terms_before: Sequence[BarrierTerms],
+        u_applied,
+        terms_after: Sequence[BarrierTerms],
+        dt: float,
+    ) -> np.ndarray:
+        """Build the eq. 48 samples for the step just taken and update the learners.
+
+        Returns the measurements ``z`` (K,) (NaN where skipped). Never raises for NaN data
+        (such samples are skipped and counted in ``n_skipped_samples``).
+        """
+        K = self.n_obstacles
+        z_all = np.full(K, np.nan)
+        if self.learner_name not in LEARNING:
+            return z_all
+        if len(terms_before) != K or len(terms_after) != K:
+            raise ValueError(f"terms_before and terms_after must hold {K} BarrierTerms")
+        u = np.asarray(u_applied, dtype=np.float64).ravel()
+        if not (np.isfinite(dt) and dt > 0):
+            raise ValueError(f"dt must be finite and positive. Got: {dt!r}")
+        if not self.learning and self.fitted:
+            return z_all
+        samples = []
+        for k in range(K):
+            try:
+                xi, z = measure(terms_before[k], u, terms_after[k], dt)
+            except Exception:
+                xi, z = None, np.nan
+            if xi is None or not (np.isfinite(z) and np.all(np.isfinite(xi))):
+                self.n_skipped_samples += 1
+                samples.append(None)
+                continue
+            z_all[k] = z
+            samples.append((xi, u.copy(), float(z)))
+        if not np.all(np.isfinite(u)):
+            return z_all
+        if self.warming_up:
+            for k, s in enumerate(samples):
+                if s is not None:
+                    self._buffer[k].append(s)
+            if min(len(b) for b in self._buffer) >= self.warmup_samples:
+                try:
+                    self.fit(self.dataset())
+                except Exception as exc:
+                    self.n_update_failures += 1
+                    self.last_error = f"{type(exc).__name__}: {exc}"
+                    for b in self._buffer:  # keep the newest half and retry later
+                        del b[: len(b) // 2]
+            return z_all
+        for k, s in enumerate(samples):
+            if s is None:
+                continue
+            try:
+                self.learners[k].update(s[0], s[1], s[2])
+            except Exception as exc:
+                self.n_update_failures += 1
+                self.last_error = f"{type(exc).__name__}: {exc}"
+        return z_all

@@ -1,0 +1,43 @@
+"""Measurement of the HOCBF model error (paper eq. 48).
+
+The learned quantity is ``Delta B^(r)(xi, ubar) = B^(r) - B0^(r)`` (eq. 46). The terms
+``S + alpha_r(psi_{r-1})`` are computed from measured derivatives and are identical in the true
+and nominal models, so ``Delta B^(r) = h^(r)_true - h^(r)_nominal``. Eq. 48 is then
+
+    z = (h^(r-1)(t + dt) - h^(r-1)(t)) / dt  -  (lf0 + lg0 @ u)_mid,
+
+the finite difference of the highest measured derivative over the control period minus the
+nominal ``h^(r)`` for the applied action at the midpoint, taken as the average of the nominal
+terms before and after the step (trapezoid rule: second-order accurate for smooth motion). The
+feature of the sample is the midpoint ``xi_j = (xi(t) + xi(t + dt)) / 2``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from afvsgp_gym.types import BarrierTerms
+
+
+def nominal_highest_derivative(terms: BarrierTerms, u: np.ndarray) -> float:
+    """``h^(r)`` of the model in ``terms`` for action ``u`` (eq. 45 without S and alpha)."""
+    return float(terms.lf) + float(np.asarray(terms.lg, dtype=np.float64) @ u)
+
+
+def measure(
+    terms_before: BarrierTerms, u: np.ndarray, terms_after: BarrierTerms, dt: float
+) -> tuple[np.ndarray, float]:
+    """One eq. 48 sample ``(xi_j, z_j)`` for the action ``u`` applied during ``dt``.
+
+    Returns NaN in ``z`` when any input is not finite (the caller skips such samples).
+    """
+    if not (np.isfinite(dt) and dt > 0):
+        raise ValueError(f"dt must be finite and positive. Got: {dt!r}")
+    u = np.asarray(u, dtype=np.float64)
+    r = terms_before.relative_degree
+    fd = (float(terms_after.derivatives[r - 1]) - float(terms_before.derivatives[r - 1])) / dt
+    nominal = 0.5 * (
+        nominal_highest_derivative(terms_before, u) + nominal_highest_derivative(terms_after, u)
+    )
+    xi = 0.5 * (np.asarray(terms_before.xi, np.float64) + np.asarray(terms_after.xi, np.float64))
+    return xi, fd - nominal

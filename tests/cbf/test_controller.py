@@ -1,0 +1,95 @@
+"""SafetyController with the nominal-only and oracle learners on an independent simulator."""
+
+import numpy as np
+import pytest
+
+from afvsgp_gym.cbf import LEARNERS, SafetyController
+from afvsgp_gym.types import BarrierTerms
+
+
+def _run(disc, learner, steps=250, **kw):
+    sim = disc(gain=0.5, wind=(0.15, 0.0))
+    ctrl = SafetyController(-np.ones(2), np.ones(2), learner=learner, alpha=1.5, **kw)
+    hs, results = [], []
+    for _ in range(steps):
+        terms = sim.terms()
+        u_nom = sim.nominal()
+        u_nom_copy = u_nom.copy()
+        res = ctrl.filter(u_nom, terms, true_terms=sim.terms("true"))
+        np.testing.assert_array_equal(u_nom, u_nom_copy)  # never mutated
+        assert np.all(np.isfinite(res.u)) and np.all(np.abs(res.u) <= 1)
+        hs.append(sim.step(res.u))
+        ctrl.observe(terms, res.u, sim.terms(), sim.dt)
+        results.append(res)
+    return np.array(hs), results
+
+
+def test_none_violates_and_oracle_is_safe(disc):
+    h_none, _ = _run(disc, "none")
+    h_oracle, res = _run(disc, "oracle")
+    assert h_none.min() < 0
+    assert h_oracle.min() >= 0
+    assert any(r.active for r in res) and all(r.feasible for r in res)
+    assert all(np.all(r.delta_b_std == 0) for r in res)
+
+
+def test_no_learner_no_warmup(disc):
+    _, res = _run(disc, "none", steps=5)
+    assert not any(r.warmup for r in res)
+
+
+def test_unknown_learner_lists_valid_names():
+    with pytest.raises(ValueError, match="afvsgp") as exc:
+        SafetyController(-np.ones(2), np.ones(2), learner="nope")
+    for name in LEARNERS:
+        assert name in str(exc.value)
+
+
+def test_oracle_needs_true_terms():
+    ctrl = SafetyController(-np.ones(1), np.ones(1), learner="oracle")
+    t = [BarrierTerms(np.ones(2), 0.0, np.ones(1), np.zeros(1))]
+    with pytest.raises(ValueError, match="true_terms"):
+        ctrl.filter(np.zeros(1), t)
+
+
+@pytest.mark.parametrize("field", ["derivatives", "lf", "lg", "xi"])
+def test_nan_terms_give_flagged_fallback(field):
+    ctrl = SafetyController(-np.ones(2), np.ones(2), learner="none")
+    vals = {
+        "derivatives": np.array([0.1, -0.5]),
+        "lf": 0.0,
+        "lg": np.array([1.0, 0.0]),
+        "xi": np.zeros(3),
+    }
+    vals[field] = np.full_like(np.atleast_1d(vals[field]), np.nan)
+    if field == "lf":
+        vals[field] = float("nan")
+    res = ctrl.filter(np.array([-1.0, 0.0]), [BarrierTerms(**vals)])
+    assert not res.feasible and res.status == "invalid_input"
+    assert np.all(np.isfinite(res.u)) and np.all(np.abs(res.u) <= 1)
+    # observe skips NaN samples without raising
+    good = BarrierTerms(np.array([0.1, -0.5]), 0.0, np.array([1.0, 0.0]), np.zeros(3))
+    ctrl.observe([BarrierTerms(**vals)], res.u, [good], 0.01)
+
+
+def test_nan_action_gives_flagged_fallback():
+    ctrl = SafetyController(-np.ones(2), np.ones(2), learner="none")
+    t = [BarrierTerms(np.array([1.0, 0.0]), 0.0, np.array([1.0, 0.0]), np.zeros(3))]
+    res = ctrl.filter(np.array([np.nan, 0.0]), t)
+    assert not res.feasible and np.all(np.isfinite(res.u))
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"n_obstacles": 0}, "n_obstacles"),
+        ({"beta": -1.0}, "beta"),
+        ({"warmup_samples": 1}, "warmup_samples"),
+        ({"exploration_noise": -0.1}, "exploration_noise"),
+        ({"alpha": 0.0}, "alpha"),
+        ({"learner": "none", "learner_kwargs": {"x": 1}}, "learner_kwargs"),
+    ],
+)
+def test_bad_options(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        SafetyController(-np.ones(2), np.ones(2), **kwargs)
