@@ -1,1 +1,5 @@
-"""afvsgp_gym.agents."""
+"""Policies for the afvsgp_gym environments."""
+
+from afvsgp_gym.agents.nominal import NominalController
+
+__all__ = ["NominalController"]

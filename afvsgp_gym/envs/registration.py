@@ -10,7 +10,7 @@ def register_envs() -> None:
     specs = {
         "afvsgp_gym/PointMassObstacle-v0": dict(
             entry_point="afvsgp_gym.envs.point_mass:PointMassObstacleEnv",
-            max_episode_steps=1000,
+            max_episode_steps=1500,
         ),
     }
     for env_id, kwargs in specs.items():

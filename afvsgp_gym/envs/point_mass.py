@@ -1,0 +1,404 @@
+"""Point mass (double integrator with unknown mass and linear drag) avoiding spheres."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from afvsgp_gym.envs._render2d import Canvas
+from afvsgp_gym.envs.scenario import (
+    CyclicReference,
+    ObstacleSpec,
+    check_action,
+    check_choice,
+    parse_obstacles,
+    sphere_barrier,
+)
+from afvsgp_gym.types import BarrierTerms
+
+SCENARIOS = ("static", "dynamic", "random")
+NOMINAL_MODELS = ("zero", "kinematic", "perturbed", "exact")
+BARRIER_MODELS = ("nominal", "true")
+
+
+class UnknownArgumentError(TypeError, ValueError):
+    """An unknown keyword argument (a TypeError, and a ValueError per the package rules)."""
+
+
+class PointMassObstacleEnv(gym.Env):
+    r"""Point mass tracking a cyclic reference past spherical obstacles (analytic, fast).
+
+    ## Description
+    A point (radius ``agent_radius``) in 2D or 3D with true dynamics
+    ``mass * p'' = max_force * u - drag * p'`` (u in [-1, 1]^dim). The controller's nominal model
+    does not know ``mass``/``drag`` (see ``nominal_model``). The reference moves cyclically along
+    the x axis ("y" in the paper's Fig. 3) with an amplitude that stays small during the first
+    ``warmup_steps`` and then grows so that the path passes through the obstacle; at
+    ``switch_time`` the motion turns to the y axis ("z", unseen data). This is the analytic
+    twin of the Franka environment: same barrier, same info keys, closed-form ground truth.
+
+    Integration is exact for a zero-order-hold action (matrix exponential of the linear
+    drag dynamics), so ``dt`` is both the control period and the integration step.
+
+    ## Barrier (paper eqs. 44-46)
+    Per obstacle ``h = |p - p_obs| - (r_obs + agent_radius)``, relative degree 2:
+    ``h'' = n.(p'' - a_obs) + (|v_rel|^2 - (n.v_rel)^2)/|d|`` with ``n = d/|d|``,
+    ``d = p - p_obs``, ``v_rel = p' - v_obs``. ``barrier_terms(model)`` returns
+    ``BarrierTerms(derivatives=[h, h'], lf, lg, xi)``:
+
+    - ``"true"``: ``lf = n.(-drag/mass p' - a_obs) + curvature``, ``lg = n max_force/mass``.
+    - ``"nominal"`` by ``nominal_model``: ``"zero"`` lf = 0, lg = 0 (paper section VI);
+      ``"kinematic"`` lf = -n.a_obs + curvature, lg = 0; ``"perturbed"`` the true formulas with
+      ``nominal_mass``/``nominal_drag``; ``"exact"`` the true formulas.
+    - features ``xi = [p, p', p - p_obs, p' - v_obs]`` (``feature_dim = 4 * dim``).
+
+    ## Action Space
+    ``Box(-1, 1, (dim,), float32)``: force = ``max_force * u`` (N). Out-of-range actions are
+    clipped; NaN/inf or a wrong shape raise ValueError before anything is integrated.
+
+    ## Observation Space
+    ``Box(float32)`` of size ``6 dim + 2 dim n_obstacles``:
+
+    | Slice | Observation | Min | Max | Unit |
+    |---|---|---|---|---|
+    | 0:d | position p | -10 | 10 | m |
+    | d:2d | velocity p' | -20 | 20 | m/s |
+    | next n d | obstacle centres | -10 | 10 | m |
+    | next n d | obstacle velocities | -20 | 20 | m/s |
+    | next d | reference position | -10 | 10 | m |
+    | next d | reference velocity | -20 | 20 | m/s |
+    | next d | reference acceleration | -100 | 100 | m/s^2 |
+
+    Values are clipped to the bounds.
+
+    ## Rewards
+    ``reward = reward_tracking + reward_ctrl`` with ``reward_tracking = -tracking_weight |p - r|``
+    and ``reward_ctrl = -control_weight |u|^2`` (both in ``info``). Safety is a separate signal:
+    ``info["cost"] = 1.0`` if any ``h < 0`` (Safety-Gymnasium convention).
+
+    ## Starting State
+    At the reference start (centre) at rest, plus uniform noise of +-``reset_noise`` m.
+
+    ## Episode End
+    Terminated if the state is not finite (``info["unstable"] = True``) or the point leaves
+    ``|p|_inf <= 5`` m. Truncation by ``TimeLimit`` (1500 steps = 15 s when registered).
+
+    ## Info
+    ``cost``, ``h`` (min over obstacles), ``h_per_obstacle``, ``collision`` (any h < 0),
+    ``delta_b_true`` (true minus nominal h'' for the applied action at the pre-step state, per
+    obstacle), ``unstable``, ``time``, ``reward_tracking``, ``reward_ctrl``.
+
+    ## Scenarios and geometry (defaults, dim = 2; third axis z in 3D)
+    - ``"static"``: reference centre 0, amplitude 0.5 m (0.1 m during warm-up), period 3 s,
+      amplitude ramp over 1 s after warm-up, switch to the y axis at ``switch_time`` = 9 s.
+      Obstacle r = 0.1 m at (0.35, 0.03): the full path runs through it, the warm-up path stays
+      >= 0.1 m clear of it.
+    - ``"dynamic"``: obstacle r = 0.1 m rests at (0.3, 0.8) during warm-up, then moves to
+      (0.3, 0.04), onto the path, with peak speed ``obstacle_speed`` (0.3 m/s, far below what
+      the point can reach: max_force/mass = 3.3 m/s^2). No switch unless ``switch_time`` set.
+    - ``"random"``: one of the two, with radius in [0.07, 0.11] m, position along the path in
+      [r + 0.22, 0.45] m (either side; the warm-up path stays >= 0.07 m clear), offset
+      +-0.06 m, speed in [0.15, 0.4] m/s, approach side and distance (0.6-1 m) and an optional
+      switch time drawn from ``self.np_random`` at each reset.
+
+    ## Arguments
+    | Parameter | Default | Description |
+    |---|---|---|
+    | scenario | "static" | one of "static", "dynamic", "random" |
+    | dim | 2 | 2 or 3 |
+    | dt | 0.01 | control period and integration step (s) |
+    | mass, drag | 1.5, 0.8 | true plant (kg, N s/m) |
+    | nominal_model | "zero" | "zero", "kinematic", "perturbed", "exact" |
+    | nominal_mass, nominal_drag | 1.0, 0.0 | parameters of the "perturbed" model |
+    | max_force | 5.0 | N per unit action |
+    | agent_radius | 0.05 | m |
+    | obstacles | None | list of dicts (position, radius[, start, start_time, speed]) |
+    | obstacle_speed | 0.3 | m/s, dynamic scenario |
+    | switch_time | None | s; None = scenario default (9 s static, no switch dynamic) |
+    | warmup_steps | 300 | steps during which obstacles are far (>= 250) |
+    | tracking_weight, control_weight | 1.0, 0.01 | reward weights |
+    | reset_noise | 0.01 | m |
+    | render_mode | None | "rgb_array" |
+
+    ## Version History
+    - v0: initial version.
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 100}
+
+    _DEFAULTS: dict[str, Any] = dict(
+        dim=2,
+        dt=0.01,
+        mass=1.5,
+        drag=0.8,
+        nominal_model="zero",
+        nominal_mass=1.0,
+        nominal_drag=0.0,
+        max_force=5.0,
+        agent_radius=0.05,
+        obstacles=None,
+        obstacle_speed=0.3,
+        switch_time=None,
+        warmup_steps=300,
+        tracking_weight=1.0,
+        control_weight=0.01,
+        reset_noise=0.01,
+        render_mode=None,
+    )
+    relative_degree = 2
+    workspace_limit = 5.0
+
+    def __init__(self, scenario: str = "static", **kwargs: Any) -> None:
+        unknown = sorted(set(kwargs) - set(self._DEFAULTS))
+        if unknown:
+            raise UnknownArgumentError(
+                f"unknown argument(s) {unknown}; valid: {['scenario', *self._DEFAULTS]}"
+            )
+        cfg = {**self._DEFAULTS, **kwargs}
+        self.scenario = check_choice("scenario", scenario, SCENARIOS)
+        self.nominal_model = check_choice("nominal_model", cfg["nominal_model"], NOMINAL_MODELS)
+        self.dim = int(cfg["dim"])
+        if self.dim not in (2, 3):
+            raise ValueError(f"dim must be 2 or 3, got {cfg['dim']}")
+        for name in ("dt", "mass", "nominal_mass", "max_force", "agent_radius", "obstacle_speed"):
+            val = float(cfg[name])
+            if not (np.isfinite(val) and val > 0):
+                raise ValueError(f"{name} must be a positive finite number, got {cfg[name]}")
+        for name in ("drag", "nominal_drag", "tracking_weight", "control_weight", "reset_noise"):
+            val = float(cfg[name])
+            if not (np.isfinite(val) and val >= 0):
+                raise ValueError(f"{name} must be >= 0, got {cfg[name]}")
+        self.dt = float(cfg["dt"])
+        self.mass, self.drag = float(cfg["mass"]), float(cfg["drag"])
+        self.nominal_mass, self.nominal_drag = (
+            float(cfg["nominal_mass"]),
+            float(cfg["nominal_drag"]),
+        )
+        self.max_force = float(cfg["max_force"])
+        self.agent_radius = float(cfg["agent_radius"])
+        self.obstacle_speed = float(cfg["obstacle_speed"])
+        self.warmup_steps = int(cfg["warmup_steps"])
+        if self.warmup_steps < 0:
+            raise ValueError(f"warmup_steps must be >= 0, got {cfg['warmup_steps']}")
+        st = cfg["switch_time"]
+        if st is not None and not (float(st) > 0):
+            raise ValueError(f"switch_time must be > 0 or None, got {st}")
+        self._switch_time_arg = None if st is None else float(st)
+        self.tracking_weight = float(cfg["tracking_weight"])
+        self.control_weight = float(cfg["control_weight"])
+        self.reset_noise = float(cfg["reset_noise"])
+        self._user_obstacles = (
+            None
+            if cfg["obstacles"] is None
+            else parse_obstacles(cfg["obstacles"], self.dim, self.warmup_steps * self.dt)
+        )
+        render_mode = cfg["render_mode"]
+        if render_mode is not None:
+            check_choice("render_mode", render_mode, self.metadata["render_modes"])
+        self.render_mode = render_mode
+        self.metadata = {**self.metadata, "render_fps": int(round(1.0 / self.dt))}
+
+        self.axes = np.eye(self.dim)
+        self._build_scenario(None)
+        self.n_obstacles = len(self.obstacles)
+        self.feature_dim = 4 * self.dim
+        d, n = self.dim, self.n_obstacles
+        lim = np.concatenate(
+            [np.full(d, 10.0), np.full(d, 20.0), np.full(n * d, 10.0), np.full(n * d, 20.0)]
+            + [np.full(d, 10.0), np.full(d, 20.0), np.full(d, 100.0)]
+        )
+        self._obs_high = lim
+        self.observation_space = spaces.Box(-lim.astype(np.float32), lim.astype(np.float32))
+        self.action_space = spaces.Box(-1.0, 1.0, (d,), dtype=np.float32)
+        self._p = np.zeros(d)
+        self._v = np.zeros(d)
+        self._steps = 0
+
+    # ------------------------------------------------------------------ scenario
+    def _build_scenario(self, rng: np.random.Generator | None) -> None:
+        e1, e2 = self.axes[0], self.axes[1]
+        off = self.axes[2] if self.dim == 3 else e2
+        t_w = self.warmup_steps * self.dt
+        kind, switch = self.scenario, self._switch_time_arg
+        along, offset, radius, speed, side, far = 0.35, 0.03, 0.1, self.obstacle_speed, 1.0, 0.8
+        if kind == "random" and rng is not None:
+            kind = "static" if rng.random() < 0.5 else "dynamic"
+            # warm-up path |x| <= 0.1 stays >= 0.07 m clear: along >= 0.1 + R + 0.07
+            radius = float(rng.uniform(0.07, 0.11))
+            along = float(rng.uniform(radius + 0.22, 0.45)) * (1.0 if rng.random() < 0.5 else -1.0)
+            offset = float(rng.uniform(-0.06, 0.06))
+            speed = float(rng.uniform(0.15, 0.4))
+            side = 1.0 if rng.random() < 0.5 else -1.0
+            far = float(rng.uniform(0.6, 1.0))
+            if switch is None and rng.random() < 0.5:
+                switch = float(rng.uniform(t_w + 4.0, t_w + 8.0))
+        elif kind == "random":
+            kind = "static"
+        if switch is None:
+            switch = 9.0 if kind == "static" and self.scenario == "static" else np.inf
+        if kind == "static":
+            obstacles = [ObstacleSpec(along * e1 + offset * off, radius)]
+        else:
+            along = 0.3 if self.scenario == "dynamic" else along
+            offset = 0.04 if self.scenario == "dynamic" else offset
+            end = along * e1 + offset * off
+            start = along * e1 + side * far * off
+            obstacles = [ObstacleSpec(end, radius, start, t_w, speed)]
+        if self._user_obstacles is not None:
+            obstacles = self._user_obstacles
+        self.obstacles = obstacles
+        self.reference = CyclicReference(
+            center=np.zeros(self.dim),
+            axis1=e1,
+            axis2=e2,
+            amplitude=0.5,
+            warmup_amplitude=0.1,
+            period=3.0,
+            ramp_start=t_w,
+            ramp_duration=1.0,
+            switch_time=switch,
+        )
+
+    @property
+    def time(self) -> float:
+        return self._steps * self.dt
+
+    # ------------------------------------------------------------------ physics
+    def model_parameters(self, model: str = "true") -> dict[str, float]:
+        """Mass and drag of the "true" plant or of the "nominal" model (if it has one)."""
+        check_choice("model", model, BARRIER_MODELS)
+        if model == "true" or self.nominal_model == "exact":
+            return {"mass": self.mass, "drag": self.drag}
+        return {"mass": self.nominal_mass, "drag": self.nominal_drag}
+
+    def _integrate(self, u: np.ndarray) -> None:
+        """Exact zero-order-hold solution of m p'' = F u - c p' over dt."""
+        k, dt = self.drag / self.mass, self.dt
+        b = self.max_force * u / self.mass
+        if k * dt < 1e-8:
+            phi1, phi2, e = dt, 0.5 * dt * dt, 1.0 - k * dt
+        else:
+            e = np.exp(-k * dt)
+            phi1 = -np.expm1(-k * dt) / k
+            phi2 = (dt - phi1) / k
+        self._p = self._p + self._v * phi1 + b * phi2
+        self._v = self._v * e + b * phi1
+
+    def _obstacle_states(self, t: float) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        return [ob.state(t) for ob in self.obstacles]
+
+    def barrier_terms(self, model: str = "nominal") -> list[BarrierTerms]:
+        """One BarrierTerms per obstacle at the current state (see class docstring)."""
+        check_choice("model", model, BARRIER_MODELS)
+        kind = "exact" if model == "true" else self.nominal_model
+        if kind in ("exact", "perturbed"):
+            params = self.model_parameters("true" if kind == "exact" else "nominal")
+            inv_m = 1.0 / params["mass"]
+            drift = -params["drag"] * inv_m * self._v
+        out = []
+        t = self.time
+        for ob, (po, vo, ao) in zip(self.obstacles, self._obstacle_states(t), strict=True):
+            h, hd, n, curv = sphere_barrier(self._p, self._v, po, vo, ob.radius + self.agent_radius)
+            if kind == "zero":
+                lf, lg = 0.0, np.zeros(self.dim)
+            elif kind == "kinematic":
+                lf, lg = curv - float(n @ ao), np.zeros(self.dim)
+            else:
+                lf = float(n @ (drift - ao)) + curv
+                lg = n * (self.max_force * inv_m)
+            xi = np.concatenate([self._p, self._v, self._p - po, self._v - vo])
+            out.append(BarrierTerms(np.array([h, hd]), float(lf), lg, xi))
+        return out
+
+    # ------------------------------------------------------------------ gym API
+    def _get_obs(self) -> np.ndarray:
+        t = self.time
+        states = self._obstacle_states(t)
+        r, rd, rdd = self.reference.state(t)
+        obs = np.concatenate(
+            [self._p, self._v] + [s[0] for s in states] + [s[1] for s in states] + [r, rd, rdd]
+        )
+        return np.clip(obs, -self._obs_high, self._obs_high).astype(np.float32)
+
+    def _h_values(self) -> np.ndarray:
+        return np.array(
+            [
+                np.linalg.norm(self._p - po) - ob.radius - self.agent_radius
+                for ob, (po, _, _) in zip(
+                    self.obstacles, self._obstacle_states(self.time), strict=True
+                )
+            ]
+        )
+
+    def _get_rew(self, u: np.ndarray) -> tuple[float, dict[str, float]]:
+        r, _, _ = self.reference.state(self.time)
+        track = -self.tracking_weight * float(np.linalg.norm(self._p - r))
+        ctrl = -self.control_weight * float(u @ u)
+        return track + ctrl, {"reward_tracking": track, "reward_ctrl": ctrl}
+
+    def _safety_info(self, hs: np.ndarray) -> dict[str, Any]:
+        unsafe = bool(np.any(hs < 0))
+        return {
+            "cost": 1.0 if unsafe else 0.0,
+            "h": float(np.min(hs)),
+            "h_per_obstacle": hs,
+            "collision": unsafe,
+        }
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        self._steps = 0
+        if self.scenario == "random":
+            self._build_scenario(self.np_random)
+        r, _, _ = self.reference.state(0.0)
+        noise = self.np_random.uniform(-self.reset_noise, self.reset_noise, self.dim)
+        self._p = r + noise
+        self._v = np.zeros(self.dim)
+        info = self._safety_info(self._h_values())
+        info.update(
+            delta_b_true=np.zeros(self.n_obstacles),
+            unstable=False,
+            time=0.0,
+        )
+        return self._get_obs(), info
+
+    def step(self, action):
+        a = check_action(action, self.action_space.shape)
+        u = np.clip(a, -1.0, 1.0)
+        true_terms = self.barrier_terms("true")
+        nom_terms = self.barrier_terms("nominal")
+        delta = np.array(
+            [
+                (tt.lf + tt.lg @ u) - (tn.lf + tn.lg @ u)
+                for tt, tn in zip(true_terms, nom_terms, strict=True)
+            ]
+        )
+        self._integrate(u)
+        self._steps += 1
+        unstable = not (np.all(np.isfinite(self._p)) and np.all(np.isfinite(self._v)))
+        if unstable:
+            self._p = np.nan_to_num(self._p, nan=0.0, posinf=10.0, neginf=-10.0)
+            self._v = np.zeros(self.dim)
+        hs = self._h_values()
+        reward, reward_info = self._get_rew(u)
+        info = self._safety_info(hs)
+        info.update(reward_info)
+        info.update(delta_b_true=delta, unstable=unstable, time=self.time)
+        out = bool(np.max(np.abs(self._p)) > self.workspace_limit)
+        if self.render_mode == "human":  # pragma: no cover - no human mode here
+            self.render()
+        return self._get_obs(), reward, unstable or out, False, info
+
+    def render(self):
+        if self.render_mode != "rgb_array":
+            return None
+        c = Canvas(256, 1.0)
+        for ob, (po, _, _) in zip(self.obstacles, self._obstacle_states(self.time), strict=True):
+            c.disc(po, ob.radius, (220, 60, 60))
+        r, _, _ = self.reference.state(self.time)
+        c.disc(r, 0.02, (40, 170, 40))
+        c.disc(self._p, self.agent_radius, (40, 80, 220))
+        return c.img.copy()

@@ -1,0 +1,190 @@
+"""Analytic reference motions and obstacle trajectories shared by the environments.
+
+Everything here is a closed-form function of time returning ``(position, velocity,
+acceleration)`` so that the barrier terms can include the exact obstacle acceleration and the
+reference feed-forward (paper section VI, Fig. 3).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+
+def quintic(tau: float) -> tuple[float, float, float]:
+    """Minimum-jerk blend S(tau) = 10 tau^3 - 15 tau^4 + 6 tau^5 clamped to [0, 1].
+
+    Returns ``(S, dS/dtau, d2S/dtau2)``; S' and S'' vanish at both ends.
+    """
+    if tau <= 0.0:
+        return 0.0, 0.0, 0.0
+    if tau >= 1.0:
+        return 1.0, 0.0, 0.0
+    t2 = tau * tau
+    s = t2 * tau * (10.0 - 15.0 * tau + 6.0 * t2)
+    ds = 30.0 * t2 * (1.0 - tau) ** 2
+    dds = 60.0 * tau * (1.0 - tau) * (1.0 - 2.0 * tau)
+    return s, ds, dds
+
+
+#: Peak of dS/dtau for the quintic blend (at tau = 1/2).
+QUINTIC_PEAK_SLOPE = 1.875
+
+
+@dataclass(frozen=True)
+class ObstacleSpec:
+    """A sphere that rests at ``start``, then moves to ``position`` and stays there.
+
+    The move starts at ``start_time`` (s) and follows the quintic blend with peak speed
+    ``speed`` (m/s), so velocity and acceleration are continuous and bounded by
+    ``speed`` and ``5.77 * speed**2 / |position - start|``. ``start=None`` means static.
+    """
+
+    position: np.ndarray
+    radius: float
+    start: np.ndarray | None = None
+    start_time: float = 0.0
+    speed: float = 0.2
+
+    @property
+    def duration(self) -> float:
+        if self.start is None:
+            return 0.0
+        dist = float(np.linalg.norm(self.position - self.start))
+        return QUINTIC_PEAK_SLOPE * dist / self.speed if dist > 0 else 0.0
+
+    def state(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Obstacle centre position, velocity and acceleration at time ``t``."""
+        zero = np.zeros_like(self.position)
+        if self.start is None or self.duration == 0.0:
+            return self.position.copy(), zero, zero.copy()
+        T = self.duration
+        s, ds, dds = quintic((t - self.start_time) / T)
+        delta = self.position - self.start
+        return self.start + s * delta, (ds / T) * delta, (dds / T**2) * delta
+
+
+OBSTACLE_KEYS = ("position", "radius", "start", "start_time", "speed")
+
+
+def parse_obstacles(obstacles: Sequence[Mapping], dim: int, default_start_time: float) -> list:
+    """Build ObstacleSpecs from user dicts; ValueError names the bad key or value."""
+    if isinstance(obstacles, Mapping) or not isinstance(obstacles, Sequence) or not obstacles:
+        raise ValueError(f"obstacles must be a non-empty list of dicts with keys {OBSTACLE_KEYS}")
+    specs = []
+    for i, ob in enumerate(obstacles):
+        if isinstance(ob, ObstacleSpec):
+            specs.append(ob)
+            continue
+        if not isinstance(ob, Mapping):
+            raise ValueError(f"obstacles[{i}] must be a dict with keys {OBSTACLE_KEYS}")
+        unknown = set(ob) - set(OBSTACLE_KEYS)
+        if unknown:
+            raise ValueError(
+                f"obstacles[{i}] has unknown keys {sorted(unknown)}; valid: {OBSTACLE_KEYS}"
+            )
+        if "position" not in ob or "radius" not in ob:
+            raise ValueError(f"obstacles[{i}] needs 'position' and 'radius'")
+        pos = np.asarray(ob["position"], dtype=np.float64)
+        start = None if ob.get("start") is None else np.asarray(ob["start"], dtype=np.float64)
+        for name, arr in (("position", pos), ("start", start)):
+            if arr is not None and (arr.shape != (dim,) or not np.all(np.isfinite(arr))):
+                raise ValueError(f"obstacles[{i}]['{name}'] must be finite with shape ({dim},)")
+        radius = float(ob["radius"])
+        speed = float(ob.get("speed", 0.2))
+        if not (np.isfinite(radius) and radius > 0):
+            raise ValueError(f"obstacles[{i}]['radius'] must be > 0, got {radius}")
+        if not (np.isfinite(speed) and speed > 0):
+            raise ValueError(f"obstacles[{i}]['speed'] must be > 0, got {speed}")
+        t0 = float(ob.get("start_time", default_start_time))
+        specs.append(ObstacleSpec(pos, radius, start, t0, speed))
+    return specs
+
+
+@dataclass(frozen=True)
+class CyclicReference:
+    """Cyclic reference ``r(t) = c + a(t) sin(2 pi t / period) w(t)`` (paper Fig. 3).
+
+    ``a(t)`` grows from ``warmup_amplitude`` to ``amplitude`` over
+    ``[ramp_start, ramp_start + ramp_duration]`` (so the motion stays small and away from the
+    obstacles during warm-up); the motion direction ``w(t)`` turns from ``axis1`` ("y") to
+    ``axis2`` ("z") over ``[switch_time, switch_time + switch_duration]`` (unseen data).
+    All blends are quintic, so r, r' and r'' are continuous.
+    """
+
+    center: np.ndarray
+    axis1: np.ndarray
+    axis2: np.ndarray
+    amplitude: float
+    warmup_amplitude: float
+    period: float
+    ramp_start: float
+    ramp_duration: float = 1.0
+    switch_time: float = np.inf
+    switch_duration: float = 0.5
+
+    def state(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Reference position, velocity and acceleration at time ``t``."""
+        # amplitude a(t)
+        b, db, ddb = quintic((t - self.ramp_start) / self.ramp_duration)
+        span = self.amplitude - self.warmup_amplitude
+        a = self.warmup_amplitude + span * b
+        da = span * db / self.ramp_duration
+        dda = span * ddb / self.ramp_duration**2
+        # oscillation s(t)
+        w0 = 2.0 * np.pi / self.period
+        s, ds, dds = np.sin(w0 * t), w0 * np.cos(w0 * t), -(w0**2) * np.sin(w0 * t)
+        # direction w(t) = cos(th) e1 + sin(th) e2, th = pi/2 S((t - ts) / Tb)
+        if np.isfinite(self.switch_time):
+            q, dq, ddq = quintic((t - self.switch_time) / self.switch_duration)
+        else:
+            q, dq, ddq = 0.0, 0.0, 0.0
+        k = 0.5 * np.pi
+        th, dth = k * q, k * dq / self.switch_duration
+        ddth = k * ddq / self.switch_duration**2
+        e_r = np.cos(th) * self.axis1 + np.sin(th) * self.axis2
+        e_t = -np.sin(th) * self.axis1 + np.cos(th) * self.axis2
+        w, dw, ddw = e_r, dth * e_t, ddth * e_t - dth**2 * e_r
+        pos = self.center + a * s * w
+        vel = (da * s + a * ds) * w + a * s * dw
+        acc = (dda * s + 2 * da * ds + a * dds) * w + 2 * (da * s + a * ds) * dw + a * s * ddw
+        return pos, vel, acc
+
+
+def sphere_barrier(
+    p: np.ndarray, v: np.ndarray, p_obs: np.ndarray, v_obs: np.ndarray, radius: float
+) -> tuple[float, float, np.ndarray, float]:
+    """Kinematic part of h = |p - p_obs| - radius.
+
+    Returns ``(h, hdot, n, curvature)`` with n = d/|d| and
+    ``h'' = n . (a - a_obs) + curvature``, curvature = (|v_rel|^2 - (n . v_rel)^2) / |d|.
+    """
+    d = p - p_obs
+    dist = float(np.sqrt(d @ d))
+    dist = max(dist, 1e-9)
+    n = d / dist
+    vr = v - v_obs
+    ndv = float(n @ vr)
+    curv = (float(vr @ vr) - ndv * ndv) / dist
+    return dist - radius, ndv, n, curv
+
+
+def check_action(action, shape: tuple[int, ...]) -> np.ndarray:
+    """float64 copy of ``action``; ValueError on wrong shape or non-finite entries."""
+    try:
+        a = np.array(action, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"action must be numeric with shape {shape}: {exc}") from None
+    if a.shape != shape:
+        raise ValueError(f"action must have shape {shape}, got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"action must be finite (no NaN/inf), got {a}")
+    return a
+
+
+def check_choice(name: str, value, valid: Sequence[str]) -> str:
+    if value not in valid:
+        raise ValueError(f"{name}={value!r} is not valid; choose one of {list(valid)}")
+    return value
