@@ -1,0 +1,142 @@
+"""SafetyFilter: a Gymnasium wrapper projecting every action through the learned HOCBF SOCP."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from afvsgp_gym.cbf import SafetyController
+from afvsgp_gym.cbf.learners import check_learner_name
+
+__all__ = ["SafetyFilter"]
+
+_INFO_KEYS = (
+    "action_proposed",
+    "action_applied",
+    "filter_active",
+    "filter_feasible",
+    "filter_status",
+    "delta_b_mean",
+    "delta_b_std",
+    "filter_time_s",
+    "warmup",
+)
+
+
+class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
+    """Filter the agent's actions with a chance-constrained HOCBF SOCP learned online.
+
+    A thin layer over :class:`afvsgp_gym.cbf.SafetyController` (paper Algorithm 1): at each
+    step it reads ``env.unwrapped.barrier_terms("nominal")`` (and ``"true"`` for the oracle),
+    solves the SOCP of eq. 05 around a copy of the proposed action (the caller's array is never
+    written), steps the env with the safe action and feeds the eq. 48 measurement to the
+    learners. The controller, and what it learned, persist across episodes.
+
+    The wrapped env must provide ``barrier_terms(model)``, ``dt``, ``relative_degree`` and
+    ``n_obstacles`` on ``env.unwrapped`` and a finite ``Box`` action space. Its
+    ``warmup_steps`` (steps after reset with the obstacles kept away) bounds the default
+    number of warm-up samples: ``min(200, warmup_steps - 1)``.
+
+    Args:
+        env: the environment.
+        learner: one of ``afvsgp_gym.cbf.LEARNERS`` ("none", "oracle", "gp", "vsgp", "sogp",
+            "afvsgp").
+        **options: keyword options of :class:`~afvsgp_gym.cbf.SafetyController` (``alpha``,
+            ``beta``, ``warmup_samples``, ``exploration_noise``, ``learner_kwargs``,
+            ``dataset``, ``online``, ``qp_solver``, ``seed``, ...).
+
+    info keys added at every step: ``"action_proposed"``, ``"action_applied"``,
+    ``"filter_active"``, ``"filter_feasible"``, ``"filter_status"``, ``"delta_b_mean"``,
+    ``"delta_b_std"`` (per obstacle), ``"filter_time_s"``, ``"warmup"``; ``"delta_b_true"``
+    comes from the env. ``filter_fallbacks`` counts infeasible steps since the last reset.
+
+    Example:
+        >>> import gymnasium as gym
+        >>> import numpy as np
+        >>> import afvsgp_gym
+        >>> from afvsgp_gym.wrappers import SafetyFilter
+        >>> env = gym.make("afvsgp_gym/PointMassObstacle-v0", nominal_model="exact")
+        >>> env = SafetyFilter(env, learner="none")
+        >>> obs, info = env.reset(seed=0)
+        >>> action = np.ones(2, dtype=np.float32)
+        >>> obs, reward, terminated, truncated, info = env.step(action)
+        >>> action.tolist(), bool(info["filter_feasible"]), info["action_applied"].dtype
+        ([1.0, 1.0], True, dtype('float32'))
+
+    Change logs:
+     * v0.1.0 - Initially added.
+    """
+
+    def __init__(self, env: gym.Env, learner: str = "afvsgp", **options: Any):
+        gym.utils.RecordConstructorArgs.__init__(self, learner=learner, **options)
+        gym.Wrapper.__init__(self, env)
+        check_learner_name(learner)
+        base = env.unwrapped
+        for attr in ("barrier_terms", "dt", "relative_degree", "n_obstacles"):
+            if not hasattr(base, attr):
+                raise TypeError(f"SafetyFilter needs env.unwrapped.{attr}; {base} has none")
+        space = env.action_space
+        if not isinstance(space, gym.spaces.Box):
+            raise TypeError(f"SafetyFilter needs a Box action space. Got: {space}")
+        low = np.asarray(space.low, dtype=np.float64)
+        high = np.asarray(space.high, dtype=np.float64)
+        if not (np.all(np.isfinite(low)) and np.all(np.isfinite(high))):
+            raise ValueError(f"SafetyFilter needs finite action bounds. Got: {space}")
+        options = dict(options)
+        warmup_steps = getattr(base, "warmup_steps", None)
+        if "warmup_samples" not in options and warmup_steps is not None:
+            options["warmup_samples"] = int(max(2, min(200, warmup_steps - 1)))
+        self.controller = SafetyController(
+            low,
+            high,
+            n_obstacles=int(base.n_obstacles),
+            relative_degree=int(base.relative_degree),
+            learner=learner,
+            **options,
+        )
+        self._dtype = space.dtype
+        self.filter_fallbacks = 0
+
+    @property
+    def learning(self) -> bool:
+        """Whether the learners are updated online (set False to freeze them for evaluation)."""
+        return self.controller.learning
+
+    @learning.setter
+    def learning(self, value: bool) -> None:
+        self.controller.learning = bool(value)
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        self.filter_fallbacks = 0
+        return self.env.reset(seed=seed, options=options)
+
+    def step(self, action):
+        base = self.env.unwrapped
+        proposed = np.array(action, dtype=np.float64).reshape(self.action_space.shape)  # copy
+        terms = base.barrier_terms("nominal")
+        true_terms = (
+            base.barrier_terms("true") if self.controller.learner_name == "oracle" else None
+        )
+        res = self.controller.filter(proposed, terms, true_terms)
+        applied = res.u.astype(self._dtype)
+        obs, reward, terminated, truncated, info = self.env.step(applied)
+        self.controller.observe(
+            terms, applied.astype(np.float64), base.barrier_terms("nominal"), float(base.dt)
+        )
+        if not res.feasible:
+            self.filter_fallbacks += 1
+        info = dict(info)
+        info.update(
+            action_proposed=proposed,
+            action_applied=applied,
+            filter_active=bool(res.active),
+            filter_feasible=bool(res.feasible),
+            filter_status=res.status,
+            delta_b_mean=res.delta_b_mean,
+            delta_b_std=res.delta_b_std,
+            filter_time_s=float(res.solve_time_s),
+            warmup=bool(res.warmup),
+        )
+        return obs, reward, terminated, truncated, info

@@ -1,0 +1,137 @@
+"""SafetyFilter on the point-mass env: info keys, action handling, bad input, vector envs."""
+
+import doctest
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import afvsgp_gym  # noqa: F401  (registers the ids)
+import afvsgp_gym.wrappers.safety_filter as sf_module
+from afvsgp_gym.agents import NominalController
+from afvsgp_gym.cbf import LEARNERS
+from afvsgp_gym.envs.point_mass import PointMassObstacleEnv
+from afvsgp_gym.wrappers import SafetyFilter
+
+PM = "afvsgp_gym/PointMassObstacle-v0"
+KEYS = (
+    "action_proposed",
+    "action_applied",
+    "filter_active",
+    "filter_feasible",
+    "delta_b_mean",
+    "delta_b_std",
+    "delta_b_true",
+    "filter_time_s",
+    "warmup",
+)
+
+
+def run_episode(env, seed, max_steps=None):
+    policy = NominalController(env.unwrapped)
+    obs, _ = env.reset(seed=seed)
+    hs, infos = [], []
+    while True:
+        obs, _, term, trunc, info = env.step(policy(obs))
+        hs.append(info["h"])
+        infos.append(info)
+        if term or trunc or (max_steps and len(hs) >= max_steps):
+            return np.array(hs), infos
+
+
+def test_doctest_example():
+    res = doctest.testmod(sf_module)
+    assert res.attempted > 0 and res.failed == 0
+
+
+def test_info_keys_and_action_is_copied():
+    env = SafetyFilter(gym.make(PM, nominal_model="exact"), learner="none")
+    env.reset(seed=0)
+    action = np.array([1.0, -0.3], dtype=np.float32)
+    before = action.copy()
+    _, _, _, _, info = env.step(action)
+    np.testing.assert_array_equal(action, before)
+    for key in KEYS:
+        assert key in info
+    assert info["action_applied"].dtype == np.float32
+    assert env.action_space.contains(info["action_applied"])
+    assert info["action_proposed"] is not action
+
+
+def test_zero_nominal_none_violates_and_oracle_is_safe():
+    h_none, _ = run_episode(SafetyFilter(gym.make(PM), learner="none"), seed=0)
+    h_oracle, infos = run_episode(SafetyFilter(gym.make(PM), learner="oracle"), seed=0)
+    assert h_none.min() < 0
+    assert h_oracle.min() >= 0
+    assert all(i["filter_feasible"] for i in infos)
+    assert any(i["filter_active"] for i in infos)
+
+
+class NaNTermsEnv(PointMassObstacleEnv):
+    """The point mass whose barrier terms turn NaN after ``nan_after`` steps (a sensor fault)."""
+
+    def __init__(self, nan_after=5, **kw):
+        super().__init__(**kw)
+        self.nan_after = nan_after
+
+    def barrier_terms(self, model="nominal"):
+        terms = super().barrier_terms(model)
+        if self._steps >= self.nan_after:
+            t = terms[0]
+            terms[0] = type(t)(t.derivatives * np.nan, t.lf, t.lg, t.xi * np.nan)
+        return terms
+
+
+@pytest.mark.parametrize("learner", ["none", "oracle"])
+def test_nan_barrier_terms_give_flagged_fallback(learner):
+    env = SafetyFilter(gym.wrappers.TimeLimit(NaNTermsEnv(), 20), learner=learner)
+    _, infos = run_episode(env, seed=0)
+    for info in infos[6:]:
+        assert not info["filter_feasible"]
+        assert np.all(np.isfinite(info["action_applied"]))
+        assert env.action_space.contains(info["action_applied"])
+    assert env.filter_fallbacks >= 14
+
+
+def test_nan_action_gives_flagged_fallback():
+    env = SafetyFilter(gym.make(PM, nominal_model="exact"), learner="none")
+    env.reset(seed=0)
+    _, _, _, _, info = env.step(np.array([np.nan, 0.0], dtype=np.float32))
+    assert not info["filter_feasible"]
+    assert np.all(np.isfinite(info["action_applied"]))
+
+
+def test_unknown_learner_lists_valid_names():
+    with pytest.raises(ValueError) as exc:
+        SafetyFilter(gym.make(PM), learner="ekf")
+    for name in LEARNERS:
+        assert repr(name) in str(exc.value)
+
+
+def test_env_without_barrier_terms_is_rejected():
+    with pytest.raises(TypeError, match="barrier_terms"):
+        SafetyFilter(gym.make("CartPole-v1"))
+
+
+def test_learning_property_and_constructor_args():
+    env = SafetyFilter(gym.make(PM), learner="none", alpha=2.0)
+    assert env.learning
+    env.learning = False
+    assert not env.controller.learning
+    assert env._saved_kwargs == {"learner": "none", "alpha": 2.0}
+    assert env.controller.warmup_samples == 200
+
+
+def test_make_vec_sync():
+    envs = gym.make_vec(
+        PM,
+        num_envs=2,
+        vectorization_mode="sync",
+        wrappers=[lambda e: SafetyFilter(e, learner="oracle")],
+    )
+    obs, _ = envs.reset(seed=0)
+    for _ in range(3):
+        obs, _, _, _, info = envs.step(envs.action_space.sample())
+    assert info["filter_feasible"].shape == (2,)
+    assert np.all(np.isfinite(obs))
+    envs.close()
