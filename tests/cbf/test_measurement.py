@@ -44,3 +44,24 @@ def test_bad_dt(dt):
     t = BarrierTerms(np.zeros(2), 0.0, np.zeros(1), np.zeros(1))
     with pytest.raises(ValueError, match="dt"):
         measure(t, np.zeros(1), t, dt)
+
+
+def test_matches_point_mass_delta_b_true():
+    """Against the env's ground truth (true minus nominal h'' for the applied action)."""
+    from afvsgp_gym.envs.point_mass import PointMassObstacleEnv
+
+    env = PointMassObstacleEnv(nominal_model="zero")
+    env.reset(seed=0)
+    rng = np.random.default_rng(0)
+    errs, truth = [], []
+    for _ in range(300):
+        u = rng.uniform(-1, 1, 2)
+        before = env.barrier_terms("nominal")[0]
+        _, _, _, _, info = env.step(u.astype(np.float32))
+        after = env.barrier_terms("nominal")[0]
+        _, z = measure(before, u.astype(np.float32).astype(float), after, env.dt)
+        errs.append(z - info["delta_b_true"][0])
+        truth.append(info["delta_b_true"][0])
+    errs, truth = np.array(errs), np.array(truth)
+    # pre-step truth vs midpoint measurement: O(dt) apart, small against the uncertainty scale
+    assert np.sqrt(np.mean(errs**2)) < 0.05 * np.std(truth)
