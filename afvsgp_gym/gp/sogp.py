@@ -45,7 +45,7 @@ import warnings
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import cho_solve, solve_triangular
+from scipy.linalg import lapack
 from scipy.optimize import minimize
 
 from afvsgp_gym.gp._linalg import (
@@ -73,42 +73,78 @@ class _State:
     xi: np.ndarray  # [M, b]
     u: np.ndarray  # [M, m]
     ub: np.ndarray  # [M, m+1]
+    kbb: np.ndarray  # [M, M] K_bb without jitter
     chol: np.ndarray  # [M, M] L_b = chol(K_bb + eps I)
+    chol_inv: np.ndarray  # [M, M] L_b^-1
     eps: float  # absolute jitter in chol
     phi: np.ndarray  # [M, M] Phit_b
     r: np.ndarray  # [M] rt_b
-    chol_d: np.ndarray  # [M, M] chol(I + Phit_b)
+    d_inv: np.ndarray  # [M, M] (I + Phit_b)^-1
+    const: float  # 1/2 log|I + Phit| - 1/2 rt' (I + Phit)^-1 rt (Delta_a part)
     w: np.ndarray  # [M] K_bb^-1 m_b (mean weights)
     q: np.ndarray  # [M, M] K_bb^-1 - K_bb^-1 S_b K_bb^-1
-    const: float  # 1/2 log|I + Phit| - 1/2 rt' (I + Phit)^-1 rt (Delta_a part)
     theta: np.ndarray  # kernel parameters the state was formed with
+    inv_ls: np.ndarray  # [m+1, b] prediction caches: 1 / lengthscales,
+    var: np.ndarray  # [m+1] component variances,
+    xs: np.ndarray  # [m+1, M, b] scaled inducing inputs,
+    ns: np.ndarray  # [m+1, M] and their squared norms
 
     @property
     def size(self) -> int:
         return self.xi.shape[0]
 
 
-def _make_state(xi, u, ub, chol, eps, phi, r, theta, chol_d=None) -> _State:
-    """Complete a state from (L_b, Phit, rt): predictive caches and the Delta constant."""
+def _make_state(kernel: ADPKernel, xi, u, ub, kbb, post, eps) -> _State:
+    """Complete a state from a step's ``post = (L_b, L_b^-1, Phit, rt, L_D, L_D^-1)``."""
+    chol, chol_inv, phi, r, ld, ld_inv = post
     m = xi.shape[0]
-    eye = np.eye(m)
-    phi = 0.5 * (phi + phi.T)
-    if chol_d is None:
-        chol_d = jittered_cholesky(eye + phi, name="I + Phi")
-    d_inv = cho_solve((chol_d, True), eye, check_finite=False)
-    alpha = solve_triangular(chol_d, r, lower=True, check_finite=False)
-    w = solve_triangular(chol, d_inv @ r, lower=True, trans="T", check_finite=False)
-    l_inv = solve_triangular(chol, eye, lower=True, check_finite=False)
-    q = l_inv.T @ (eye - d_inv) @ l_inv
+    d_inv = ld_inv.T @ ld_inv
+    alpha = ld_inv @ r
+    w = chol_inv.T @ (d_inv @ r)
+    q = chol_inv.T @ (np.eye(m) - d_inv) @ chol_inv
     q = 0.5 * (q + q.T)
-    const = float(np.sum(np.log(np.diag(chol_d))) - 0.5 * alpha @ alpha)
-    return _State(xi, u, ub, chol, float(eps), phi, r, chol_d, w, q, const, theta.copy())
+    if not (np.all(np.isfinite(w)) and np.all(np.isfinite(q))):
+        raise np.linalg.LinAlgError("non-finite posterior; check hyperparameters and inputs")
+    const = float(np.sum(np.log(np.diag(ld))) - 0.5 * alpha @ alpha)
+    inv_ls = 1.0 / kernel.lengthscales
+    xs = xi[None, :, :] * inv_ls[:, None, :]
+    return _State(xi, u, ub, kbb, chol, chol_inv, float(eps), phi, r, d_inv, const, w, q,
+                  kernel.theta, inv_ls, kernel.variances, xs, np.einsum("imb,imb->im", xs, xs))
 
 
-def _empty_state(b: int, m: int, theta: np.ndarray) -> _State:
-    z2 = np.zeros((0, 0))
-    return _State(np.zeros((0, b)), np.zeros((0, m)), np.zeros((0, m + 1)), z2, 0.0, z2,
-                  np.zeros(0), z2, np.zeros(0), z2, 0.0, theta.copy())
+def _empty_state(kernel: ADPKernel, b: int, m: int) -> _State:
+    z2, z1 = np.zeros((0, 0)), np.zeros(0)
+    c = kernel.n_components
+    return _State(np.zeros((0, b)), np.zeros((0, m)), np.zeros((0, m + 1)), z2, z2, z2, 0.0,
+                  z2, z1, z2, 0.0, z1, z2, kernel.theta, 1.0 / kernel.lengthscales,
+                  kernel.variances, np.zeros((c, 0, b)), np.zeros((c, 0)))
+
+
+def _chol(a: np.ndarray, name: str) -> np.ndarray:
+    """Lower Cholesky (LAPACK fast path; on failure ``jittered_cholesky``, which warns)."""
+    low, info = lapack.dpotrf(a, lower=1, clean=1)
+    if info == 0 and np.all(np.isfinite(np.diag(low))):
+        return low
+    return jittered_cholesky(a, name=name)
+
+
+def _tri_inv(low: np.ndarray) -> np.ndarray:
+    """Inverse of a lower-triangular factor."""
+    if low.shape[0] == 0:
+        return low.copy()
+    inv, info = lapack.dtrtri(low, lower=1)
+    if info != 0:
+        raise np.linalg.LinAlgError("singular triangular factor")
+    return inv
+
+
+def _gram(kernel: ADPKernel, xi1, ub1, xi2=None, ub2=None) -> np.ndarray:
+    """ADP gram (eq. 19) from the kernel's RBF components; ``ub`` = ubar rows."""
+    comp = kernel._components(xi1, xi2)  # [m+1, N1, N2]
+    if xi2 is None:
+        gram = np.einsum("inj,ni,ji->nj", comp, ub1, ub1)
+        return 0.5 * (gram + gram.T)
+    return np.einsum("inj,ni,ji->nj", comp, ub1, ub2)
 
 
 def _select(diag: np.ndarray, column, num: int, tol: float = SELECTION_TOL) -> np.ndarray:
@@ -121,19 +157,36 @@ def _select(diag: np.ndarray, column, num: int, tol: float = SELECTION_TOL) -> n
     c = diag.shape[0]
     k_max = min(num, c)
     d = diag.astype(np.float64, copy=True)
-    scale = float(d.max()) if c else 0.0
-    lcols = np.zeros((c, k_max))
-    chosen: list[int] = []
-    for k in range(k_max):
-        j = int(np.argmax(d))
-        if not d[j] > tol * scale:
+    floor = tol * float(d.max()) if c else 0.0
+    lcols = np.zeros((k_max, c))
+    chosen = np.empty(k_max, dtype=np.intp)
+    k = 0
+    while k < k_max:
+        j = int(d.argmax())
+        dj = d[j]
+        if not dj > floor:
             break
-        col = (column(j) - lcols[:, :k] @ lcols[j, :k]) / np.sqrt(d[j])
-        lcols[:, k] = col
+        col = column(j) - lcols[:k, j] @ lcols[:k]
+        col *= 1.0 / np.sqrt(dj)
+        lcols[k] = col
         d -= col * col
         d[j] = -np.inf
-        chosen.append(j)
-    return np.sort(np.asarray(chosen, dtype=np.intp))
+        chosen[k] = j
+        k += 1
+    return np.sort(chosen[:k])
+
+
+def _select_pool(kpp: np.ndarray, num: int, tol: float = SELECTION_TOL) -> np.ndarray:
+    """``_select`` on a small explicit candidate gram via LAPACK pivoted Cholesky (dpstrf).
+
+    dpstrf pivots on the largest residual diagonal, i.e. the same greedy rule, in one call.
+    """
+    if kpp.shape[0] == 0:
+        return np.zeros(0, dtype=np.intp)
+    _, piv, rank, info = lapack.dpstrf(kpp, tol=tol * float(np.max(np.diag(kpp))), lower=1)
+    if info < 0:
+        return _select(np.diag(kpp), lambda j: kpp[:, j], num, tol)
+    return np.sort(piv[:min(rank, num)].astype(np.intp) - 1)
 
 
 class _Step:
@@ -143,40 +196,54 @@ class _Step:
         self.kbb, self.kbf, self.kffd, self.kba, self.kaa = kbb, kbf, kffd, kba, kaa
         self.y, self.s2, self.prior = y, float(s2), prior
 
+    def _data_terms(self, phi, r, a) -> tuple[float, tuple, np.ndarray]:
+        """Shared tail: factor D = I + Phit; value without the Delta_a terms."""
+        y, s2 = self.y, self.s2
+        phi = 0.5 * (phi + phi.T)
+        ld = _chol(np.eye(phi.shape[0]) + phi, "I + Phi")
+        ld_inv = _tri_inv(ld)
+        alpha = ld_inv @ r
+        value = (-0.5 * y.shape[0] * np.log(2.0 * np.pi * s2)
+                 - 0.5 * (y @ y + self.kffd.sum()) / s2
+                 + 0.5 * np.sum(a * a) + 0.5 * alpha @ alpha - np.sum(np.log(np.diag(ld))))
+        return float(value), (phi, r, ld, ld_inv), ld_inv
+
+    def same_set(self):
+        """``b = a``, same hyperparameters: ``G = I``, information adds (no projection)."""
+        pr = self.prior
+        a = pr.chol_inv @ self.kbf / np.sqrt(self.s2)
+        rf = a @ self.y / np.sqrt(self.s2)
+        value, post, _ = self._data_terms(pr.phi + a @ a.T, pr.r + rf, a)
+        return value + pr.const, (pr.chol, pr.chol_inv, *post)
+
     def bound(self, grad: bool = False):
         """Collapsed online bound F (module docstring) and, if ``grad``, its adjoints.
 
-        Returns ``(F, (L_b, Phit_b, rt_b, chol(D)), adj)`` with ``adj`` a dict of dF/dK for
-        ``kbb, kbf, kba, kaa, kffd`` (entries treated as independent) and ``log_s2``.
+        Returns ``(F, (L_b, L_b^-1, Phit_b, rt_b, L_D, L_D^-1), adj)``; ``adj`` holds dF/dK
+        for ``kbb, kbf, kba, kaa, kffd`` (entries treated as independent) and ``log_s2``.
         """
         y, s2, pr = self.y, self.s2, self.prior
         n, ma = y.shape[0], pr.size
         sig = np.sqrt(s2)
-        lb = jittered_cholesky(self.kbb, name="K_bb")
-        mb = lb.shape[0]
-        a = solve_triangular(lb, self.kbf, lower=True, check_finite=False) / sig  # [Mb, n]
+        lb = _chol(self.kbb, "K_bb")
+        li = _tri_inv(lb)
+        a = li @ self.kbf / sig  # [Mb, n]
         rf = a @ y / sig
-        phi = a @ a.T
-        r = rf
+        phi, r = a @ a.T, rf
         if ma:
-            ct = solve_triangular(pr.chol, self.kba.T, lower=True, check_finite=False)
-            g = solve_triangular(lb, ct.T, lower=True, check_finite=False)  # [Mb, Ma]
+            g = li @ self.kba @ pr.chol_inv.T  # [Mb, Ma] = L_b^-1 K_ba L'^-T
             gp = g @ pr.phi
             phi = phi + gp @ g.T
             r = rf + g @ pr.r
-        phi = 0.5 * (phi + phi.T)
-        eye = np.eye(mb)
-        ld = jittered_cholesky(eye + phi, name="I + Phi")
-        alpha = solve_triangular(ld, r, lower=True, check_finite=False)
-        value = (-0.5 * n * np.log(2.0 * np.pi * s2) - 0.5 * (y @ y + self.kffd.sum()) / s2
-                 + 0.5 * np.sum(a * a) + 0.5 * alpha @ alpha - np.sum(np.log(np.diag(ld))))
+        value, post, ld_inv = self._data_terms(phi, r, a)
         if ma:
-            h = self._white_kaa()
+            h = (np.eye(ma) if self.kaa is None
+                 else pr.chol_inv @ self.kaa @ pr.chol_inv.T)  # L'^-1 K_aa L'^-T
             value += pr.const - 0.5 * np.sum(pr.phi * (h - g.T @ g))
-        post = (lb, phi, r, ld)
+        post = (lb, li, *post)
         if not grad:
-            return float(value), post, None
-        d_inv = cho_solve((ld, True), eye, check_finite=False)
+            return value, post, None
+        d_inv = ld_inv.T @ ld_inv
         beta = d_inv @ r
         phibar = -0.5 * (np.outer(beta, beta) + d_inv)
         abar_q = 2.0 * phibar @ a + a  # through Phit and |A|^2
@@ -188,29 +255,15 @@ class _Step:
             ymat, ybar = np.hstack([a, g]), np.hstack([abar, gbar])
         else:
             ymat, ybar = a, abar
-        s = ymat @ ybar.T
-        s = 0.5 * (s + s.T)
-        t = solve_triangular(lb, s, lower=True, trans="T", check_finite=False)
-        kbb_bar = -0.5 * solve_triangular(lb, t.T, lower=True, trans="T", check_finite=False)
-        xbar = solve_triangular(lb, ybar, lower=True, trans="T", check_finite=False)
-        adj = {"kbb": 0.5 * (kbb_bar + kbb_bar.T), "kbf": xbar[:, :n] / sig,
-               "kffd": np.full(n, -0.5 / s2), "log_s2": float(d_logs2)}
+        s = ymat @ ybar.T  # symmetric in exact arithmetic (F is rotation invariant)
+        kbb_bar = -0.25 * li.T @ (s + s.T) @ li
+        xbar = li.T @ ybar
+        adj = {"kbb": kbb_bar, "kbf": xbar[:, :n] / sig, "kffd": np.full(n, -0.5 / s2),
+               "log_s2": float(d_logs2)}
         if ma:
-            adj["kba"] = solve_triangular(pr.chol, xbar[:, n:].T, lower=True, trans="T",
-                                          check_finite=False).T
-            t = solve_triangular(pr.chol, -0.5 * pr.phi, lower=True, trans="T",
-                                 check_finite=False)
-            adj["kaa"] = solve_triangular(pr.chol, t.T, lower=True, trans="T",
-                                          check_finite=False)
-        return float(value), post, adj
-
-    def _white_kaa(self) -> np.ndarray:
-        """``L'^-1 K_aa L'^-T`` (identity when the hyperparameters did not change)."""
-        pr = self.prior
-        if self.kaa is None:
-            return np.eye(pr.size)
-        t = solve_triangular(pr.chol, self.kaa, lower=True, check_finite=False)
-        return solve_triangular(pr.chol, t.T, lower=True, check_finite=False)
+            adj["kba"] = xbar[:, n:] @ pr.chol_inv
+            adj["kaa"] = -0.5 * pr.chol_inv.T @ pr.phi @ pr.chol_inv
+        return value, post, adj
 
 
 class SOGP:
@@ -259,8 +312,11 @@ class SOGP:
         Samples absorbed into the posterior (buffered ones excluded).
 
     Cost per step with M inducing points, n batch samples, b features, m actions:
-    O((M+n)^2 (m+1) b) for the kernel, O(M^2 (M+n)) for the algebra; about 0.1-0.3 ms at
-    M=20, n=20, b=20, m=7 (see benchmarks/gp.md), i.e. O(1) amortised per sample.
+    O(n (M+n) (m+1) b) for the kernel (the old block K_aa is reused while the hyperparameters
+    are unchanged) and O(M^2 (M+n)) for the algebra, independent of the stream length. At
+    M=20, b=20, m=7, one core: about 0.5 ms per step (n=1..20), ~20 us for an update that
+    only buffers, ~80 us per ``predict_affine`` (measured on a loaded 2-core machine; see
+    the GP benchmark). ``optimise_online`` adds about 60 ms per step.
     """
 
     def __init__(self, kernel: ADPKernel | None = None, noise_variance: float | None = None,
@@ -349,15 +405,12 @@ class SOGP:
         else:
             xi_o, u_o = self._select_data(kernel, xi, ub, u)
         ub_o = ubar(u_o)
-        kbb = kernel._gram(xi_o, ub_o)
+        kbb = _gram(kernel, xi_o, ub_o)
         eps = self._eps(kbb)
-        kbb[np.diag_indices_from(kbb)] += eps
-        prior = _empty_state(b, m, kernel.theta)
-        step = _Step(kbb, kernel._gram(xi_o, ub_o, xi, ub), kernel._diag(ub), None, None, z,
-                     s2, prior)
+        step = _Step(kbb + eps * np.eye(kbb.shape[0]), _gram(kernel, xi_o, ub_o, xi, ub),
+                     kernel._diag(ub), None, None, z, s2, _empty_state(kernel, b, m))
         value, post, _ = step.bound()
-        state = _make_state(xi_o, u_o, ub_o, post[0], eps, post[1], post[2], kernel.theta,
-                            chol_d=post[3])
+        state = _make_state(kernel, xi_o, u_o, ub_o, kbb, post, eps)
         # commit (nothing above touched self)
         self.kernel_, self.noise_variance_ = kernel, s2
         self._set_state(state)
@@ -372,15 +425,15 @@ class SOGP:
 
     def _select_data(self, kernel, xi, ub, u):
         """Inducing points chosen from a (possibly large) data set, columns on demand."""
-        idx = _select(kernel._diag(ub), lambda j: kernel._gram(xi, ub, xi[j:j + 1],
-                                                                ub[j:j + 1])[:, 0],
+        idx = _select(kernel._diag(ub),
+                      lambda j: _gram(kernel, xi, ub, xi[j:j + 1], ub[j:j + 1])[:, 0],
                       self.num_inducing)
         return xi[idx], u[idx]
 
     def _fit_hyper(self, kernel, s2, xi, u, z, xi_o, u_o):
         """Maximise the Titsias bound (bound.py, unit weights) with L-BFGS-B."""
         ub_o = ubar(u_o)
-        eps = self._eps(kernel._gram(xi_o, ub_o))
+        eps = self._eps(_gram(kernel, xi_o, ub_o))
         weights = np.ones(xi.shape[0])
         work = kernel.clone()
 
@@ -447,7 +500,7 @@ class SOGP:
                 return self.fit(xi, u, z)
             self._check_params()
             kernel, s2 = self.kernel.clone(), float(self.noise_variance)
-            prior = _empty_state(xi.shape[1], u.shape[1], kernel.theta)
+            prior = _empty_state(kernel, xi.shape[1], u.shape[1])
             fixed = self._check_inducing(xi.shape[1], u.shape[1])
             value, state, kernel, s2 = self._stream_step(prior, xi, u, z, fixed, kernel, s2)
             self.bound_, self.n_seen_, self.n_steps_ = 0.0, 0, 0
@@ -475,25 +528,34 @@ class SOGP:
             xi_p, u_p = np.vstack([prior.xi, xi]), np.vstack([prior.u, u])
             n_old = ma
         ub_p = ubar(u_p)
-        kpp = kernel._gram(xi_p, ub_p)  # [Ma+n, Ma+n] pooled candidates (old first)
+        if ma and np.array_equal(prior.theta, kernel.theta):
+            # pooled gram (old first, then f); the old block is known from the state
+            kfp = _gram(kernel, xi, ub_p[ma:], xi_p, ub_p)  # [n, Ma+n]
+            kpp = np.empty((xi_p.shape[0], xi_p.shape[0]))
+            kpp[:ma, :ma] = prior.kbb
+            kpp[ma:] = kfp
+            kpp[:ma, ma:] = kfp[:, :ma].T
+            kpp[ma:, ma:] = 0.5 * (kfp[:, ma:] + kfp[:, ma:].T)
+        else:
+            kpp = _gram(kernel, xi_p, ub_p)
         if fixed is not None or (ma and not self.adapt_inducing):
             idx = np.arange(n_old)
         else:
-            idx = _select(np.diag(kpp), lambda j: kpp[:, j], self.num_inducing)
+            idx = _select_pool(kpp, self.num_inducing)
         if self.optimise_online:
             kernel_new, s2 = self._online_hyper(prior, xi_p, u_p, idx, n_old, z, kernel, s2)
             if kernel_new is not kernel:
                 kernel = kernel_new
-                kpp = kernel._gram(xi_p, ub_p)
+                kpp = _gram(kernel, xi_p, ub_p)
         step, eps = self._build_step(kernel, s2, prior, kpp, idx, n_old, z)
         same = (ma > 0 and idx.shape[0] == ma and np.array_equal(idx, np.arange(ma))
                 and np.array_equal(prior.theta, kernel.theta) and eps == prior.eps)
         if same:
-            value, post = self._same_set_step(step)
+            value, post = step.same_set()
         else:
             value, post, _ = step.bound()
-        state = _make_state(xi_p[idx], u_p[idx], ub_p[idx], post[0], eps, post[1], post[2],
-                            kernel.theta, chol_d=post[3])
+        state = _make_state(kernel, xi_p[idx], u_p[idx], ub_p[idx], kpp[np.ix_(idx, idx)], post,
+                            eps)
         return value, state, kernel, s2
 
     def _build_step(self, kernel, s2, prior: _State, kpp, idx, n_old, z):
@@ -514,30 +576,11 @@ class SOGP:
         step = _Step(kbb, kpp[np.ix_(idx, f)], np.diag(kpp)[f], kba, kaa, z, s2, prior)
         return step, eps
 
-    @staticmethod
-    def _same_set_step(step: _Step):
-        """``b = a``, same hyperparameters: ``G = I``, information adds (no projection)."""
-        pr, s2, y = step.prior, step.s2, step.y
-        lb = pr.chol
-        sig = np.sqrt(s2)
-        a = solve_triangular(lb, step.kbf, lower=True, check_finite=False) / sig
-        rf = a @ y / sig
-        phi = pr.phi + a @ a.T
-        phi = 0.5 * (phi + phi.T)
-        r = pr.r + rf
-        ld = jittered_cholesky(np.eye(lb.shape[0]) + phi, name="I + Phi")
-        alpha = solve_triangular(ld, r, lower=True, check_finite=False)
-        n = y.shape[0]
-        value = (-0.5 * n * np.log(2.0 * np.pi * s2) - 0.5 * (y @ y + step.kffd.sum()) / s2
-                 + 0.5 * np.sum(a * a) + 0.5 * alpha @ alpha - np.sum(np.log(np.diag(ld)))
-                 + pr.const)
-        return float(value), (lb, phi, r, ld)
-
     def _online_hyper(self, prior, xi_p, u_p, idx, n_old, z, kernel, s2):
         """Maximise Bui's online bound over (theta, log s2) with the inducing set fixed."""
         ub_p = ubar(u_p)
         work = kernel.clone()
-        eps_fixed = self._eps(kernel._gram(xi_p[idx], ub_p[idx]))
+        eps_fixed = self._eps(_gram(kernel, xi_p[idx], ub_p[idx]))
         ma = prior.size
         f = np.arange(n_old, xi_p.shape[0])
 
@@ -571,15 +614,15 @@ class SOGP:
         """Mean of q(b): ``L_b D^-1 rt``."""
         self._require_fitted()
         st = self._state
-        return st.chol @ cho_solve((st.chol_d, True), st.r, check_finite=False)
+        return st.chol @ (st.d_inv @ st.r)
 
     @property
     def q_cov_(self) -> np.ndarray:
         """Covariance of q(b): ``L_b D^-1 L_b'``."""
         self._require_fitted()
         st = self._state
-        t = solve_triangular(st.chol_d, st.chol.T, lower=True, check_finite=False)
-        return t.T @ t
+        cov = st.chol @ st.d_inv @ st.chol.T
+        return 0.5 * (cov + cov.T)
 
     @property
     def n_buffered(self) -> int:
@@ -594,10 +637,10 @@ class SOGP:
         xi, u, _ = check_batch(xi, u, input_dim=k.input_dim, action_dim=k.action_dim)
         st = self._state
         ub = ubar(u)
-        kdiag = k._diag(ub)
+        kdiag = (ub * ub) @ st.var
         if st.size == 0:
             return np.zeros(xi.shape[0]), kdiag
-        ksb = k._gram(xi, ub, st.xi, st.ub)  # [N, M]
+        ksb = np.einsum("inj,ni,ji->nj", _components_at(st, xi), ub, st.ub)  # [N, M]
         mean = ksb @ st.w
         var = kdiag - np.einsum("nm,nm->n", ksb @ st.q, ksb)
         return mean, np.maximum(var, 0.0)
@@ -609,19 +652,33 @@ class SOGP:
         (round-off) negative eigenvalues are clipped to zero.
         """
         self._require_fitted()
-        k = self.kernel_
-        xi = check_matrix(xi, "xi", ncols=k.input_dim)
         st = self._state
-        n, c = xi.shape[0], k.n_components
+        xi = check_matrix(xi, "xi", ncols=self.kernel_.input_dim)
+        n, c = xi.shape[0], st.var.shape[0]
         sigma = np.zeros((n, c, c))
-        sigma[:, np.arange(c), np.arange(c)] = k.variances
+        sigma[:, np.arange(c), np.arange(c)] = st.var
         if st.size == 0:
             return np.zeros((n, c)), sigma
-        kt = k._cross_affine(xi, st.xi, st.ub)  # [N, m+1, M]
+        kt = _components_at(st, xi).transpose(1, 0, 2) * st.ub.T  # [N, m+1, M] (eq. 21)
         coef = kt @ st.w
         sigma -= kt @ st.q @ kt.transpose(0, 2, 1)
         sigma = 0.5 * (sigma + sigma.transpose(0, 2, 1))
         return coef, _clip_psd(sigma)
+
+
+def _components_at(st: _State, xi: np.ndarray) -> np.ndarray:
+    """RBF components ``k_i(xi_n, b_j)`` (m+1, N, M), inducing side cached in the state.
+
+    Same arithmetic as ``ADPKernel.components`` (scaled squared distances, clipped at 0).
+    """
+    a = xi[None, :, :] * st.inv_ls[:, None, :]  # [m+1, N, b]
+    d = np.einsum("inb,inb->in", a, a)[:, :, None] + st.ns[:, None, :]
+    d -= 2.0 * (a @ st.xs.transpose(0, 2, 1))
+    np.maximum(d, 0.0, out=d)
+    d *= -0.5
+    np.exp(d, out=d)
+    d *= st.var[:, None, None]
+    return d
 
 
 def _online_bound_and_grad(kernel, s2, prior, xi_p, ub_p, idx, f, ma, z, eps):
@@ -629,7 +686,7 @@ def _online_bound_and_grad(kernel, s2, prior, xi_p, ub_p, idx, f, ma, z, eps):
 
     Pool ``p`` = old points (first ``ma``) then the batch ``f``; ``b = p[idx]``; ``eps`` fixed.
     """
-    kpp = kernel._gram(xi_p, ub_p)
+    kpp = _gram(kernel, xi_p, ub_p)
     kbb = kpp[np.ix_(idx, idx)]
     kbb[np.diag_indices_from(kbb)] += eps
     kba = kaa = None

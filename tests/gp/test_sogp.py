@@ -107,10 +107,10 @@ def test_general_step_reduces_to_same_set_step():
     step, eps = model._build_step(kern, s2, st, kpp, np.arange(st.size), st.size, z[40:])
     assert eps == st.eps
     val_gen, post_gen, _ = step.bound()
-    val_same, post_same = model._same_set_step(step)
+    val_same, post_same = step.same_set()
     np.testing.assert_allclose(val_gen, val_same, rtol=1e-9)
-    np.testing.assert_allclose(post_gen[1], post_same[1], rtol=1e-7, atol=1e-8)
-    np.testing.assert_allclose(post_gen[2], post_same[2], rtol=1e-7, atol=1e-8)
+    np.testing.assert_allclose(post_gen[2], post_same[2], rtol=1e-7, atol=1e-8)  # Phit
+    np.testing.assert_allclose(post_gen[3], post_same[3], rtol=1e-7, atol=1e-8)  # rt
 
 
 def test_adaptive_streaming_tracks_batch_posterior():
