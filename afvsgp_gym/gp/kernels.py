@@ -195,7 +195,7 @@ class ADPKernel:
         # d k_i / d log l_{i,d} = k_i (x_d - x'_d)^2 / l_{i,d}^2
         rows = w.sum(axis=2)  # (m+1, N1)
         cols = w.sum(axis=1)  # (m+1, N2)
-        cross = np.einsum("inj,jd,nd->id", w, xi2, xi1, optimize=True)
+        cross = np.einsum("ind,nd->id", np.matmul(w, xi2), xi1)
         sq = rows @ (xi1 * xi1) + cols @ (xi2 * xi2) - 2.0 * cross  # (m+1, b)
         grad_ls = sq * self._inv_ls ** 2
         return np.concatenate([grad_ls.ravel(), grad_var])

@@ -1,0 +1,342 @@
+"""AFVSGP: adaptive forgetting variational sparse GP (paper section III, eqs. 20-32).
+
+State after ``fit`` and any number of ``update`` calls is the weighted Titsias posterior
+over the last ``window`` samples with weights ``forgetting**age`` (newest 1):
+
+    S = K_ox Lambda K_xo,   r = K_ox Lambda z,   B = (K_oo + S / s2)^-1        (eq. 20)
+
+Per step (DESIGN's corrected eqs. 25-26), with ``k`` the sample's row of K_xo:
+
+    S <- phi S + k_new k_new' - phi^P k_old k_old',   r <- phi r + z_new k_new - phi^P z_old k_old
+
+(``k_old`` of the sample leaving the window, stored when it arrived). ``B^-1 = K_oo + S/s2`` is
+refactored lazily at the next prediction (M = 20: a few microseconds); S and r are rebuilt from
+the stored window rows every ``refresh_every`` updates to bound round-off drift.
+
+Inducing set (``adapt_inducing=True``):
+
+- add rule (eq. 27, for the new sample, weight 1): the residual prior variance
+  ``d = k_nn - k_no K_oo^-1 k_on`` must exceed ``add_threshold * k_nn`` (relative to the prior
+  variance) and the noise variance ``s2``; otherwise the point adds nothing the inducing set
+  cannot already explain above the noise. ``d`` near 0 also guards against duplicates.
+- below ``num_inducing`` points a candidate is appended; at ``num_inducing`` the removal rule
+  (eq. 28) is evaluated on the enlarged set: removing point j raises the weighted trace term of
+  eq. 27 (``sum lambda (k_tt - Q_tt)``) by exactly ``[K^-1 S K^-1]_jj / [K^-1]_jj`` (eq. 28 with
+  the other points accounted for). The least informative old point is replaced only if the
+  new point's score exceeds it by ``swap_margin * k_nn``: the new sample is in the window, so
+  its own ``k_nn`` would otherwise favour it over equally good old points and the set would
+  churn on a stationary stream; with the margin it settles.
+- chol(K_oo) is appended (O(M^2)) on add and rank-one updated (O(M^2)) on removal.
+
+Hyperparameters are learned offline in ``fit`` by maximising the weighted bound (eq. 23) with
+L-BFGS-B on the (last ``window``) fit samples, then frozen online, as in the paper.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.linalg import cho_solve, solve_triangular
+from scipy.linalg.blas import dger
+from scipy.linalg.lapack import dtrtrs
+
+from afvsgp_gym.gp._base import SparseLearner
+from afvsgp_gym.gp._linalg import DEFAULT_JITTER, check_batch, check_matrix, ubar
+from afvsgp_gym.gp._sparse import fit_bound, greedy_inducing
+from afvsgp_gym.gp.kernels import ADPKernel
+
+__all__ = ["AFVSGP"]
+
+
+def _chol_delete(low: np.ndarray, j: int) -> np.ndarray:
+    """Cholesky factor of K with row/column j removed, from chol(K): O(M^2) rank-one update
+    of the trailing block (L33 L33' + l32 l32')."""
+    n = low.shape[0]
+    out = np.delete(np.delete(low, j, axis=0), j, axis=1)
+    x = low[j + 1:, j].copy()
+    sub = out[j:, j:]  # view of the trailing block
+    for k in range(n - 1 - j):
+        lkk = sub[k, k]
+        rad = math.hypot(lkk, x[k])
+        c, s = rad / lkk, x[k] / lkk
+        sub[k, k] = rad
+        if k + 1 < n - 1 - j:
+            col = sub[k + 1:, k]
+            col += s * x[k + 1:]
+            col /= c
+            x[k + 1:] = c * x[k + 1:] - s * col
+    return out
+
+
+class AFVSGP(SparseLearner):
+    """Adaptive forgetting VSGP with the ADP kernel (the paper's method).
+
+    Parameters
+    ----------
+    kernel : ADPKernel or None
+        Initial kernel (copied); None initialises from the data in ``fit``.
+    noise_variance : float or None
+        Initial noise variance; None uses ``0.1 var(z)``.
+    num_inducing : int
+        Maximum number of inducing points M.
+    window : int
+        Sliding window length P.
+    forgetting : float
+        Forgetting factor phi in (0, 1]; sample weights ``phi**age``.
+    inducing : tuple (xi_o (M0, b), u_o (M0, m)) or None
+        Initial inducing set; None selects ``num_inducing`` fit samples (pivoted Cholesky).
+    adapt_inducing : bool
+        False freezes the inducing set.
+    add_threshold : float
+        eq. 27 threshold, relative to the new sample's prior variance (see module docstring).
+    swap_margin : float
+        Replacement margin, in units of the new sample's prior variance.
+    refresh_every : int or None
+        Rebuild S and r from the window every this many updates (None: ``window``).
+    jitter : float
+        Relative jitter on K_oo (times the mean prior variance of the fit data).
+    max_iter : int
+        L-BFGS-B iterations for the offline hyperparameter fit.
+
+    Attributes
+    ----------
+    kernel_, noise_variance_, jitter_, inducing_xi_, inducing_u_, S_, r_, B_, n_seen_,
+    n_added_, n_removed_, bound_
+    """
+
+    def __init__(self, kernel: ADPKernel | None = None, noise_variance: float | None = None,
+                 num_inducing: int = 20, window: int = 200, forgetting: float = 0.99,
+                 inducing=None, adapt_inducing: bool = True, add_threshold: float = 0.1, *,
+                 swap_margin: float = 1.0, refresh_every: int | None = None,
+                 jitter: float = DEFAULT_JITTER, max_iter: int = 200):
+        self.kernel = kernel
+        self.noise_variance = noise_variance
+        self.num_inducing = num_inducing
+        self.window = window
+        self.forgetting = forgetting
+        self.inducing = inducing
+        self.adapt_inducing = adapt_inducing
+        self.add_threshold = add_threshold
+        self.swap_margin = swap_margin
+        self.refresh_every = refresh_every
+        self.jitter = jitter
+        self.max_iter = max_iter
+
+    # ------------------------------------------------------------------ fit
+    def _check_params(self) -> None:
+        if int(self.num_inducing) < 1:
+            raise ValueError(f"num_inducing must be >= 1, got {self.num_inducing}")
+        if int(self.window) < 1:
+            raise ValueError(f"window must be >= 1, got {self.window}")
+        if not 0.0 < float(self.forgetting) <= 1.0:
+            raise ValueError(f"forgetting must be in (0, 1], got {self.forgetting}")
+        if not float(self.add_threshold) >= 0.0:
+            raise ValueError(f"add_threshold must be >= 0, got {self.add_threshold}")
+        if not float(self.swap_margin) >= 0.0:
+            raise ValueError(f"swap_margin must be >= 0, got {self.swap_margin}")
+        if self.refresh_every is not None and int(self.refresh_every) < 1:
+            raise ValueError(f"refresh_every must be >= 1, got {self.refresh_every}")
+
+    def fit(self, xi, u, z, learn_hyperparameters: bool = True) -> AFVSGP:
+        """Fit on the first samples (chronological rows; the last ``window`` are kept) and
+        learn hyperparameters by maximising the weighted bound (eq. 23)."""
+        self._check_params()
+        xi, u, z = check_batch(xi, u, z)
+        p = int(self.window)
+        xi, u, z = xi[-p:], u[-p:], z[-p:]
+        n = len(z)
+        phi = float(self.forgetting)
+        weights = phi ** np.arange(n - 1, -1, -1, dtype=float)
+        kernel, noise = self._init_hyper(xi, u, z)
+        xo, uo = self._initial_inducing(kernel, xi, u)
+        jitter = self.jitter * float(np.mean(kernel.diag(xi, u)))
+        bound = None
+        if learn_hyperparameters:
+            kernel, noise, bound = fit_bound(kernel, noise, xi, u, z, weights, xo, uo, jitter,
+                                             self.max_iter)
+            if self.inducing is None:
+                xo, uo = self._initial_inducing(kernel, xi, u)
+            jitter = self.jitter * float(np.mean(kernel.diag(xi, u)))
+        self.kernel_ = kernel
+        self.noise_variance_ = noise
+        self.jitter_ = jitter
+        self.bound_ = bound
+        self._cap = max(int(self.num_inducing), len(xo)) + 1
+        self._setup_inducing(xo, ubar(uo), self._cap)
+        # window ring buffer (slot `_head` holds the newest sample)
+        b, c = kernel.input_dim, kernel.n_components
+        self._p = p
+        self._phi = phi
+        self._phi_p = phi ** p
+        self._pow = phi ** np.arange(p, dtype=float)
+        self._win_xi = np.zeros((p, b))
+        self._win_ub = np.zeros((p, c))
+        self._win_z = np.zeros(p)
+        self._win_k = np.zeros((p, self._cap))
+        self._win_xi[:n] = xi
+        self._win_ub[:n] = ubar(u)
+        self._win_z[:n] = z
+        self._win_k[:n, : len(xo)] = kernel._gram(xi, ubar(u), xo, ubar(uo))
+        self._count = n
+        self._head = n - 1
+        self._refresh_every = p if self.refresh_every is None else int(self.refresh_every)
+        self._since_refresh = 0
+        self._ub_new = np.ones(c)
+        self.n_seen_ = n
+        self.n_added_ = 0
+        self.n_removed_ = 0
+        self._rebuild_stats()
+        return self
+
+    def _initial_inducing(self, kernel, xi, u):
+        if self.inducing is not None:
+            xo, uo = self.inducing
+            xo, uo, _ = check_batch(xo, uo, input_dim=xi.shape[1], action_dim=u.shape[1])
+            if len(xo) > int(self.num_inducing):
+                raise ValueError(f"inducing has {len(xo)} points, more than num_inducing="
+                                 f"{self.num_inducing}")
+            return xo, uo
+        idx = greedy_inducing(kernel, xi, u, int(self.num_inducing))
+        return xi[idx], u[idx]
+
+    def _weights(self) -> np.ndarray:
+        """Weights phi**age of window slots [0, count)."""
+        ages = (self._head - np.arange(self._count)) % self._p
+        return self._pow[ages]
+
+    def _rebuild_stats(self) -> None:
+        """S and r from the stored window rows (the periodic drift refresh)."""
+        m = self._ind.M
+        k = self._win_k[: self._count, :m]
+        wk = k * self._weights()[:, None]
+        self._S = np.asfortranarray(k.T @ wk)
+        self._r = wk.T @ self._win_z[: self._count]
+        self._since_refresh = 0
+        self._dirty = True
+
+    # ------------------------------------------------------------------ update
+    def update(self, xi, u, z) -> AFVSGP:
+        """Stream one sample (eqs. 24-28); O(M^2) plus O(P M) on inducing changes."""
+        self._check_fitted()
+        b, m_act = self._dims()
+        if not (isinstance(xi, np.ndarray) and xi.dtype == np.float64 and xi.shape == (b,)):
+            xi = check_matrix(xi, "xi", ndim=1, nrows=b)
+        if not (isinstance(u, np.ndarray) and u.dtype == np.float64 and u.shape == (m_act,)):
+            u = check_matrix(u, "u", ndim=1, nrows=m_act)
+        try:
+            zf = float(z)
+        except (TypeError, ValueError):
+            raise ValueError(f"z must be a finite scalar, got {z!r}") from None
+        if not math.isfinite(float(xi.sum()) + float(u.sum()) + zf):  # one check for all
+            for arr, name in ((xi, "xi"), (u, "u"), (np.array([zf]), "z")):
+                if not np.isfinite(arr).all():
+                    raise ValueError(f"{name} contains NaN or inf")
+            raise ValueError("xi, u, z are too large (overflow)")
+
+        ub = self._ub_new
+        ub[1:] = u
+        m = self._ind.M
+        kt = self._ind.kt(xi)  # [m+1, M]
+        k_new = ub @ kt  # [M]
+        # sliding window with forgetting (DESIGN eqs. 25-26)
+        S, r = self._S, self._r
+        S *= self._phi
+        r *= self._phi
+        if self._count == self._p:
+            slot = self._head + 1
+            if slot == self._p:
+                slot = 0
+            k_old = self._win_k[slot, :m]
+            S = dger(-self._phi_p, k_old, k_old, a=S, overwrite_a=1)
+            r -= (self._phi_p * self._win_z[slot]) * k_old
+        else:
+            slot = self._count
+            self._count += 1
+        self._S = dger(1.0, k_new, k_new, a=S, overwrite_a=1)
+        r += zf * k_new
+        self._win_xi[slot] = xi
+        self._win_ub[slot] = ub
+        self._win_z[slot] = zf
+        self._win_k[slot, :m] = k_new
+        self._head = slot
+        self.n_seen_ += 1
+        self._dirty = True
+        self._since_refresh += 1
+        if self._since_refresh >= self._refresh_every:
+            self._rebuild_stats()
+        if self.adapt_inducing:
+            kss = float(ub @ (self._ind.var * ub))
+            lvec = dtrtrs(self._l_oo, k_new, lower=1)[0]  # L_oo^-1 k_new
+            d = kss - float(lvec @ lvec)
+            if (d > self.add_threshold * kss and d > self.noise_variance_
+                    and d > 1e-6 * kss):
+                self._consider_add(xi, ub.copy(), kss, k_new, lvec, d)
+        return self
+
+    # ------------------------------------------------------------------ inducing set
+    def _consider_add(self, xi, ub, kss, k_new, lvec, d) -> None:
+        """Add the newest sample as an inducing point (eqs. 29-30), replacing the least
+        informative one (eq. 28) when the set is full."""
+        m = self._ind.M
+        cnt = self._count
+        col = self.kernel_._gram(self._win_xi[:cnt], self._win_ub[:cnt], xi[None, :],
+                                 ub[None, :])[:, 0]  # k(window, o_new)
+        lam = self._weights()
+        lc = lam * col
+        s_col = lc @ self._win_k[:cnt, :m]
+        s_nn = float(lc @ col)
+        r_new = float(lc @ self._win_z[:cnt])
+        # enlarged chol(K_oo), S, r, K_oo
+        low = np.zeros((m + 1, m + 1))
+        low[:m, :m] = self._l_oo
+        low[m, :m] = lvec
+        low[m, m] = math.sqrt(d + self.jitter_)
+        S = np.empty((m + 1, m + 1), order="F")
+        S[:m, :m] = self._S
+        S[m, :m] = S[:m, m] = s_col
+        S[m, m] = s_nn
+        koo = np.empty((m + 1, m + 1))
+        koo[:m, :m] = self._koo
+        koo[m, :m] = koo[:m, m] = k_new
+        koo[m, m] = kss + self.jitter_
+        r = np.append(self._r, r_new)
+        drop = None
+        if m + 1 > int(self.num_inducing):
+            linv = solve_triangular(low, np.eye(m + 1), lower=True, check_finite=False)
+            kinv = linv.T @ linv
+            x = kinv @ S @ kinv
+            score = np.diag(x) / np.diag(kinv)  # eq. 28: trace increase if removed
+            j = int(np.argmin(score[:m]))
+            if score[m] - score[j] <= self.swap_margin * kss:
+                return  # not informative enough: state unchanged
+            drop = j
+        # commit the addition
+        self._ind.append(xi, ub)
+        self._win_k[:cnt, m] = col
+        self._S, self._r, self._koo = S, r, koo
+        self.n_added_ += 1
+        if drop is None:
+            self._set_koo_chol(low)
+            return
+        self._remove(drop, low)
+
+    def _remove(self, j: int, low: np.ndarray) -> None:
+        m = self._ind.M
+        self._ind.delete(j)
+        cnt = self._count
+        self._win_k[:cnt, j:m - 1] = self._win_k[:cnt, j + 1:m]
+        keep = np.r_[0:j, j + 1:m]
+        self._S = np.asfortranarray(self._S[np.ix_(keep, keep)])
+        self._r = self._r[keep]
+        self._koo = self._koo[np.ix_(keep, keep)]
+        self._set_koo_chol(_chol_delete(low, j))
+        self.n_removed_ += 1
+
+    # ------------------------------------------------------------------ diagnostics
+    def weighted_trace(self) -> float:
+        """eq. 27 over the window: ``sum lambda (k_tt - Q_tt)`` (the bound's trace part)."""
+        cnt = self._count
+        kdiag = self.kernel_._diag(self._win_ub[:cnt])
+        return float(self._weights() @ kdiag
+                     - np.trace(cho_solve((self._l_oo, True), self._S, check_finite=False)))

@@ -1,0 +1,113 @@
+"""VSGP: Titsias (2009) collapsed variational sparse GP with a fixed inducing set (paper
+eqs. 14-18); the paper's non-adaptive baseline. ``update`` appends the sample and refreshes the
+posterior over all data seen (O(N M^2) per update, no forgetting)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from afvsgp_gym.gp._base import SparseLearner
+from afvsgp_gym.gp._linalg import DEFAULT_JITTER, check_batch, check_sample, ubar
+from afvsgp_gym.gp._sparse import fit_bound, greedy_inducing
+from afvsgp_gym.gp.kernels import ADPKernel
+
+__all__ = ["VSGP"]
+
+
+class VSGP(SparseLearner):
+    """Variational sparse GP with the ADP kernel and a fixed inducing set.
+
+    Parameters
+    ----------
+    kernel : ADPKernel or None
+        Initial kernel (copied); None initialises from the data in ``fit``.
+    noise_variance : float or None
+        Initial noise variance; None uses ``0.1 var(z)``.
+    num_inducing : int
+        Number of inducing points chosen from the fit data (pivoted Cholesky) when
+        ``inducing`` is None.
+    inducing : tuple (xi_o (M, b), u_o (M, m)) or None
+        Fixed inducing set.
+    jitter : float
+        Relative jitter added to K_oo (times the mean prior variance of the fit data).
+    max_iter : int
+        L-BFGS-B iterations for the hyperparameters.
+
+    Attributes
+    ----------
+    kernel_, noise_variance_, jitter_, inducing_xi_, inducing_u_, S_, r_, B_, n_seen_,
+    bound_ (collapsed bound after fit)
+    """
+
+    def __init__(self, kernel: ADPKernel | None = None, noise_variance: float | None = None, *,
+                 num_inducing: int = 20, inducing=None, jitter: float = DEFAULT_JITTER,
+                 max_iter: int = 200):
+        self.kernel = kernel
+        self.noise_variance = noise_variance
+        self.num_inducing = num_inducing
+        self.inducing = inducing
+        self.jitter = jitter
+        self.max_iter = max_iter
+
+    def fit(self, xi, u, z, learn_hyperparameters: bool = True) -> VSGP:
+        """Fit on (xi (N,b), u (N,m), z (N,)); maximises the Titsias bound (eq. 18)."""
+        xi, u, z = check_batch(xi, u, z)
+        if int(self.num_inducing) < 1:
+            raise ValueError(f"num_inducing must be >= 1, got {self.num_inducing}")
+        kernel, noise = self._init_hyper(xi, u, z)
+        xo, uo = self._initial_inducing(kernel, xi, u)
+        jitter = self.jitter * float(np.mean(kernel.diag(xi, u)))
+        weights = np.ones(len(z))
+        bound = None
+        if learn_hyperparameters:
+            kernel, noise, bound = fit_bound(kernel, noise, xi, u, z, weights, xo, uo, jitter,
+                                             self.max_iter)
+            if self.inducing is None:
+                xo, uo = self._initial_inducing(kernel, xi, u)
+            jitter = self.jitter * float(np.mean(kernel.diag(xi, u)))
+        self.kernel_ = kernel
+        self.noise_variance_ = noise
+        self.jitter_ = jitter
+        self.bound_ = bound
+        self._setup_inducing(xo, ubar(uo), len(xo))
+        n = len(z)
+        cap = max(2 * n, 64)
+        self._kxo = np.zeros((cap, len(xo)))
+        self._z = np.zeros(cap)
+        self._kxo[:n] = kernel._gram(xi, ubar(u), xo, ubar(uo))
+        self._z[:n] = z
+        self.n_seen_ = n
+        self._recompute_stats()
+        return self
+
+    def _initial_inducing(self, kernel, xi, u):
+        if self.inducing is not None:
+            xo, uo = self.inducing
+            xo, uo, _ = check_batch(xo, uo, input_dim=xi.shape[1], action_dim=u.shape[1])
+            return xo, uo
+        idx = greedy_inducing(kernel, xi, u, int(self.num_inducing))
+        return xi[idx], u[idx]
+
+    def _recompute_stats(self) -> None:
+        n = self.n_seen_
+        k = self._kxo[:n]
+        self._S = k.T @ k
+        self._r = k.T @ self._z[:n]
+        self._dirty = True
+
+    def update(self, xi, u, z) -> VSGP:
+        """Append one sample and refresh the posterior over all data seen."""
+        self._check_fitted()
+        b, m = self._dims()
+        xi, u, z = check_sample(xi, u, z, input_dim=b, action_dim=m)
+        ub = np.concatenate([[1.0], u])
+        k_new = ub @ self._ind.kt(xi)
+        n = self.n_seen_
+        if n == self._kxo.shape[0]:
+            self._kxo = np.concatenate([self._kxo, np.zeros_like(self._kxo)])
+            self._z = np.concatenate([self._z, np.zeros_like(self._z)])
+        self._kxo[n] = k_new
+        self._z[n] = z
+        self.n_seen_ = n + 1
+        self._recompute_stats()
+        return self
