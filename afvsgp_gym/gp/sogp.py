@@ -450,17 +450,21 @@ class SOGP:
             return -val, -grad
 
         p0 = np.concatenate([kernel.theta, [np.log(s2)]])
-        p = self._optimise(objective, p0, _scale(z), self.fit_maxiter)
+        p = self._optimise(objective, p0, self.fit_maxiter, zscale=_scale(z))
         return kernel.with_theta(p[:-1]), float(np.exp(p[-1]))
 
     @staticmethod
-    def _optimise(objective, p0, zscale, maxiter):
-        """L-BFGS-B within wide bounds around p0; returns p0 if nothing better is found."""
+    def _optimise(objective, p0, maxiter, zscale=None):
+        """L-BFGS-B within log p0 +- 7; returns p0 if nothing better is found.
+
+        ``zscale``: bound the noise variance to [1e-6, 10] * zscale instead (and start inside).
+        """
         lo = p0 - 7.0
         hi = p0 + 7.0
-        lo[-1] = np.log(1e-6 * zscale)
-        hi[-1] = np.log(10.0 * zscale)
-        p0 = np.clip(p0, lo, hi)
+        if zscale is not None:
+            lo[-1] = np.log(1e-6 * zscale)
+            hi[-1] = np.log(10.0 * zscale)
+            p0 = np.clip(p0, lo, hi)
         f0 = objective(p0)[0]
         res = minimize(objective, p0, jac=True, method="L-BFGS-B",
                        bounds=list(zip(lo, hi, strict=True)), options={"maxiter": maxiter})
@@ -482,7 +486,11 @@ class SOGP:
             xi, u, z = check_sample(xi, u, z, input_dim=dims[0], action_dim=dims[1])
         self._buffer.append((xi, u, z))
         if len(self._buffer) >= self.batch_size:
-            self.flush()
+            try:
+                self.flush()
+            except Exception:
+                self._buffer.pop()  # leave the learner exactly as before this call
+                raise
         return self
 
     def flush(self) -> SOGP:
@@ -598,7 +606,7 @@ class SOGP:
             return -val, -grad
 
         p0 = np.concatenate([kernel.theta, [np.log(s2)]])
-        p = self._optimise(objective, p0, _scale(z), self.online_maxiter)
+        p = self._optimise(objective, p0, self.online_maxiter)
         if np.array_equal(p, p0):
             return kernel, s2
         return kernel.with_theta(p[:-1]), float(np.exp(p[-1]))
