@@ -6,10 +6,12 @@ points ``a`` (prior ``K'_aa`` under the hyperparameters in force when it was for
 posterior over new inducing points ``b`` maximises Bui's collapsed online bound (their eq. 6,
 VFE case)::
 
-    F = log N(yhat | 0, Khat + Sigmahat) - 1/(2 s2) tr(K_ff - Q_ff) + Delta_a,
+    F = log N(yhat | 0, Khat + Sigmahat) - 1/(2 s2) tr(K_ff - Q_ff)
+        - 1/2 tr(D_a^-1 (K_aa - Q_aa)) + Delta_a,
     yhat = [y; D_a S_a^-1 m_a],  Sigmahat = blkdiag(s2 I, D_a),  D_a^-1 = S_a^-1 - K'_aa^-1,
-    Delta_a = 1/2 log|K'_aa| - 1/2 log|S_a| - 1/2 m_a' S_a^-1 m_a + 1/2 yhat_a' D_a^-1 yhat_a
-              - 1/2 tr(D_a^-1 (K_aa - Q_aa)),   Q_aa = K_ab K_bb^-1 K_ba.
+    Khat = [K_fb; K_ab] K_bb^-1 [K_bf, K_ba],  Q_aa = K_ab K_bb^-1 K_ba,
+    Delta_a = 1/2 (log|K'_aa| - log|S_a| + log|D_a|) - 1/2 m_a' S_a^-1 m_a
+              + 1/2 yhat_a' D_a^-1 yhat_a + M_a/2 log(2 pi)   (normalises q_old / p_old).
 
 Its optimum is ``q(b) ~ p(b) exp(E_p(f|b)[log p(y|f) + log q_old(a)/p_old(a)])``. We never form
 ``S_a^-1 - K'_aa^-1`` (a difference of inverses): with ``L'`` = chol(K'_aa) and
@@ -29,7 +31,8 @@ One step, with ``L_b`` = chol(K_bb), ``A = L_b^-1 K_bf / s`` and ``G = L_b^-1 K_
 
 With no old points this is Titsias 2009 (paper eqs. 17-18). With ``b = a`` and unchanged
 hyperparameters, ``G = I``: the information ``Phit`` and ``rt`` simply add up, so streaming
-equals the batch posterior over all data (Bui et al.'s key property, tested).
+equals the batch posterior over all data (Bui et al.'s key property). Both, and the general
+step against the dense formula above, are checked in tests/gp/test_sogp.py.
 
 Jitter: the inducing variables are ``f(b) + e`` with ``var(e) = eps_b = jitter * mean diag
 K_bb`` (relative jitter, ``DEFAULT_JITTER``); an old and a new inducing variable at the same

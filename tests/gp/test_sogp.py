@@ -5,7 +5,7 @@ import warnings
 import numpy as np
 import pytest
 
-from afvsgp_gym.gp._linalg import DEFAULT_JITTER
+from afvsgp_gym.gp._linalg import DEFAULT_JITTER, ubar
 from afvsgp_gym.gp.kernels import ADPKernel
 from afvsgp_gym.gp.sogp import SOGP, _online_bound_and_grad
 
@@ -102,7 +102,6 @@ def test_general_step_reduces_to_same_set_step():
                                                 learn_hyperparameters=False)
     st = model._state
     xi_p, u_p = np.vstack([st.xi, xi[40:]]), np.vstack([st.u, u[40:]])
-    from afvsgp_gym.gp._linalg import ubar
     kpp = kern._gram(xi_p, ubar(u_p))
     step, eps = model._build_step(kern, s2, st, kpp, np.arange(st.size), st.size, z[40:])
     assert eps == st.eps
@@ -111,6 +110,57 @@ def test_general_step_reduces_to_same_set_step():
     np.testing.assert_allclose(val_gen, val_same, rtol=1e-9)
     np.testing.assert_allclose(post_gen[2], post_same[2], rtol=1e-7, atol=1e-8)  # Phit
     np.testing.assert_allclose(post_gen[3], post_same[3], rtol=1e-7, atol=1e-8)  # rt
+
+
+@pytest.mark.parametrize("change_theta", [False, True])
+def test_general_step_matches_dense_bui_formula(change_theta):
+    """Projected step (b mixes old and new points) vs Bui et al.'s bound and q(b), dense."""
+    rng = np.random.default_rng(12)
+    kern, s2 = _kernel(rng), 0.05
+    xi, u, z = _data(rng, 55)
+    model = SOGP(kern, s2, num_inducing=8, jitter=0.0).fit(xi[:40], u[:40], z[:40],
+                                                           learn_hyperparameters=False)
+    st = model._state
+    xa, ua, m_a, s_a = st.xi, st.u, model.q_mean_, model.q_cov_
+    kern2 = kern.with_theta(kern.theta + (0.2 * rng.normal(size=kern.n_params)
+                                          if change_theta else 0.0))
+    xf, uf, y = xi[40:], u[40:], z[40:]
+    idx = np.array([0, 2, 3, 5, 8, 11, 15, 18])  # 4 old, 4 new points
+    xi_p, u_p = np.vstack([xa, xf]), np.vstack([ua, uf])
+    step, _ = model._build_step(kern2, s2, st, kern2._gram(xi_p, ubar(u_p)), idx, 8, y)
+    value, post, _ = step.bound()
+    lb, _, _, r, _, ld_inv = post
+    d_inv = ld_inv.T @ ld_inv
+    got_mean, got_cov = lb @ d_inv @ r, lb @ d_inv @ lb.T
+    # dense reference: old posterior as pseudo-data yhat_a with noise D_a (Bui et al. 2017)
+    xb, ub_ = xi_p[idx], u_p[idx]
+    kaa_old = kern(xa, ua)
+    d_a = np.linalg.inv(np.linalg.inv(s_a) - np.linalg.inv(kaa_old))
+    yhat = np.concatenate([y, d_a @ np.linalg.solve(s_a, m_a)])
+    kbb = kern2(xb, ub_)
+    kbx = np.hstack([kern2(xb, ub_, xf, uf), kern2(xb, ub_, xa, ua)])
+    noise = np.zeros((len(yhat), len(yhat)))
+    noise[:len(y), :len(y)] = s2 * np.eye(len(y))
+    noise[len(y):, len(y):] = d_a
+    khat = kbx.T @ np.linalg.solve(kbb, kbx)
+    cov = khat + noise
+    _, logdet = np.linalg.slogdet(cov)
+    loglik = -0.5 * (len(yhat) * np.log(2 * np.pi) + logdet + yhat @ np.linalg.solve(cov, yhat))
+    kaa = kern2(xa, ua)
+    q_aa = khat[len(y):, len(y):]
+    trace = (-0.5 * (np.sum(kern2.diag(xf, uf)) - np.trace(khat[:len(y), :len(y)])) / s2
+             - 0.5 * np.trace(np.linalg.solve(d_a, kaa - q_aa)))
+    ld = [np.linalg.slogdet(x)[1] for x in (kaa_old, s_a, d_a)]
+    delta = (0.5 * (ld[0] - ld[1] + ld[2]) - 0.5 * m_a @ np.linalg.solve(s_a, m_a)
+             + 0.5 * len(m_a) * np.log(2 * np.pi) + 0.5 * yhat[len(y):] @ np.linalg.solve(
+                 d_a, yhat[len(y):]))
+    np.testing.assert_allclose(value, loglik + trace + delta, rtol=1e-7)
+    kinv_kbx = np.linalg.solve(kbb, kbx)
+    prec = np.linalg.inv(kbb) + kinv_kbx @ np.linalg.solve(noise, kinv_kbx.T)
+    ref_cov = np.linalg.inv(prec)
+    ref_mean = ref_cov @ kinv_kbx @ np.linalg.solve(noise, yhat)
+    np.testing.assert_allclose(got_mean, ref_mean, rtol=1e-6, atol=1e-8)
+    np.testing.assert_allclose(got_cov, ref_cov, rtol=1e-6, atol=1e-8)
 
 
 def test_adaptive_streaming_tracks_batch_posterior():
@@ -140,10 +190,10 @@ def test_predict_affine_agrees_with_predict():
     assert b.shape == (20, M_ACT + 1) and sigma.shape == (20, M_ACT + 1, M_ACT + 1)
     np.testing.assert_array_equal(sigma, sigma.transpose(0, 2, 1))
     assert np.linalg.eigvalsh(sigma).min() >= -1e-12
-    ubar = np.hstack([np.ones((20, 1)), us])
+    ub = np.hstack([np.ones((20, 1)), us])
     mean, var = model.predict(xs, us)
-    np.testing.assert_allclose(np.einsum("ni,ni->n", b, ubar), mean, rtol=1e-9, atol=1e-12)
-    np.testing.assert_allclose(np.einsum("ni,nij,nj->n", ubar, sigma, ubar), var,
+    np.testing.assert_allclose(np.einsum("ni,ni->n", b, ub), mean, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(np.einsum("ni,nij,nj->n", ub, sigma, ub), var,
                                rtol=1e-7, atol=1e-10)
 
 
@@ -164,7 +214,6 @@ def test_online_bound_gradient_matches_finite_differences():
                                                learn_hyperparameters=False)
     st = model._state
     xi_p, u_p = np.vstack([st.xi, xi[40:]]), np.vstack([st.u, u[40:]])
-    from afvsgp_gym.gp._linalg import ubar
     ub_p = ubar(u_p)
     idx = np.array([0, 2, 3, 5, 6, 8, 11, 14])  # old and new points mixed: G is a projection
     f = np.arange(st.size, len(xi_p))
