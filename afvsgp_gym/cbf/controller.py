@@ -8,7 +8,7 @@ Example
 >>> terms = [BarrierTerms(np.array([0.1, -0.2]), 0.0, np.array([1.0, 0.0]), np.zeros(3))]
 >>> res = ctrl.filter(np.array([-1.0, 0.5]), terms)
 >>> res.feasible, bool(res.active), np.round(res.u, 3).tolist()
-(True, True, [0.4, 0.5])
+(True, True, [0.404, 0.5])
 
 In a real robot loop: ``res = ctrl.filter(u_nom, terms)``; apply ``res.u`` for one control
 period ``dt``; read the new terms; ``ctrl.observe(terms, res.u, new_terms, dt)``.
@@ -96,6 +96,10 @@ class SafetyController:
     beta : float
         Chance-constraint multiplier on the predicted standard deviation (eq. 49; default
         :data:`DEFAULT_BETA`). ``beta = 0`` gives the mean-only QP.
+    barrier_margin : float
+        Buffer subtracted from ``h`` in the constraint (units of ``h``; 1 mm for the provided
+        envs): the HOCBF condition holds in continuous time, and with a zero-order-hold action
+        over ``dt`` the sampled ``h`` can dip O(dt^2) below the boundary without it.
     warmup_samples : int
         ``P``: samples collected before the offline hyperparameter fit (Algorithm 1; 200).
     exploration_noise : float
@@ -105,6 +109,12 @@ class SafetyController:
         Passed to the learner's constructor.
     learn_hyperparameters : bool
         Maximise the bound at the end of warm-up (True) or keep the given kernel.
+    kernel_init : {"uniform", "data"} or float
+        Initial ADP kernel for the offline fit when ``learner_kwargs`` has no ``kernel``:
+        ``"data"`` is the learner's heuristic (per-feature ``sqrt(b) std``, which makes features
+        that barely move during warm-up extremely short-scaled, so the model cannot extrapolate
+        when they move later); ``"uniform"`` (default) uses the largest of those lengthscales for
+        every feature; a float sets every lengthscale. Variances follow ``ADPKernel.from_data``.
     dataset : tuple or list of tuples or None
         ``(xi (N, b), u (N, m), z (N,))`` recorded beforehand (one tuple for every obstacle,
         or one per obstacle): the learners are fitted at construction and warm-up is skipped.
@@ -126,10 +136,12 @@ class SafetyController:
         *,
         alpha: float | Sequence[float] = 4.0,
         beta: float = DEFAULT_BETA,
+        barrier_margin: float = 1e-3,
         warmup_samples: int = 200,
         exploration_noise: float = 0.3,
         learner_kwargs: dict | None = None,
         learn_hyperparameters: bool = True,
+        kernel_init: str | float = "uniform",
         dataset=None,
         online: bool = True,
         qp_solver: str | None = None,
@@ -138,22 +150,38 @@ class SafetyController:
         self.learner_name = check_learner_name(learner)
         if not isinstance(n_obstacles, (int, np.integer)) or n_obstacles < 1:
             raise ValueError(f"n_obstacles must be a positive integer. Got: {n_obstacles!r}")
+        if not (np.isfinite(barrier_margin) and barrier_margin >= 0):
+            raise ValueError(f"barrier_margin must be finite and >= 0. Got: {barrier_margin!r}")
         if not (np.isfinite(beta) and beta >= 0):
             raise ValueError(f"beta must be finite and >= 0. Got: {beta!r}")
         if not isinstance(warmup_samples, (int, np.integer)) or warmup_samples < 2:
             raise ValueError(f"warmup_samples must be an integer >= 2. Got: {warmup_samples!r}")
+        if not (
+            kernel_init in ("uniform", "data")
+            or (
+                isinstance(kernel_init, (int, float))
+                and np.isfinite(kernel_init)
+                and kernel_init > 0
+            )
+        ):
+            raise ValueError(
+                f"kernel_init must be 'uniform', 'data' or a positive float. Got: {kernel_init!r}"
+            )
         if not (np.isfinite(exploration_noise) and exploration_noise >= 0):
             raise ValueError(f"exploration_noise must be >= 0. Got: {exploration_noise!r}")
         self.hocbf = HOCBF(relative_degree, alpha)
+        self._margin_gain = float(np.prod(self.hocbf.gains))  # d psi_r / d h
         self.socp = SOCPFilter(action_low, action_high, n_obstacles, qp_solver=qp_solver)
         self.low, self.high = self.socp.low, self.socp.high
         self.action_dim = self.socp.m
         self.n_obstacles = int(n_obstacles)
         self.relative_degree = int(relative_degree)
         self.beta = float(beta)
+        self.barrier_margin = float(barrier_margin)
         self.warmup_samples = int(warmup_samples)
         self.exploration_noise = float(exploration_noise)
         self.learn_hyperparameters = bool(learn_hyperparameters)
+        self.kernel_init = kernel_init
         self.learning = bool(online)
         self._learner_kwargs = dict(learner_kwargs or {})
         self.learners = [
@@ -202,11 +230,25 @@ class SafetyController:
             z = np.asarray(z, np.float64).ravel()
             ok = np.all(np.isfinite(xi), axis=1) & np.all(np.isfinite(u), axis=1)
             ok &= np.isfinite(z)
-            self.learners[k].fit(
-                xi[ok], u[ok], z[ok], learn_hyperparameters=self.learn_hyperparameters
-            )
+            xi, u, z = xi[ok], u[ok], z[ok]
+            if self.kernel_init != "data" and "kernel" not in self._learner_kwargs:
+                kwargs = dict(self._learner_kwargs, kernel=self._initial_kernel(xi, u, z))
+                self.learners[k] = make_learner(self.learner_name, self.action_dim, **kwargs)
+            self.learners[k].fit(xi, u, z, learn_hyperparameters=self.learn_hyperparameters)
         self.fitted = True
         return self
+
+    def _initial_kernel(self, xi, u, z):
+        from afvsgp_gym.gp import ADPKernel
+
+        base = ADPKernel.from_data(xi, u, z)
+        m1, b = self.action_dim + 1, xi.shape[1]
+        if self.kernel_init == "uniform":
+            std = xi.std(axis=0) if len(xi) > 1 else np.ones(b)
+            ls = float(np.sqrt(b) * np.max(std)) if np.max(std) > 1e-12 else 1.0
+        else:
+            ls = float(self.kernel_init)
+        return ADPKernel(np.full((m1, b), ls), np.exp(base.theta[-m1:]))
 
     # ------------------------------------------------------------------ filter
     def _terms_ok(self, terms: Sequence[BarrierTerms]) -> np.ndarray:
@@ -262,6 +304,7 @@ class SafetyController:
                 continue
             try:
                 c0, c = self.hocbf.constraint(t)
+                c0 -= self.barrier_margin * self._margin_gain
                 a0[k], a[k] = c0, c
                 if not warm and self.learner_name in LEARNING:
                     b, s = self.learners[k].predict_affine(np.asarray(t.xi, np.float64)[None])
