@@ -7,7 +7,17 @@ import gymnasium as gym
 
 def register_envs() -> None:
     """Register every ``afvsgp_gym/*`` id once; safe to call repeatedly."""
+    franka = "afvsgp_gym.envs.franka:FrankaObstacleEnv"
     specs = {
+        "afvsgp_gym/FrankaObstacleStatic-v0": dict(
+            entry_point=franka, max_episode_steps=4000, kwargs={"scenario": "static"}
+        ),
+        "afvsgp_gym/FrankaObstacleDynamic-v0": dict(
+            entry_point=franka, max_episode_steps=4000, kwargs={"scenario": "dynamic"}
+        ),
+        "afvsgp_gym/FrankaObstacleRandom-v0": dict(
+            entry_point=franka, max_episode_steps=4000, kwargs={"scenario": "random"}
+        ),
         "afvsgp_gym/PointMassObstacle-v0": dict(
             entry_point="afvsgp_gym.envs.point_mass:PointMassObstacleEnv",
             max_episode_steps=1500,

@@ -7,6 +7,7 @@ reference feed-forward (paper section VI, Fig. 3).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
@@ -134,22 +135,27 @@ class CyclicReference:
         da = span * db / self.ramp_duration
         dda = span * ddb / self.ramp_duration**2
         # oscillation s(t)
-        w0 = 2.0 * np.pi / self.period
-        s, ds, dds = np.sin(w0 * t), w0 * np.cos(w0 * t), -(w0**2) * np.sin(w0 * t)
+        w0 = 2.0 * math.pi / self.period
+        sw, cw = math.sin(w0 * t), math.cos(w0 * t)
+        s, ds, dds = sw, w0 * cw, -(w0**2) * sw
         # direction w(t) = cos(th) e1 + sin(th) e2, th = pi/2 S((t - ts) / Tb)
-        if np.isfinite(self.switch_time):
+        if math.isfinite(self.switch_time):
             q, dq, ddq = quintic((t - self.switch_time) / self.switch_duration)
         else:
             q, dq, ddq = 0.0, 0.0, 0.0
-        k = 0.5 * np.pi
+        k = 0.5 * math.pi
         th, dth = k * q, k * dq / self.switch_duration
         ddth = k * ddq / self.switch_duration**2
-        e_r = np.cos(th) * self.axis1 + np.sin(th) * self.axis2
-        e_t = -np.sin(th) * self.axis1 + np.cos(th) * self.axis2
-        w, dw, ddw = e_r, dth * e_t, ddth * e_t - dth**2 * e_r
-        pos = self.center + a * s * w
-        vel = (da * s + a * ds) * w + a * s * dw
-        acc = (dda * s + 2 * da * ds + a * dds) * w + 2 * (da * s + a * ds) * dw + a * s * ddw
+        ct, st = math.cos(th), math.sin(th)
+        e_r = ct * self.axis1 + st * self.axis2
+        e_t = ct * self.axis2 - st * self.axis1
+        # r = c + a s w, w' = th' e_t, w'' = th'' e_t - th'^2 e_r
+        f0 = a * s
+        f1 = da * s + a * ds
+        f2 = dda * s + 2 * da * ds + a * dds
+        pos = self.center + f0 * e_r
+        vel = f1 * e_r + (f0 * dth) * e_t
+        acc = (f2 - f0 * dth * dth) * e_r + (2 * f1 * dth + f0 * ddth) * e_t
         return pos, vel, acc
 
 
@@ -162,10 +168,9 @@ def sphere_barrier(
     ``h'' = n . (a - a_obs) + curvature``, curvature = (|v_rel|^2 - (n . v_rel)^2) / |d|.
     """
     d = p - p_obs
-    dist = float(np.sqrt(d @ d))
-    dist = max(dist, 1e-9)
-    n = d / dist
     vr = v - v_obs
+    dist = max(math.sqrt(float(d @ d)), 1e-9)
+    n = d / dist
     ndv = float(n @ vr)
     curv = (float(vr @ vr) - ndv * ndv) / dist
     return dist - radius, ndv, n, curv
