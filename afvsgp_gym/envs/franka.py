@@ -23,6 +23,7 @@ from afvsgp_gym.envs.scenario import (
     ObstacleSpec,
     check_action,
     check_choice,
+    make_terms,
     parse_obstacles,
     sphere_barrier,
 )
@@ -255,8 +256,8 @@ class FrankaObstacleEnv(MujocoEnv):
             width=int(cfg["width"]),
             height=int(cfg["height"]),
             default_camera_config={
-                "distance": 1.9,
-                "azimuth": 150.0,
+                "distance": 1.5,
+                "azimuth": 200.0,
                 "elevation": -20.0,
                 "lookat": np.array([0.3, 0.0, 0.45]),
             },
@@ -446,7 +447,7 @@ class FrankaObstacleEnv(MujocoEnv):
             else:
                 lf, lg = float(n @ (a_free - ao)) + curv, n @ gain
             xi = np.concatenate([q, qd, p - po, v - vo])
-            out.append(BarrierTerms(np.array([h, hd]), float(lf), lg, xi))
+            out.append(make_terms(h, hd, lf, lg, xi))
         return out
 
     def barrier_terms(self, model: str = "nominal") -> list[BarrierTerms]:

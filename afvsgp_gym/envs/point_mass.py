@@ -14,6 +14,7 @@ from afvsgp_gym.envs.scenario import (
     ObstacleSpec,
     check_action,
     check_choice,
+    make_terms,
     parse_obstacles,
     sphere_barrier,
 )
@@ -310,7 +311,7 @@ class PointMassObstacleEnv(gym.Env):
                 lf = float(n @ (drift - ao)) + curv
                 lg = n * (self.max_force * inv_m)
             xi = np.concatenate([self._p, self._v, self._p - po, self._v - vo])
-            out.append(BarrierTerms(np.array([h, hd]), float(lf), lg, xi))
+            out.append(make_terms(h, hd, lf, lg, xi))
         return out
 
     # ------------------------------------------------------------------ gym API

@@ -7,11 +7,14 @@ reference feed-forward (paper section VI, Fig. 3).
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
+
+from afvsgp_gym.types import BarrierTerms
 
 
 def quintic(tau: float) -> tuple[float, float, float]:
@@ -49,8 +52,9 @@ class ObstacleSpec:
     start_time: float = 0.0
     speed: float = 0.2
 
-    @property
+    @functools.cached_property
     def duration(self) -> float:
+        """Length of the move (s); 0 for a static obstacle."""
         if self.start is None:
             return 0.0
         dist = float(np.linalg.norm(self.position - self.start))
@@ -58,13 +62,13 @@ class ObstacleSpec:
 
     def state(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Obstacle centre position, velocity and acceleration at time ``t``."""
-        zero = np.zeros_like(self.position)
-        if self.start is None or self.duration == 0.0:
-            return self.position.copy(), zero, zero.copy()
         T = self.duration
+        if T == 0.0:
+            zero = np.zeros(self.position.shape)
+            return self.position.copy(), zero, zero.copy()
         s, ds, dds = quintic((t - self.start_time) / T)
         delta = self.position - self.start
-        return self.start + s * delta, (ds / T) * delta, (dds / T**2) * delta
+        return self.start + s * delta, (ds / T) * delta, (dds / (T * T)) * delta
 
 
 OBSTACLE_KEYS = ("position", "radius", "start", "start_time", "speed")
@@ -174,6 +178,16 @@ def sphere_barrier(
     ndv = float(n @ vr)
     curv = (float(vr @ vr) - ndv * ndv) / dist
     return dist - radius, ndv, n, curv
+
+
+def make_terms(h: float, hdot: float, lf: float, lg: np.ndarray, xi: np.ndarray) -> BarrierTerms:
+    """BarrierTerms with read-only float64 arrays (cached results cannot be corrupted)."""
+    derivs = np.array([h, hdot], dtype=np.float64)
+    lg = np.array(lg, dtype=np.float64)
+    xi = np.array(xi, dtype=np.float64)
+    for arr in (derivs, lg, xi):
+        arr.flags.writeable = False
+    return BarrierTerms(derivs, float(lf), lg, xi)
 
 
 def check_action(action, shape: tuple[int, ...]) -> np.ndarray:
