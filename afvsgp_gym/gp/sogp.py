@@ -45,7 +45,7 @@ Predictions (paper eqs. 14, 20-21): ``mean = K_*b w``, ``w = K_bb^-1 m_b``;
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.linalg import lapack
@@ -97,10 +97,9 @@ class _State:
         return self.xi.shape[0]
 
 
-def _make_state(kernel: ADPKernel, xi, u, ub, kbb, post, eps) -> _State:
-    """Complete a state from a step's ``post = (L_b, L_b^-1, Phit, rt, L_D, L_D^-1)``."""
-    chol, chol_inv, phi, r, ld, ld_inv = post
-    m = xi.shape[0]
+def _posterior_terms(chol_inv, phi, r, ld, ld_inv) -> dict:
+    """Predictive caches and the Delta constant from (L_b^-1, Phit, rt, L_D, L_D^-1)."""
+    m = phi.shape[0]
     d_inv = ld_inv.T @ ld_inv
     alpha = ld_inv @ r
     w = chol_inv.T @ (d_inv @ r)
@@ -109,10 +108,18 @@ def _make_state(kernel: ADPKernel, xi, u, ub, kbb, post, eps) -> _State:
     if not (np.all(np.isfinite(w)) and np.all(np.isfinite(q))):
         raise np.linalg.LinAlgError("non-finite posterior; check hyperparameters and inputs")
     const = float(np.sum(np.log(np.diag(ld))) - 0.5 * alpha @ alpha)
+    return {"phi": phi, "r": r, "d_inv": d_inv, "const": const, "w": w, "q": q}
+
+
+def _make_state(kernel: ADPKernel, xi, u, ub, kbb, post, eps) -> _State:
+    """Complete a state from a step's ``post = (L_b, L_b^-1, Phit, rt, L_D, L_D^-1)``."""
+    chol, chol_inv = post[:2]
+    terms = _posterior_terms(*post[1:])
     inv_ls = 1.0 / kernel.lengthscales
     xs = xi[None, :, :] * inv_ls[:, None, :]
-    return _State(xi, u, ub, kbb, chol, chol_inv, float(eps), phi, r, d_inv, const, w, q,
-                  kernel.theta, inv_ls, kernel.variances, xs, np.einsum("imb,imb->im", xs, xs))
+    return _State(xi=xi, u=u, ub=ub, kbb=kbb, chol=chol, chol_inv=chol_inv, eps=float(eps),
+                  theta=kernel.theta, inv_ls=inv_ls, var=kernel.variances, xs=xs,
+                  ns=np.einsum("imb,imb->im", xs, xs), **terms)
 
 
 def _empty_state(kernel: ADPKernel, b: int, m: int) -> _State:
@@ -281,9 +288,10 @@ class SOGP:
     num_inducing : int
         Maximum number M of inducing points.
     batch_size : int
-        ``update`` buffers samples and runs one streaming step when this many are buffered
-        (1: a step per sample). Buffered samples do not affect predictions until then
-        (``flush`` forces a step).
+        ``update`` buffers samples and runs one streaming step when this many are buffered.
+        Buffered samples do not affect predictions until then (``flush`` forces a step).
+        Default 1 (a step per sample): in the filter loop the lag of larger batches costs
+        accuracy (point-mass env, one-step error of Delta B about 10x larger with 10).
     optimise_online : bool
         Re-optimise kernel and noise on Bui's online bound at every step (L-BFGS-B,
         ``online_maxiter`` iterations, analytic gradients; inducing set chosen first). Off by
@@ -317,13 +325,14 @@ class SOGP:
     Cost per step with M inducing points, n batch samples, b features, m actions:
     O(n (M+n) (m+1) b) for the kernel (the old block K_aa is reused while the hyperparameters
     are unchanged) and O(M^2 (M+n)) for the algebra, independent of the stream length. At
-    M=20, b=20, m=7, one BLAS thread: 0.5-0.7 ms per step (n=1..20), ~20 us for an update
-    that only buffers, ~80 us per ``predict_affine`` (a loaded 2-core machine; see the GP
-    benchmark). ``optimise_online`` adds about 60-70 ms per step.
+    M=20, b=20, m=7, one BLAS thread, on a loaded 2-core machine (see the GP benchmark):
+    ~0.3 ms per step with n=1 (most steps keep the inducing set: no projection), 0.5-0.6 ms
+    with n=10..20, ~20 us for an update that only buffers, ~80 us per ``predict_affine``.
+    ``optimise_online`` adds about 60 ms per step.
     """
 
     def __init__(self, kernel: ADPKernel | None = None, noise_variance: float | None = None,
-                 num_inducing: int = 20, batch_size: int = 10, *,
+                 num_inducing: int = 20, batch_size: int = 1, *,
                  optimise_online: bool = False, online_maxiter: int = 20,
                  inducing=None, adapt_inducing: bool = True, jitter: float = DEFAULT_JITTER,
                  fit_maxiter: int = 200):
@@ -558,13 +567,14 @@ class SOGP:
             if kernel_new is not kernel:
                 kernel = kernel_new
                 kpp = _gram(kernel, xi_p, ub_p)
-        step, eps = self._build_step(kernel, s2, prior, kpp, idx, n_old, z)
-        same = (ma > 0 and idx.shape[0] == ma and np.array_equal(idx, np.arange(ma))
-                and np.array_equal(prior.theta, kernel.theta) and eps == prior.eps)
-        if same:
+        if (ma and idx.shape[0] == ma and idx[-1] == ma - 1  # sorted, unique: idx = 0..Ma-1
+                and np.array_equal(prior.theta, kernel.theta)):
+            # b = a (then eps_b = eps_a too): information adds, only Phit and rt change
+            step = _Step(None, kpp[:ma, ma:], np.diag(kpp)[ma:], None, None, z, s2, prior)
             value, post = step.same_set()
-        else:
-            value, post, _ = step.bound()
+            return value, replace(prior, **_posterior_terms(*post[1:])), kernel, s2
+        step, eps = self._build_step(kernel, s2, prior, kpp, idx, n_old, z)
+        value, post, _ = step.bound()
         state = _make_state(kernel, xi_p[idx], u_p[idx], ub_p[idx], kpp[np.ix_(idx, idx)], post,
                             eps)
         return value, state, kernel, s2
