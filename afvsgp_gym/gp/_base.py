@@ -84,7 +84,21 @@ class BaseLearner:
 
 class SparseLearner(BaseLearner):
     """Titsias posterior from (chol K_oo, S, r): ``Sig = K_oo + S/s2 = B^-1``,
-    mean weights ``w = B r / s2``, ``D = K_oo^-1 - B`` (DESIGN, eq. 20)."""
+    mean weights ``w = B r / s2``, ``D = K_oo^-1 - B`` (DESIGN, eq. 20).
+
+    ``S`` and ``r`` live in one Fortran array ``_stats = scale * [r, S]`` (M, M+1), so a new
+    sample ``(k, z)`` is a single BLAS rank-one update ``_stats += scale k [z, k']``; the scalar
+    ``_scale`` absorbs AFVSGP's forgetting (``phi S`` becomes ``scale /= phi``).
+    """
+
+    def _set_stats(self, S: np.ndarray, r: np.ndarray) -> None:
+        m = r.shape[0]
+        st = np.empty((m, m + 1), order="F")
+        st[:, 0] = r
+        st[:, 1:] = S
+        self._stats = st
+        self._scale = 1.0
+        self._dirty = True
 
     def _setup_inducing(self, xi_o, ub_o, capacity: int) -> None:
         self._ind = InducingCache(self.kernel_, capacity)
@@ -102,30 +116,34 @@ class SparseLearner(BaseLearner):
         self._dirty = True
 
     def _refresh_posterior(self) -> None:
-        """Factor ``Sig = K_oo + S/s2`` and cache ``w`` and ``D`` for prediction."""
-        m = self._ind.M
+        """Factor ``Sig = K_oo + S/s2`` and cache ``B = Sig^-1``, ``w = B r / s2`` and
+        ``D = K_oo^-1 - B`` (then a prediction is three small matrix products)."""
         s2 = self.noise_variance_
-        sig = self._koo[:m, :m] + self._S[:m, :m] * (1.0 / s2)
+        inv_s = 1.0 / (s2 * self._scale)
+        stats = self._stats
+        sig = self._koo + stats[:, 1:] * inv_s
         low, info = dpotrf(sig, lower=1, clean=1, overwrite_a=1)
         if info != 0:
-            low = jittered_cholesky(self._koo[:m, :m] + self._S[:m, :m] * (1.0 / s2),
-                                    name="K_oo + S/s2")
-        if self._eye.shape[0] != m:
-            self._eye = np.eye(m)
-        inv, info = dpotrs(low, self._eye, lower=1)  # B = Sig^-1 (full, symmetric)
+            low = jittered_cholesky(self._koo + stats[:, 1:] * inv_s, name="K_oo + S/s2")
+        inv = dpotrs(low, self._eye, lower=1)[0]  # B (full, symmetric)
         self._b_mat = inv
-        self._w = inv @ self._r[:m]
-        self._w *= 1.0 / s2
+        w = inv @ stats[:, 0]
+        w *= inv_s
+        self._w = w
         self._d_mat = self._koo_inv - inv
         self._dirty = False
+
+    def _dense(self) -> None:
+        if self._dirty:
+            self._refresh_posterior()
 
     def _predict_affine(self, xi):
         if self._dirty:
             self._refresh_posterior()
         if xi.shape[0] == 1:  # the per-control-step path
-            kt = self._ind.kt(xi[0])
-            bvec = kt @ self._w
-            sig = kt @ (self._d_mat @ kt.T)
+            kt = self._ind.kt(xi[0])  # [m+1, M], eq. 21
+            bvec = kt @ self._w  # eq. 20 mean, per component
+            sig = kt @ (self._d_mat @ kt.T)  # Kt (K_oo^-1 - B) Kt'
             sig += sig.T
             sig *= -0.5
             sig.flat[:: sig.shape[0] + 1] += self._ind.var
@@ -133,8 +151,7 @@ class SparseLearner(BaseLearner):
         return affine_from_kt(self._ind.kt_batch(xi), self._ind.var, self._w, self._d_mat)
 
     def _predict(self, xi, u):
-        if self._dirty:
-            self._refresh_posterior()
+        self._dense()
         kt = self._ind.kt_batch(xi)
         k_so = np.einsum("ni,nij->nj", ubar(u), kt)  # [N, M]
         mean = k_so @ self._w
@@ -154,17 +171,15 @@ class SparseLearner(BaseLearner):
     @property
     def S_(self) -> np.ndarray:
         """(M, M) ``K_ox Lambda K_xo`` (copy)."""
-        m = self._ind.M
-        return self._S[:m, :m].copy()
+        return self._stats[:, 1:] / self._scale
 
     @property
     def r_(self) -> np.ndarray:
         """(M,) ``K_ox Lambda z`` (copy)."""
-        return self._r[: self._ind.M].copy()
+        return self._stats[:, 0] / self._scale
 
     @property
     def B_(self) -> np.ndarray:
         """(M, M) ``(K_oo + S/s2)^-1`` (copy)."""
-        if self._dirty:
-            self._refresh_posterior()
+        self._dense()
         return self._b_mat.copy()

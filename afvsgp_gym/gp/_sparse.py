@@ -31,11 +31,12 @@ class InducingCache:
         self.xi = np.zeros((capacity, b))
         self.ub = np.zeros((capacity, c))
         self.ubt = np.zeros((c, capacity))  # ub transposed
-        self.xs2 = np.zeros((c, capacity, b))  # xi_o / l_i^2
+        self.xs2 = np.zeros((c, capacity, 2 * b))  # [xi_o / l_i^2, -1 / (2 l_i^2)]
         self.const = np.zeros((c, capacity))  # log s_i - |xi_o / l_i|^2 / 2
         self.inv_ls2 = kernel._inv_ls ** 2
         self.var = kernel._var
         self.log_var = np.log(kernel._var)
+        self._v = np.empty(2 * b)
 
     def set(self, xi: np.ndarray, ub: np.ndarray) -> None:
         n = xi.shape[0]
@@ -51,7 +52,9 @@ class InducingCache:
         self.ub[j] = ub
         self.ubt[:, j] = ub
         s = xi[None, :] * self.inv_ls2
-        self.xs2[:, j, :] = s
+        b = xi.shape[0]
+        self.xs2[:, j, :b] = s
+        self.xs2[:, j, b:] = -0.5 * self.inv_ls2
         self.const[:, j] = self.log_var - 0.5 * (s @ xi)
         self.M = j + 1
 
@@ -67,12 +70,15 @@ class InducingCache:
         """(m+1, M) per-component cross covariance of one point (eq. 21).
 
         ``log k_i(xi, o_j) = log s_i - |xi/l_i|^2/2 + (o_j/l_i^2).xi - |o_j/l_i|^2/2``: one
-        matrix-vector product for all components and inducing points.
+        matrix-vector product (with ``[xi, xi^2]``) for all components and inducing points.
         """
-        c, cap, b = self.xs2.shape
-        e = (self.xs2.reshape(c * cap, b) @ xi).reshape(c, cap)
+        c, cap, b2 = self.xs2.shape
+        v = self._v
+        b = b2 // 2
+        v[:b] = xi
+        np.multiply(xi, xi, out=v[b:])
+        e = (self.xs2.reshape(c * cap, b2) @ v).reshape(c, cap)
         e += self.const
-        e -= (0.5 * (self.inv_ls2 @ (xi * xi)))[:, None]
         np.exp(e, out=e)
         e *= self.ubt
         return e[:, : self.M]

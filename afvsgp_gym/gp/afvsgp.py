@@ -37,9 +37,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.linalg import cho_solve, solve_triangular
+from scipy.linalg import cho_solve
 from scipy.linalg.blas import dger
-from scipy.linalg.lapack import dtrtrs
+from scipy.linalg.lapack import dtrtri, dtrtrs
 
 from afvsgp_gym.gp._base import SparseLearner
 from afvsgp_gym.gp._linalg import DEFAULT_JITTER, check_batch, check_matrix, ubar
@@ -172,12 +172,14 @@ class AFVSGP(SparseLearner):
         self._pow = phi ** np.arange(p, dtype=float)
         self._win_xi = np.zeros((p, b))
         self._win_ub = np.zeros((p, c))
-        self._win_z = np.zeros(p)
-        self._win_k = np.zeros((p, self._cap))
+        # rows [z, k(x, o_1), ..., k(x, o_M)] of the window samples
+        self._win = np.zeros((p, self._cap + 1))
         self._win_xi[:n] = xi
         self._win_ub[:n] = ubar(u)
-        self._win_z[:n] = z
-        self._win_k[:n, : len(xo)] = kernel._gram(xi, ubar(u), xo, ubar(uo))
+        self._win[:n, 0] = z
+        self._win[:n, 1:len(xo) + 1] = kernel._gram(xi, ubar(u), xo, ubar(uo))
+        self._y = np.zeros(self._cap + 1)
+        self._inv_phi = 1.0 / phi
         self._count = n
         self._head = n - 1
         self._refresh_every = p if self.refresh_every is None else int(self.refresh_every)
@@ -208,12 +210,17 @@ class AFVSGP(SparseLearner):
     def _rebuild_stats(self) -> None:
         """S and r from the stored window rows (the periodic drift refresh)."""
         m = self._ind.M
-        k = self._win_k[: self._count, :m]
-        wk = k * self._weights()[:, None]
-        self._S = np.asfortranarray(k.T @ wk)
-        self._r = wk.T @ self._win_z[: self._count]
+        rows = self._win[: self._count, : m + 1]
+        wk = rows[:, 1:] * self._weights()[:, None]
+        self._stats = np.asfortranarray(wk.T @ rows)  # [K' Lambda z, K' Lambda K]
+        self._scale = 1.0
         self._since_refresh = 0
         self._dirty = True
+
+    def _renormalise(self) -> None:
+        if self._scale != 1.0:
+            self._stats *= 1.0 / self._scale
+            self._scale = 1.0
 
     # ------------------------------------------------------------------ update
     def update(self, xi, u, z) -> AFVSGP:
@@ -237,84 +244,84 @@ class AFVSGP(SparseLearner):
         ub = self._ub_new
         ub[1:] = u
         m = self._ind.M
-        kt = self._ind.kt(xi)  # [m+1, M]
-        k_new = ub @ kt  # [M]
-        # sliding window with forgetting (DESIGN eqs. 25-26)
-        S, r = self._S, self._r
-        S *= self._phi
-        r *= self._phi
+        kt = self._ind.kt(xi)  # [m+1, M], eq. 21
+        y = self._y[: m + 1]  # [z, k_new]
+        k_new = y[1:]
+        np.dot(ub, kt, out=k_new)
+        y[0] = zf
+        # sliding window with forgetting (DESIGN eqs. 25-26); phi S is folded into the scale
+        scale = self._scale * self._inv_phi
+        self._scale = scale
+        stats = self._stats
+        win = self._win
         if self._count == self._p:
             slot = self._head + 1
             if slot == self._p:
                 slot = 0
-            k_old = self._win_k[slot, :m]
-            S = dger(-self._phi_p, k_old, k_old, a=S, overwrite_a=1)
-            r -= (self._phi_p * self._win_z[slot]) * k_old
+            old = win[slot, : m + 1]
+            stats = dger(-self._phi_p * scale, old[1:], old, a=stats, overwrite_a=1)
         else:
             slot = self._count
             self._count += 1
-        self._S = dger(1.0, k_new, k_new, a=S, overwrite_a=1)
-        r += zf * k_new
+        self._stats = dger(scale, k_new, y, a=stats, overwrite_a=1)
+        win[slot, : m + 1] = y
         self._win_xi[slot] = xi
         self._win_ub[slot] = ub
-        self._win_z[slot] = zf
-        self._win_k[slot, :m] = k_new
         self._head = slot
         self.n_seen_ += 1
         self._dirty = True
         self._since_refresh += 1
         if self._since_refresh >= self._refresh_every:
             self._rebuild_stats()
+        elif scale > 1e100:
+            self._renormalise()
         if self.adapt_inducing:
             kss = float(ub @ (self._ind.var * ub))
             lvec = dtrtrs(self._l_oo, k_new, lower=1)[0]  # L_oo^-1 k_new
             d = kss - float(lvec @ lvec)
             if (d > self.add_threshold * kss and d > self.noise_variance_
                     and d > 1e-6 * kss):
-                self._consider_add(xi, ub.copy(), kss, k_new, lvec, d)
+                self._consider_add(xi, ub.copy(), kss, k_new.copy(), lvec, d)
         return self
 
     # ------------------------------------------------------------------ inducing set
     def _consider_add(self, xi, ub, kss, k_new, lvec, d) -> None:
         """Add the newest sample as an inducing point (eqs. 29-30), replacing the least
         informative one (eq. 28) when the set is full."""
+        self._renormalise()
         m = self._ind.M
         cnt = self._count
         col = self.kernel_._gram(self._win_xi[:cnt], self._win_ub[:cnt], xi[None, :],
                                  ub[None, :])[:, 0]  # k(window, o_new)
-        lam = self._weights()
-        lc = lam * col
-        s_col = lc @ self._win_k[:cnt, :m]
-        s_nn = float(lc @ col)
-        r_new = float(lc @ self._win_z[:cnt])
-        # enlarged chol(K_oo), S, r, K_oo
+        lc = self._weights() * col
+        # enlarged [r, S] (M+1, M+2): new row and column from the window (eq. 30)
+        stats = np.empty((m + 1, m + 2), order="F")
+        stats[:m, : m + 1] = self._stats
+        stats[m, 1:m + 1] = stats[:m, m + 1] = lc @ self._win[:cnt, 1:m + 1]
+        stats[m, 0] = lc @ self._win[:cnt, 0]
+        stats[m, m + 1] = lc @ col
+        # enlarged chol(K_oo) (row append, O(M^2)) and K_oo
         low = np.zeros((m + 1, m + 1))
         low[:m, :m] = self._l_oo
         low[m, :m] = lvec
         low[m, m] = math.sqrt(d + self.jitter_)
-        S = np.empty((m + 1, m + 1), order="F")
-        S[:m, :m] = self._S
-        S[m, :m] = S[:m, m] = s_col
-        S[m, m] = s_nn
         koo = np.empty((m + 1, m + 1))
         koo[:m, :m] = self._koo
         koo[m, :m] = koo[:m, m] = k_new
         koo[m, m] = kss + self.jitter_
-        r = np.append(self._r, r_new)
         drop = None
         if m + 1 > int(self.num_inducing):
-            linv = solve_triangular(low, np.eye(m + 1), lower=True, check_finite=False)
+            linv = dtrtri(low, lower=1)[0]
             kinv = linv.T @ linv
-            x = kinv @ S @ kinv
-            score = np.diag(x) / np.diag(kinv)  # eq. 28: trace increase if removed
-            j = int(np.argmin(score[:m]))
+            score = np.einsum("ij,jk,ki->i", kinv, stats[:, 1:], kinv) / np.diag(kinv)
+            j = int(np.argmin(score[:m]))  # eq. 28: least informative old point
             if score[m] - score[j] <= self.swap_margin * kss:
                 return  # not informative enough: state unchanged
             drop = j
         # commit the addition
         self._ind.append(xi, ub)
-        self._win_k[:cnt, m] = col
-        self._S, self._r, self._koo = S, r, koo
+        self._win[:cnt, m + 1] = col
+        self._stats, self._koo = stats, koo
         self.n_added_ += 1
         if drop is None:
             self._set_koo_chol(low)
@@ -322,13 +329,13 @@ class AFVSGP(SparseLearner):
         self._remove(drop, low)
 
     def _remove(self, j: int, low: np.ndarray) -> None:
+        """Drop inducing point j (eq. 32): delete its row/column everywhere, O(P M)."""
         m = self._ind.M
         self._ind.delete(j)
         cnt = self._count
-        self._win_k[:cnt, j:m - 1] = self._win_k[:cnt, j + 1:m]
+        self._win[:cnt, j + 1:m] = self._win[:cnt, j + 2:m + 1]
         keep = np.r_[0:j, j + 1:m]
-        self._S = np.asfortranarray(self._S[np.ix_(keep, keep)])
-        self._r = self._r[keep]
+        self._stats = np.asfortranarray(self._stats[np.ix_(keep, np.r_[0, keep + 1])])
         self._koo = self._koo[np.ix_(keep, keep)]
         self._set_koo_chol(_chol_delete(low, j))
         self.n_removed_ += 1
@@ -339,4 +346,4 @@ class AFVSGP(SparseLearner):
         cnt = self._count
         kdiag = self.kernel_._diag(self._win_ub[:cnt])
         return float(self._weights() @ kdiag
-                     - np.trace(cho_solve((self._l_oo, True), self._S, check_finite=False)))
+                     - np.trace(cho_solve((self._l_oo, True), self.S_, check_finite=False)))

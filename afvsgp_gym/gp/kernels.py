@@ -149,9 +149,9 @@ class ADPKernel:
         """Gram from validated inputs with precomputed ubar (internal fast path)."""
         comp = self._components(xi1, xi2)
         if ub2 is None:
-            gram = np.einsum("ni,inj,ji->nj", ub1, comp, ub1, optimize=True)
+            gram = np.einsum("ni,inj,ji->nj", ub1, comp, ub1)
             return 0.5 * (gram + gram.T)
-        return np.einsum("ni,inj,ji->nj", ub1, comp, ub2, optimize=True)
+        return np.einsum("ni,inj,ji->nj", ub1, comp, ub2)
 
     def diag(self, xi, u) -> np.ndarray:
         """``k(x_n, x_n)`` = sum_i s_i ubar_{n,i}^2: (N,)."""

@@ -91,9 +91,7 @@ class VSGP(SparseLearner):
     def _recompute_stats(self) -> None:
         n = self.n_seen_
         k = self._kxo[:n]
-        self._S = k.T @ k
-        self._r = k.T @ self._z[:n]
-        self._dirty = True
+        self._set_stats(k.T @ k, k.T @ self._z[:n])
 
     def update(self, xi, u, z) -> VSGP:
         """Append one sample and refresh the posterior over all data seen."""
