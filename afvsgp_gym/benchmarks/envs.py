@@ -6,6 +6,8 @@ filter and its evaluation read every step; ``step`` itself computes both to repo
 ``info["delta_b_true"]``). Actions are pre-drawn uniform samples; episodes are reset when they
 end (reset time included). Gymnasium's ``Ant-v5`` (plain ``env.step``) is measured in the same
 run as a reference point when it can be made. "closed loop" adds the NominalController.
+Rates are given per wall-clock second and per CPU second of this process (the latter is the
+meaningful one on a shared machine; everything runs in one thread).
 
 Run: ``python -m afvsgp_gym.benchmarks.envs [--quick]``.
 """
@@ -26,7 +28,10 @@ import afvsgp_gym  # noqa: F401  (registers the ids)
 __all__ = ["main", "run"]
 
 
-def _loop(env: gym.Env, steps: int, barrier: bool, policy: Callable | None = None) -> float:
+def _loop(
+    env: gym.Env, steps: int, barrier: bool, policy: Callable | None = None
+) -> tuple[float, float]:
+    """(wall-clock, CPU-time) steps per second."""
     rng = np.random.default_rng(0)
     low, high = env.action_space.low, env.action_space.high
     actions = rng.uniform(low, high, size=(steps, *env.action_space.shape)).astype(np.float32)
@@ -35,7 +40,7 @@ def _loop(env: gym.Env, steps: int, barrier: bool, policy: Callable | None = Non
     for a in actions[: min(50, steps)]:  # warm caches
         env.step(a)
     obs, _ = env.reset(seed=0)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     for a in actions:
         if policy is not None:
             a = policy(obs)
@@ -45,7 +50,7 @@ def _loop(env: gym.Env, steps: int, barrier: bool, policy: Callable | None = Non
             base.barrier_terms("true")
         if term or trunc:
             obs, _ = env.reset()
-    return steps / (time.perf_counter() - t0)
+    return steps / (time.perf_counter() - t0), steps / (time.process_time() - c0)
 
 
 def run(quick: bool = False) -> dict[str, float]:
@@ -72,24 +77,27 @@ def run(quick: bool = False) -> dict[str, float]:
     ]
     for name, env_id, kwargs in cases:
         env = gym.make(env_id, **kwargs)
-        out[f"{name}_steps_per_s"] = _loop(env, steps, barrier=True)
+        _put(out, name, _loop(env, steps, barrier=True))
         env.close()
     env = gym.make("afvsgp_gym/FrankaObstacleStatic-v0")
-    out["franka_static_closed_loop_steps_per_s"] = _loop(
-        env, steps, barrier=True, policy=NominalController(env)
-    )
+    _put(out, "franka_static_closed_loop", _loop(env, steps, True, NominalController(env)))
     env.close()
     try:
         ant = gym.make("Ant-v5")
     except Exception:  # noqa: BLE001 - reference only; absent MuJoCo assets must not fail the run
         ant = None
     if ant is not None:
-        out["ant_v5_steps_per_s"] = _loop(ant, steps, barrier=False)
+        _put(out, "ant_v5", _loop(ant, steps, barrier=False))
         ant.close()
-        out["franka_static_zero_over_ant"] = (
-            out["franka_static_zero_steps_per_s"] / out["ant_v5_steps_per_s"]
-        )
+        for clock in ("wall", "cpu"):
+            out[f"franka_static_zero_over_ant_v5_{clock}"] = (
+                out[f"franka_static_zero_steps_per_s_{clock}"] / out[f"ant_v5_steps_per_s_{clock}"]
+            )
     return out
+
+
+def _put(out: dict[str, float], name: str, rates: tuple[float, float]) -> None:
+    out[f"{name}_steps_per_s_wall"], out[f"{name}_steps_per_s_cpu"] = rates
 
 
 def machine() -> str:

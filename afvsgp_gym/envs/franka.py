@@ -397,6 +397,7 @@ class FrankaObstacleEnv(MujocoEnv):
         d.ctrl[:] = 0.0
         self._place_markers()
         mujoco.mj_forward(self.model, d)
+        self._kin = self._kinematics(self.model, d)
         self._terms_cache = {}
 
     def _place_markers(self) -> None:
@@ -420,10 +421,7 @@ class FrankaObstacleEnv(MujocoEnv):
     def _compute_terms(self, kind: str) -> list[BarrierTerms]:
         m, d = self.model, self.data
         q, qd = d.qpos.copy(), d.qvel.copy()
-        if kind == "zero":
-            p, v = self._ee()
-        else:
-            p, v, jac, jdqd = self._kinematics(m, d)
+        p, v, jac, jdqd = self._kin
         if kind == "exact" or (kind == "perturbed" and self.nominal_mj_data is None):
             mujoco.mj_solveM(m, d, self._jminv, jac)
             a_free = jac @ d.qacc + jdqd
@@ -460,8 +458,7 @@ class FrankaObstacleEnv(MujocoEnv):
 
     # ------------------------------------------------------------------ gym API
     def _ee(self) -> tuple[np.ndarray, np.ndarray]:
-        mujoco.mj_jacSite(self.model, self.data, self._jac, None, self._site)
-        return self.data.site_xpos[self._site].copy(), self._jac @ self.data.qvel
+        return self._kin[0], self._kin[1]
 
     def _get_obs(self) -> np.ndarray:
         p, v = self._ee()

@@ -147,6 +147,12 @@ class CyclicReference:
             q, dq, ddq = quintic((t - self.switch_time) / self.switch_duration)
         else:
             q, dq, ddq = 0.0, 0.0, 0.0
+        f0 = a * s
+        f1 = da * s + a * ds
+        f2 = dda * s + 2 * da * ds + a * dds
+        if dq == 0.0 and ddq == 0.0 and q in (0.0, 1.0):  # fixed direction: fast path
+            e = self.axis1 if q == 0.0 else self.axis2
+            return self.center + f0 * e, f1 * e, f2 * e
         k = 0.5 * math.pi
         th, dth = k * q, k * dq / self.switch_duration
         ddth = k * ddq / self.switch_duration**2
@@ -154,9 +160,6 @@ class CyclicReference:
         e_r = ct * self.axis1 + st * self.axis2
         e_t = ct * self.axis2 - st * self.axis1
         # r = c + a s w, w' = th' e_t, w'' = th'' e_t - th'^2 e_r
-        f0 = a * s
-        f1 = da * s + a * ds
-        f2 = dda * s + 2 * da * ds + a * dds
         pos = self.center + f0 * e_r
         vel = f1 * e_r + (f0 * dth) * e_t
         acc = (f2 - f0 * dth * dth) * e_r + (2 * f1 * dth + f0 * ddth) * e_t
@@ -183,8 +186,8 @@ def sphere_barrier(
 def make_terms(h: float, hdot: float, lf: float, lg: np.ndarray, xi: np.ndarray) -> BarrierTerms:
     """BarrierTerms with read-only float64 arrays (cached results cannot be corrupted)."""
     derivs = np.array([h, hdot], dtype=np.float64)
-    lg = np.array(lg, dtype=np.float64)
-    xi = np.array(xi, dtype=np.float64)
+    lg = np.asarray(lg, dtype=np.float64)
+    xi = np.asarray(xi, dtype=np.float64)
     for arr in (derivs, lg, xi):
         arr.flags.writeable = False
     return BarrierTerms(derivs, float(lf), lg, xi)
