@@ -1,1 +1,7 @@
-"""afvsgp_gym.benchmarks."""
+"""Speed benchmarks, one module per area, each with ``run(quick=False) -> dict`` and ``main()``.
+
+- :mod:`afvsgp_gym.benchmarks.gp`: learner update / prediction times.
+- :mod:`afvsgp_gym.benchmarks.envs`: environment steps per second.
+- :mod:`afvsgp_gym.benchmarks.filter`: SOCP and full filtered-step times.
+- :mod:`afvsgp_gym.benchmarks.run_all`: all of them in one run (``afvsgp-gym bench``).
+"""

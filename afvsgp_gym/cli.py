@@ -1,0 +1,358 @@
+"""``afvsgp-gym`` console script: evaluate, reproduce, plot, video, train, bench.
+
+Each subcommand validates its arguments (unknown env ids, agents and learners list the valid
+choices and exit with status 2; output paths are checked for writability before any work
+starts) and then calls one library function:
+
+- ``evaluate``  -> :func:`afvsgp_gym.evaluation.evaluate`
+- ``reproduce`` -> :func:`afvsgp_gym.reproduce.reproduce`
+- ``plot``      -> :func:`afvsgp_gym.reproduce.render_figures`
+- ``video``     -> :func:`afvsgp_gym.video.record_video`
+- ``train``     -> :func:`afvsgp_gym.agents.sb3.train`
+- ``bench``     -> :func:`afvsgp_gym.benchmarks.run_all.run_all`
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+__all__ = ["build_parser", "main"]
+
+DEFAULT_ENV = "afvsgp_gym/FrankaObstacleDynamic-v0"
+
+
+# ----------------------------------------------------------------------------- choices
+
+
+def env_ids() -> list[str]:
+    """Registered ``afvsgp_gym/...`` ids."""
+    import gymnasium as gym
+
+    import afvsgp_gym  # noqa: F401
+
+    return sorted(k for k in gym.registry if k.startswith("afvsgp_gym/"))
+
+
+def learner_names() -> tuple[str, ...]:
+    from afvsgp_gym.cbf import LEARNERS
+
+    return tuple(LEARNERS)
+
+
+def _check_env(parser: argparse.ArgumentParser, env_id: str) -> str:
+    ids = env_ids()
+    if env_id not in ids:
+        parser.error(f"unknown env id {env_id!r}; valid choices: {', '.join(ids)}")
+    return env_id
+
+
+def _check_learner(parser: argparse.ArgumentParser, name: str, opt: str = "--learner") -> str:
+    valid = learner_names()
+    if name not in valid:
+        parser.error(f"unknown learner {name!r} for {opt}; valid choices: {', '.join(valid)}")
+    return name
+
+
+def _check_agent(parser: argparse.ArgumentParser, agent: str) -> str:
+    from afvsgp_gym.evaluation import BUILTIN_AGENTS
+
+    if agent in BUILTIN_AGENTS:
+        return agent
+    if agent.endswith(".zip"):
+        if not Path(agent).is_file():
+            parser.error(f"agent zip {agent!r} does not exist")
+        _require_sb3(parser)
+        return agent
+    parser.error(f"unknown agent {agent!r}; valid choices: {', '.join(BUILTIN_AGENTS)} or a "
+                 "path to a Stable-Baselines3 .zip saved by 'afvsgp-gym train'")
+    raise AssertionError  # unreachable: parser.error exits
+
+
+def _require_sb3(parser: argparse.ArgumentParser) -> None:
+    from afvsgp_gym.agents.sb3 import require_sb3
+
+    try:
+        require_sb3()
+    except ImportError as exc:
+        parser.exit(3, f"{parser.prog}: error: {exc}\n")
+
+
+def _check_out(parser: argparse.ArgumentParser, path: str | None, opt: str,
+               directory: bool = False) -> Path | None:
+    if path is None:
+        return None
+    from afvsgp_gym.evaluation import check_writable
+
+    try:
+        return check_writable(path, directory=directory)
+    except ValueError as exc:
+        parser.error(f"{opt}: {exc}")
+    raise AssertionError  # unreachable
+
+
+def _json_arg(parser: argparse.ArgumentParser, text: str | None, opt: str) -> dict:
+    if not text:
+        return {}
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError as exc:
+        parser.error(f"{opt} must be a JSON object: {exc}")
+    if not isinstance(value, dict):
+        parser.error(f"{opt} must be a JSON object, got {type(value).__name__}")
+    return value
+
+
+def _positive(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {v}")
+    return v
+
+
+# ----------------------------------------------------------------------------- subcommands
+
+
+def _cmd_evaluate(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
+    from afvsgp_gym.evaluation import evaluate, format_table, write_csv, write_json
+
+    _check_env(parser, args.env)
+    if args.compare:
+        learners = [s.strip() for s in args.compare.split(",") if s.strip()]
+        if not learners:
+            parser.error("--compare needs a comma-separated list of learners")
+        for name in learners:
+            _check_learner(parser, name, "--compare")
+    else:
+        learners = [_check_learner(parser, args.learner)]
+    _check_agent(parser, args.agent)
+    json_path = _check_out(parser, args.json, "--json")
+    csv_path = _check_out(parser, args.csv, "--csv")
+    env_kwargs = _json_arg(parser, args.env_kwargs, "--env-kwargs")
+    filter_kwargs = _json_arg(parser, args.filter_kwargs, "--filter-kwargs")
+    result = evaluate(args.env, agent=args.agent, learners=learners, episodes=args.episodes,
+                      seed=args.seed, max_steps=args.max_steps, env_kwargs=env_kwargs,
+                      filter_kwargs=filter_kwargs, progress=not args.no_progress)
+    print(f"env {args.env}, agent {args.agent}, seeds {args.seed}..{args.seed + args.episodes - 1}"
+          f" (filter times in microseconds)")
+    print(format_table(result))
+    if json_path is not None:
+        write_json(result, json_path)
+        print(f"wrote {json_path}")
+    if csv_path is not None:
+        write_csv(result, csv_path)
+        print(f"wrote {csv_path}")
+    return 0
+
+
+def _cmd_reproduce(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
+    from afvsgp_gym.reproduce import ReproduceConfig, reproduce, table1_markdown
+
+    out_dir = _check_out(parser, args.out, "--out", directory=True)
+    json_path = _check_out(parser, args.json, "--json")
+    cfg = ReproduceConfig.quick() if args.quick else ReproduceConfig()
+    if args.seed is not None:
+        from dataclasses import replace
+
+        cfg = replace(cfg, seed=args.seed)
+
+    def log(msg: str) -> None:
+        print(msg, file=sys.stderr, flush=True)
+
+    result = reproduce(cfg, out_dir=out_dir, json_path=json_path, log=log)
+    print(table1_markdown(result))
+    if out_dir is not None:
+        print(f"figures, tables and traces in {out_dir}")
+    if json_path is not None or out_dir is not None:
+        print(f"wrote {json_path or out_dir / 'reproduce.json'}")
+    return 0
+
+
+def _cmd_plot(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
+    from afvsgp_gym.reproduce import render_figures
+
+    traces = Path(args.traces)
+    if traces.is_dir():
+        traces = traces / "traces.npz"
+    if not traces.is_file():
+        parser.error(f"no traces file at {str(traces)!r}; run 'afvsgp-gym reproduce --out DIR' "
+                     "first (it writes DIR/traces.npz)")
+    out_dir = _check_out(parser, args.out or str(traces.parent), "--out", directory=True)
+    for p in render_figures(traces, out_dir):
+        print(f"wrote {p}")
+    return 0
+
+
+def _cmd_video(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
+    from afvsgp_gym.video import VIDEO_SUFFIXES, record_video
+
+    _check_env(parser, args.env)
+    _check_learner(parser, args.learner)
+    _check_agent(parser, args.agent)
+    if Path(args.out).suffix.lower() not in VIDEO_SUFFIXES:
+        parser.error(f"--out must end in one of {', '.join(VIDEO_SUFFIXES)}, got {args.out!r}")
+    out = _check_out(parser, args.out, "--out")
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    res = record_video(args.env, out, agent=args.agent, learner=args.learner, seed=args.seed,
+                       max_steps=args.max_steps, every=args.every,
+                       env_kwargs=_json_arg(parser, args.env_kwargs, "--env-kwargs"))
+    print(f"wrote {res['path']}: {res['frames']} frames of {res['steps']} steps, "
+          f"min h = {res['min_h']:.4f}, {res['violation_steps']} steps with h < 0")
+    return 0
+
+
+def _cmd_train(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
+    _check_env(parser, args.env)
+    _check_learner(parser, args.learner)
+    _require_sb3(parser)
+    from afvsgp_gym.agents.sb3 import train
+
+    out = args.out or f"{args.algo}_{args.env.split('/')[-1]}_{args.learner}.zip"
+    if not out.endswith(".zip"):
+        parser.error(f"--out must end in .zip, got {out!r}")
+    out_path = _check_out(parser, out, "--out")
+    res = train(args.algo, args.env, learner=args.learner, timesteps=args.timesteps,
+                path=out_path, seed=args.seed, n_envs=args.n_envs,
+                env_kwargs=_json_arg(parser, args.env_kwargs, "--env-kwargs"),
+                verbose=args.verbose)
+    costs = res.episode_costs
+    print(f"trained {args.algo.upper()} for {args.timesteps} steps on {args.env} behind "
+          f"SafetyFilter(learner={args.learner!r})")
+    if costs:
+        print(f"episodes: {len(costs)}, cost per episode (steps with h < 0): mean "
+              f"{sum(costs) / len(costs):.2f}, last {costs[-1]:.0f}")
+    else:
+        print("no training episode finished (increase --timesteps to see episode costs)")
+    print(f"saved {res.path}; evaluate with: afvsgp-gym evaluate --env {args.env} "
+          f"--agent {res.path} --learner {args.learner}")
+    return 0
+
+
+def _cmd_bench(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
+    from afvsgp_gym.benchmarks.run_all import AREAS, run_all
+
+    only = None
+    if args.only:
+        only = [s.strip() for s in args.only.split(",") if s.strip()]
+        bad = [a for a in only if a not in AREAS]
+        if bad:
+            parser.error(f"unknown benchmark area(s) {bad}; valid choices: {', '.join(AREAS)}")
+    results = run_all(quick=args.quick, areas=only)
+    return 0 if any(v is not None for v in results.values()) else 1
+
+
+# ----------------------------------------------------------------------------- parser
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argparse tree (choices that need imports are checked after parsing)."""
+    p = argparse.ArgumentParser(
+        prog="afvsgp-gym",
+        description="Learned HOCBF safety filter (AFVSGP + chance-constrained SOCP) on Franka "
+                    "obstacle-avoidance environments.")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    ev = sub.add_parser("evaluate", help="seeded episodes behind the safety filter, safety report",
+                        description="Run seeded episodes of an agent behind the safety filter "
+                                    "and print a per-episode safety report and a summary.")
+    ev.add_argument("--env", default=DEFAULT_ENV, help=f"env id (default {DEFAULT_ENV})")
+    ev.add_argument("--agent", default="nominal",
+                    help="nominal | random | PATH.zip (Stable-Baselines3; default nominal)")
+    ev.add_argument("--learner", default="afvsgp", help="filter learner (default afvsgp)")
+    ev.add_argument("--compare", default=None, metavar="A,B,...",
+                    help="several learners side by side on the same seeds (overrides --learner)")
+    ev.add_argument("--episodes", type=_positive, default=3)
+    ev.add_argument("--seed", type=int, default=0, help="episode i uses seed + i")
+    ev.add_argument("--max-steps", type=_positive, default=None,
+                    help="cap the steps per episode (default: the env's time limit)")
+    ev.add_argument("--json", default=None, metavar="PATH")
+    ev.add_argument("--csv", default=None, metavar="PATH")
+    ev.add_argument("--env-kwargs", default=None, metavar="JSON",
+                    help='extra gym.make kwargs, e.g. \'{"nominal_model": "kinematic"}\'')
+    ev.add_argument("--filter-kwargs", default=None, metavar="JSON",
+                    help='SafetyFilter options, e.g. \'{"beta": 1.0}\'')
+    ev.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+    rp = sub.add_parser("reproduce", help="the paper's Table I, Figs. 2, 4, 6 in simulation")
+    rp.add_argument("--quick", action="store_true", help="smaller sizes (< 10 min on 2 cores)")
+    rp.add_argument("--json", default=None, metavar="PATH",
+                    help="results JSON (default OUT/reproduce.json)")
+    rp.add_argument("--out", default="docs", metavar="DIR",
+                    help="figures, tables and traces (default docs)")
+    rp.add_argument("--seed", type=int, default=None)
+
+    pl = sub.add_parser("plot", help="Fig. 2/4/6-like PNGs from reproduce's traces")
+    pl.add_argument("--traces", default="docs", metavar="PATH",
+                    help="traces.npz written by reproduce, or its folder (default docs)")
+    pl.add_argument("--out", default=None, metavar="DIR",
+                    help="output folder (default: next to the traces)")
+
+    vd = sub.add_parser("video", help="record a filtered episode (mp4 or gif)")
+    vd.add_argument("--env", default=DEFAULT_ENV)
+    vd.add_argument("--agent", default="nominal")
+    vd.add_argument("--learner", default="afvsgp")
+    vd.add_argument("--seed", type=int, default=0)
+    vd.add_argument("--max-steps", type=_positive, default=None)
+    vd.add_argument("--every", type=_positive, default=5,
+                    help="keep one frame in EVERY steps (default 5)")
+    vd.add_argument("--out", default="afvsgp_episode.mp4", metavar="PATH",
+                    help=".mp4 (imageio-ffmpeg) or .gif")
+    vd.add_argument("--env-kwargs", default=None, metavar="JSON")
+
+    tr = sub.add_parser("train", help="train a Stable-Baselines3 agent with the filter in the loop")
+    tr.add_argument("--algo", choices=("ppo", "sac"), default="ppo")
+    tr.add_argument("--env", default=DEFAULT_ENV)
+    tr.add_argument("--learner", default="afvsgp")
+    tr.add_argument("--timesteps", type=_positive, default=10_000)
+    tr.add_argument("--seed", type=int, default=0)
+    tr.add_argument("--n-envs", type=_positive, default=1)
+    tr.add_argument("--out", default=None, metavar="PATH.zip",
+                    help="model zip (default ALGO_ENV_LEARNER.zip)")
+    tr.add_argument("--env-kwargs", default=None, metavar="JSON")
+    tr.add_argument("--verbose", type=int, default=0)
+
+    bn = sub.add_parser("bench", help="speed figures of the GP, env and filter benchmarks")
+    bn.add_argument("--quick", action="store_true")
+    bn.add_argument("--only", default=None, metavar="A,B", help="subset of gp,envs,filter")
+    return p
+
+
+_COMMANDS = {
+    "evaluate": _cmd_evaluate,
+    "reproduce": _cmd_reproduce,
+    "plot": _cmd_plot,
+    "video": _cmd_video,
+    "train": _cmd_train,
+    "bench": _cmd_bench,
+}
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``afvsgp-gym`` console script; returns the exit status.
+
+    Bad arguments raise ``SystemExit(2)`` after printing the valid choices (argparse's
+    convention); a missing optional extra exits with status 3.
+    """
+    parser = build_parser()
+    args = parser.parse_args(list(argv) if argv is not None else None)
+    subparser = _subparser(parser, args.command)
+    return int(_COMMANDS[args.command](args, subparser) or 0)
+
+
+def _subparser(parser: argparse.ArgumentParser, name: str) -> Any:
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            return action.choices[name]
+    return parser  # pragma: no cover
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
