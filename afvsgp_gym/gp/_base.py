@@ -3,6 +3,8 @@ sparse (Titsias) predictive cache shared by VSGP and AFVSGP."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy.linalg.lapack import dpotrf, dpotrs
 
@@ -68,9 +70,9 @@ class BaseLearner:
         """``b`` (N, m+1), ``Sigma`` (N, m+1, m+1): mean ``b . ubar``, var ``ubar' Sigma ubar``."""
         self._check_fitted()
         b = self.kernel_.input_dim
-        if not (isinstance(xi, np.ndarray) and xi.dtype == np.float64 and xi.ndim == 2
+        if not (type(xi) is np.ndarray and xi.dtype == np.float64 and xi.ndim == 2
                 and xi.shape[1] == b and xi.shape[0] > 0
-                and np.isfinite(xi).all()):  # fast path for well-formed arrays
+                and math.isfinite(xi.sum())):  # fast path for well-formed arrays
             xi = check_matrix(xi, "xi", ncols=b)
             if xi.shape[0] == 0:
                 raise ValueError("xi must contain at least one row")
@@ -122,6 +124,8 @@ class SparseLearner(BaseLearner):
         inv_s = 1.0 / (s2 * self._scale)
         stats = self._stats
         sig = self._koo + stats[:, 1:] * inv_s
+        if not sig.flags.f_contiguous:
+            sig = sig.T  # symmetric: the Fortran view avoids a copy in LAPACK
         low, info = dpotrf(sig, lower=1, clean=1, overwrite_a=1)
         if info != 0:
             low = jittered_cholesky(self._koo + stats[:, 1:] * inv_s, name="K_oo + S/s2")
@@ -146,7 +150,7 @@ class SparseLearner(BaseLearner):
             sig = kt @ (self._d_mat @ kt.T)  # Kt (K_oo^-1 - B) Kt'
             sig += sig.T
             sig *= -0.5
-            sig.flat[:: sig.shape[0] + 1] += self._ind.var
+            sig += self._ind.var_diag
             return bvec[None, :], sig[None, :, :]
         return affine_from_kt(self._ind.kt_batch(xi), self._ind.var, self._w, self._d_mat)
 

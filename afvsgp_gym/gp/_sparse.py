@@ -35,6 +35,7 @@ class InducingCache:
         self.const = np.zeros((c, capacity))  # log s_i - |xi_o / l_i|^2 / 2
         self.inv_ls2 = kernel._inv_ls ** 2
         self.var = kernel._var
+        self.var_diag = np.diag(kernel._var)
         self.log_var = np.log(kernel._var)
         self._v = np.empty(2 * b)
 

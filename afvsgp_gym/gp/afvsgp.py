@@ -276,12 +276,14 @@ class AFVSGP(SparseLearner):
         elif scale > 1e100:
             self._renormalise()
         if self.adapt_inducing:
-            kss = float(ub @ (self._ind.var * ub))
-            lvec = dtrtrs(self._l_oo, k_new, lower=1)[0]  # L_oo^-1 k_new
-            d = kss - float(lvec @ lvec)
+            kss = float(self._ind.var @ (ub * ub))
+            d = kss - float(k_new @ (self._koo_inv @ k_new))  # eq. 27 residual, weight 1
             if (d > self.add_threshold * kss and d > self.noise_variance_
                     and d > 1e-6 * kss):
-                self._consider_add(xi, ub.copy(), kss, k_new.copy(), lvec, d)
+                lvec = dtrtrs(self._l_oo, k_new, lower=1)[0]  # L_oo^-1 k_new
+                d = kss - float(lvec @ lvec)  # the same, from the factor (stable)
+                if d > 1e-6 * kss:
+                    self._consider_add(xi, ub.copy(), kss, k_new.copy(), lvec, d)
         return self
 
     # ------------------------------------------------------------------ inducing set
@@ -341,6 +343,14 @@ class AFVSGP(SparseLearner):
         self.n_removed_ += 1
 
     # ------------------------------------------------------------------ diagnostics
+    def window_samples(self):
+        """Current window, oldest first: xi (n, b), u (n, m), z (n,), weights phi**age (n,)."""
+        self._check_fitted()
+        cnt = self._count
+        order = (self._head + 1 + np.arange(cnt)) % cnt if cnt == self._p else np.arange(cnt)
+        return (self._win_xi[order].copy(), self._win_ub[order, 1:].copy(),
+                self._win[order, 0].copy(), self._weights()[order])
+
     def weighted_trace(self) -> float:
         """eq. 27 over the window: ``sum lambda (k_tt - Q_tt)`` (the bound's trace part)."""
         cnt = self._count

@@ -160,3 +160,16 @@ def test_nonstationary_gain_switch_afvsgp_recovers_vsgp_does_not():
     after = slice(k + p - 50, k + p)  # the last 50 of the first P samples after the switch
     assert err_a[after].mean() < 2 * s2, err_a[after].mean()
     assert err_v[after].mean() > 10 * s2, err_v[after].mean()
+
+
+def test_window_samples_are_the_last_p_with_weights():
+    rng = np.random.default_rng(7)
+    xi, u, z, _ = synthetic(rng, 130)
+    gp = AFVSGP(_kernel(), 0.01, window=50, forgetting=0.9).fit(xi[:20], u[:20], z[:20], False)
+    for i in range(20, 130):
+        gp.update(xi[i], u[i], z[i])
+    wx, wu, wz, w = gp.window_samples()
+    np.testing.assert_array_equal(wx, xi[-50:])
+    np.testing.assert_array_equal(wu, u[-50:])
+    np.testing.assert_array_equal(wz, z[-50:])
+    np.testing.assert_allclose(w, 0.9 ** np.arange(49, -1, -1))
