@@ -78,7 +78,7 @@ class _FrankaTaskPD:
         self.data = mujoco.MjData(self.model)
         self.site = self.model.site("end_effector").id
         self.body = self.model.body("panda0_link7").id
-        self.tau_max = env.model.actuator_gear[:, 0].copy()
+        self.action_scale = env.action_scale.copy()  # Nm per action unit
         self.q_home = env.q_home.copy()
         self.k = 20 + 6 * env.n_obstacles
         if self.dynamic:
@@ -119,4 +119,4 @@ class _FrankaTaskPD:
             tau = d.qfrc_inverse.copy()
         else:
             tau = J.T @ (self.kp * e + self.kd * ed) + null.T @ posture
-        return tau / self.tau_max
+        return tau / self.action_scale

@@ -58,7 +58,7 @@ class FrankaObstacleEnv(MujocoEnv):
     ``h'' = n.(J q'' + J' q' - a_obs) + (|v_rel|^2 - (n.v_rel)^2)/|d|``, ``n = d/|d|``.
     With ``q'' = q''_0 + M^-1 diag(tau_max) u`` (``q''_0``: acceleration at u = 0 from passive,
     bias, residual gravity and joint-limit forces), ``barrier_terms(model)`` gives
-    ``lf = n.(J q''_0 + J' q' - a_obs) + curvature`` and ``lg = n' J M^-1 diag(tau_max)``:
+    ``lf = n.(J q''_0 + J' q' - a_obs) + curvature`` and ``lg = n' J M^-1 diag(action_scale)``:
 
     - ``"true"``: the true plant (for evaluation / oracle only).
     - ``"nominal"`` by ``nominal_model``: ``"zero"`` lf = lg = 0 (paper section VI; the
@@ -75,8 +75,11 @@ class FrankaObstacleEnv(MujocoEnv):
 
     ## Action Space
     ``Box(-1, 1, (7,), float32)``: joint torques ``tau = u * tau_max``, tau_max = (87, 87, 87,
-    87, 12, 12, 12) Nm, added to the robot's gravity compensation. Out-of-range actions are
-    clipped; NaN/inf or a wrong shape raise ValueError before anything reaches MuJoCo.
+    87, 12, 12, 12) Nm, added to the robot's gravity compensation (``action_scale`` =
+    tau_max). With ``normalize_action=False`` the action is the torque itself,
+    ``Box(-tau_max, tau_max)`` (``action_scale`` = 1), and ``lg`` is per Nm. Out-of-range
+    actions are clipped; NaN/inf or a wrong shape raise ValueError before anything reaches
+    MuJoCo.
 
     ## Observation Space
     ``Box(float32)`` of size ``29 + 6 n_obstacles`` (values clipped to the bounds):
@@ -150,6 +153,7 @@ class FrankaObstacleEnv(MujocoEnv):
     | warmup_steps | 500 | steps with obstacles far away (>= 250) |
     | tracking_weight, control_weight | 1.0, 0.01 | reward weights |
     | reset_noise | 0.01 | rad |
+    | normalize_action | True | action in [-1, 1] (tau = u tau_max); False: action = tau in Nm |
     | render_mode, width, height | None, 480, 480 | "rgb_array", "depth_array", "human" (display) |
 
     ## Version History
@@ -181,6 +185,7 @@ class FrankaObstacleEnv(MujocoEnv):
         tracking_weight=1.0,
         control_weight=0.01,
         reset_noise=0.01,
+        normalize_action=True,
         render_mode=None,
         width=480,
         height=480,
@@ -218,6 +223,7 @@ class FrankaObstacleEnv(MujocoEnv):
         self.tracking_weight = float(cfg["tracking_weight"])
         self.control_weight = float(cfg["control_weight"])
         self.reset_noise = float(cfg["reset_noise"])
+        self.normalize_action = bool(cfg["normalize_action"])
         physics_dt = float(cfg["physics_dt"])
         self._control_dt = physics_dt * frame_skip
         self._user_obstacles = (
@@ -266,6 +272,14 @@ class FrankaObstacleEnv(MujocoEnv):
         self._site = m.site(fm.EE_SITE).id
         self._ee_body = m.body(fm.EE_BODY).id
         self._gear = m.actuator_gear[:, 0].copy()
+        if self.normalize_action:
+            self.action_scale = self._gear.copy()  # Nm per action unit
+        else:
+            self.action_scale = np.ones(7)
+            self.action_space = spaces.Box(
+                -self._gear.astype(np.float32), self._gear.astype(np.float32), dtype=np.float32
+            )
+        self._ctrl_per_action = self.action_scale / self._gear
         self._arm_geoms = fm.arm_collision_geoms(m)
         self._arm_rbound = m.geom_rbound[self._arm_geoms].copy()
         self._obstacle_geoms = np.array([m.geom(f"obstacle{i}").id for i in range(n_obs)])
@@ -425,7 +439,7 @@ class FrankaObstacleEnv(MujocoEnv):
         if kind == "exact" or (kind == "perturbed" and self.nominal_mj_data is None):
             mujoco.mj_solveM(m, d, self._jminv, jac)
             a_free = jac @ d.qacc + jdqd
-            gain = self._jminv * self._gear
+            gain = self._jminv * self.action_scale
         elif kind == "perturbed":
             mn, dn = self.nominal_mj_model, self.nominal_mj_data
             dn.qpos[:] = q
@@ -434,7 +448,7 @@ class FrankaObstacleEnv(MujocoEnv):
             mujoco.mj_forward(mn, dn)
             mujoco.mj_solveM(mn, dn, self._jminv, jac)
             a_free = jac @ dn.qacc + jdqd
-            gain = self._jminv * mn.actuator_gear[:, 0]
+            gain = self._jminv * self.action_scale
         out = []
         for ob, (po, vo, ao) in zip(self.obstacles, self._obs_states, strict=True):
             h, hd, n, curv = sphere_barrier(p, v, po, vo, ob.radius + self.ee_radius)
@@ -528,7 +542,7 @@ class FrankaObstacleEnv(MujocoEnv):
 
     def step(self, action):
         a = check_action(action, self.action_space.shape)
-        u = np.clip(a, -1.0, 1.0)
+        u = np.clip(a, self.action_space.low, self.action_space.high)
         true_terms = self.barrier_terms("true")
         nom_terms = self.barrier_terms("nominal")
         delta = np.array(
@@ -539,7 +553,7 @@ class FrankaObstacleEnv(MujocoEnv):
         )
         m, d = self.model, self.data
         warn_before = int(d.warning.number[_BAD_WARNINGS].sum())
-        d.ctrl[:] = u
+        d.ctrl[:] = u * self._ctrl_per_action
         mujoco.mj_step(m, d, nstep=self.frame_skip)
         self._steps += 1
         warn_after = int(d.warning.number[_BAD_WARNINGS].sum())

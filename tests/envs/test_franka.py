@@ -265,3 +265,24 @@ def test_multiple_obstacles_collision_and_render():
     img = env.render()
     assert img.shape == (96, 96, 3) and img.std() > 0
     env.close()
+
+
+def test_raw_torque_actions_match_normalised():
+    raw = FrankaObstacleEnv(normalize_action=False)
+    norm = FrankaObstacleEnv()
+    np.testing.assert_array_equal(raw.action_space.high, fm.TAU_MAX.astype(np.float32))
+    raw.reset(seed=0)
+    norm.reset(seed=0)
+    u = np.array([0.5, -0.2, 0.1, 0.3, -1.0, 0.4, 0.0])
+    t_raw, t_norm = raw.barrier_terms("true")[0], norm.barrier_terms("true")[0]
+    np.testing.assert_allclose(t_raw.lg * fm.TAU_MAX, t_norm.lg, rtol=1e-12)
+    o_raw = raw.step(u * fm.TAU_MAX)[0]
+    o_norm = norm.step(u)[0]
+    np.testing.assert_allclose(o_raw, o_norm, rtol=1e-6, atol=1e-6)
+    policy_raw, policy_norm = NominalController(raw), NominalController(norm)
+    np.testing.assert_allclose(
+        policy_raw(o_raw),
+        np.clip(policy_norm(o_norm) * fm.TAU_MAX, -fm.TAU_MAX, fm.TAU_MAX),
+        rtol=1e-5,
+        atol=1e-4,
+    )
