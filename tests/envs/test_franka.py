@@ -286,3 +286,22 @@ def test_raw_torque_actions_match_normalised():
         rtol=1e-5,
         atol=1e-4,
     )
+
+
+def test_perturbed_model_equals_plant_without_mismatch():
+    """The separately built nominal model matches a plant with the catalogue parameters."""
+    env = FrankaObstacleEnv(
+        "dynamic",
+        nominal_model="perturbed",
+        payload_mass=0.0,
+        mass_scale=1.0,
+        damping=0.0,
+        armature=0.0,
+        warmup_steps=0,
+    )
+    env.reset(seed=0)
+    env.set_state(fm.Q_HOME + 0.1, np.linspace(-0.4, 0.4, 7))
+    env.set_time_step(300)
+    tt, tn = env.barrier_terms("true")[0], env.barrier_terms("nominal")[0]
+    np.testing.assert_allclose(tn.lf, tt.lf, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(tn.lg, tt.lg, rtol=1e-9, atol=1e-12)

@@ -217,3 +217,11 @@ def test_unstable_state_ends_episode():
     env.unwrapped._v[:] = np.inf
     _, _, term, _, info = env.step(np.zeros(2))
     assert term and info["unstable"]
+
+
+def test_perturbed_model_with_true_parameters_is_exact():
+    env = _env_near_moving_obstacle(
+        dt=0.01, nominal_model="perturbed", nominal_mass=1.5, nominal_drag=0.8
+    )
+    _, _, _, _, info = env.step(np.array([0.2, -0.4]))
+    np.testing.assert_allclose(info["delta_b_true"], 0.0, atol=1e-12)
