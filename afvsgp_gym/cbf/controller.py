@@ -248,7 +248,7 @@ class SafetyController:
             ls = float(np.sqrt(b) * np.max(std)) if np.max(std) > 1e-12 else 1.0
         else:
             ls = float(self.kernel_init)
-        return ADPKernel(np.full((m1, b), ls), np.exp(base.theta[-m1:]))
+        return ADPKernel(np.full((m1, b), ls), base.variances)
 
     # ------------------------------------------------------------------ filter
     def _terms_ok(self, terms: Sequence[BarrierTerms]) -> np.ndarray:

@@ -1,0 +1,221 @@
+"""Safety-filter benchmark: acceptance sweeps (violations, min h, tracking) and timing.
+
+``run(quick)`` returns ``{name: float}``; ``main()`` prints the tables. Command line::
+
+    python -m afvsgp_gym.benchmarks.filter [--quick] [--timing-only] [--seeds N]
+
+Timing is per call on the current process (pin it to one core, e.g. ``taskset -c 0``, with
+``OMP_NUM_THREADS=1``). Tracking error "away from the obstacle" is ``|p - r|`` (m, the env's
+``-reward_tracking / tracking_weight``) after warm-up at the steps where the reference itself
+keeps at least ``clearance`` (5 cm) outside every obstacle's safe set, i.e. where an ideal
+tracker has no reason to deviate; it is reported next to the same figure for the unfiltered
+nominal controller on the same seed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from typing import Any
+
+import numpy as np
+
+SCENARIOS = {
+    "pointmass": ("afvsgp_gym/PointMassObstacle-v0", {}),
+    "franka_static": ("afvsgp_gym/FrankaObstacleStatic-v0", {}),
+    "franka_dynamic": ("afvsgp_gym/FrankaObstacleDynamic-v0", {}),
+}
+
+
+def _reference_clearance(base) -> float:
+    """Signed distance of the reference to the nearest obstacle's safe-set boundary."""
+    r = base.reference.state(base.time)[0]
+    radius = getattr(base, "ee_radius", getattr(base, "agent_radius", 0.0))
+    out = np.inf
+    for ob in base.obstacles:
+        po = ob.state(base.time)[0]
+        out = min(out, float(np.linalg.norm(r - po)) - ob.radius - radius)
+    return out
+
+
+def run_episode(
+    scenario: str,
+    learner: str | None,
+    seed: int,
+    env_kwargs: dict | None = None,
+    clearance: float = 0.05,
+    **filter_options: Any,
+) -> dict[str, float]:
+    """One seeded episode with the nominal tracker; ``learner=None`` runs it unfiltered.
+
+    Returns violations (steps with h < 0), min h, fallbacks, interventions, mean/max tracking
+    error away from the obstacle, filter time median/p99 (s) and wall time (s).
+    """
+    import gymnasium as gym
+
+    import afvsgp_gym  # noqa: F401
+    from afvsgp_gym.agents import NominalController
+    from afvsgp_gym.wrappers import SafetyFilter
+
+    env_id, kw = SCENARIOS[scenario]
+    env = gym.make(env_id, **{**kw, **(env_kwargs or {})})
+    if learner is not None:
+        env = SafetyFilter(env, learner=learner, seed=seed, **filter_options)
+    base = env.unwrapped
+    policy = NominalController(env)
+    t0 = time.perf_counter()
+    obs, _ = env.reset(seed=seed)
+    hs, errs, away, times = [], [], [], []
+    fallbacks = active = 0
+    while True:
+        obs, _, term, trunc, info = env.step(policy(obs))
+        hs.append(info["h"])
+        if base.time > base.warmup_steps * base.dt:
+            errs.append(-info["reward_tracking"] / base.tracking_weight)
+            away.append(_reference_clearance(base) > clearance)
+        if learner is not None:
+            fallbacks += not info["filter_feasible"]
+            active += info["filter_active"]
+            times.append(info["filter_time_s"])
+        if term or trunc:
+            break
+    env.close()
+    hs, errs, away = np.array(hs), np.array(errs), np.array(away, dtype=bool)
+    e = errs[away] if away.any() else np.array([np.nan])
+    return {
+        "violations": float(np.sum(hs < 0)),
+        "min_h": float(hs.min()),
+        "fallbacks": float(fallbacks),
+        "interventions": float(active),
+        "track_mean": float(np.mean(e)),
+        "track_max": float(np.max(e)),
+        "filter_median_s": float(np.median(times)) if times else np.nan,
+        "filter_p99_s": float(np.percentile(times, 99)) if times else np.nan,
+        "steps": float(len(hs)),
+        "wall_s": time.perf_counter() - t0,
+    }
+
+
+def sweep(scenario: str, learners, seeds, **filter_options) -> dict[str, dict[str, float]]:
+    """Aggregate :func:`run_episode` over seeds for each learner (and the unfiltered run)."""
+    out = {}
+    for learner in learners:
+        rows = [run_episode(scenario, learner, s, **filter_options) for s in seeds]
+        out[str(learner)] = {
+            "episodes": float(len(rows)),
+            "episodes_violating": float(sum(r["violations"] > 0 for r in rows)),
+            "violation_steps": float(sum(r["violations"] for r in rows)),
+            "min_h": float(min(r["min_h"] for r in rows)),
+            "fallbacks": float(sum(r["fallbacks"] for r in rows)),
+            "track_mean": float(np.mean([r["track_mean"] for r in rows])),
+            "track_max": float(max(r["track_max"] for r in rows)),
+            "wall_s": float(sum(r["wall_s"] for r in rows)),
+        }
+    return out
+
+
+# ---------------------------------------------------------------------- timing
+def time_socp(n: int = 2000, m: int = 7, n_obstacles: int = 1, seed: int = 0) -> np.ndarray:
+    """Per-solve times (s) of the chance-constrained SOCP alone on random active instances."""
+    from afvsgp_gym.cbf import SOCPFilter
+
+    rng = np.random.default_rng(seed)
+    f = SOCPFilter(-np.ones(m), np.ones(m), n_obstacles)
+    out = np.empty(n)
+    for i in range(n):
+        a = rng.normal(size=(n_obstacles, m))
+        G = 0.2 * rng.normal(size=(n_obstacles, m + 1, m + 1))
+        u_nom = rng.uniform(-1, 1, m)
+        a0 = -(a @ u_nom) - 0.3  # the nominal action violates: the cone program runs
+        t0 = time.perf_counter()
+        f.solve(u_nom, a0, a, G)
+        out[i] = time.perf_counter() - t0
+    return out
+
+
+def time_filtered_step(
+    scenario: str = "franka_static", learner: str = "afvsgp", steps: int = 1500, seed: int = 0
+) -> dict[str, np.ndarray]:
+    """Per-step times (s) after warm-up: ``filter`` (predict_affine + SOCP), ``observe``
+    (eq. 48 + learner update) and their sum, the full filtered step without the simulator."""
+    import gymnasium as gym
+
+    import afvsgp_gym  # noqa: F401
+    from afvsgp_gym.agents import NominalController
+    from afvsgp_gym.cbf import SafetyController
+
+    env_id, kw = SCENARIOS[scenario]
+    env = gym.make(env_id, **kw)
+    base = env.unwrapped
+    ctrl = SafetyController(
+        env.action_space.low,
+        env.action_space.high,
+        base.n_obstacles,
+        base.relative_degree,
+        learner=learner,
+        seed=seed,
+        warmup_samples=min(200, base.warmup_steps - 1),
+    )
+    policy = NominalController(env)
+    obs, _ = env.reset(seed=seed)
+    t_f, t_o = [], []
+    for _ in range(base.warmup_steps + steps):
+        terms = base.barrier_terms("nominal")
+        true = base.barrier_terms("true") if learner == "oracle" else None
+        u_nom = policy(obs)
+        t0 = time.perf_counter()
+        res = ctrl.filter(u_nom, terms, true)
+        t1 = time.perf_counter()
+        obs, _, term, trunc, _ = env.step(res.u.astype(np.float32))
+        after = base.barrier_terms("nominal")
+        t2 = time.perf_counter()
+        ctrl.observe(terms, res.u, after, base.dt)
+        t3 = time.perf_counter()
+        if not ctrl.warming_up:
+            t_f.append(t1 - t0)
+            t_o.append(t3 - t2)
+        if term or trunc:
+            obs, _ = env.reset()
+    env.close()
+    t_f, t_o = np.array(t_f), np.array(t_o)
+    return {"filter": t_f, "observe": t_o, "step": t_f + t_o}
+
+
+def run(quick: bool = False) -> dict[str, float]:
+    """Timing figures (s) and, unless ``quick``, the acceptance sweeps (counts, m)."""
+    out: dict[str, float] = {}
+    t = time_socp(300 if quick else 3000)
+    out["socp_median_s"], out["socp_p99_s"] = float(np.median(t)), float(np.percentile(t, 99))
+    for learner in ("oracle", "afvsgp"):
+        ts = time_filtered_step("franka_static", learner, steps=300 if quick else 2000)
+        for part, arr in ts.items():
+            out[f"franka_{learner}_{part}_median_s"] = float(np.median(arr))
+            out[f"franka_{learner}_{part}_p99_s"] = float(np.percentile(arr, 99))
+    if not quick:
+        plan = [
+            ("pointmass", (None, "none", "oracle", "afvsgp"), range(20)),
+            ("franka_static", (None, "none", "oracle", "afvsgp"), range(10)),
+            ("franka_dynamic", (None, "none", "oracle", "afvsgp"), range(10)),
+        ]
+        for scenario, learners, seeds in plan:
+            for learner, row in sweep(scenario, learners, seeds).items():
+                for key, val in row.items():
+                    out[f"{scenario}_{learner}_{key}"] = val
+    return out
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true")
+    args = parser.parse_args(argv)
+    res = run(quick=args.quick)
+    width = max(len(k) for k in res)
+    for key, val in res.items():
+        unit = (
+            f"{val * 1e6:12.1f} us" if key.endswith("_s") and "wall" not in key else f"{val:12.4g}"
+        )
+        print(f"{key:<{width}}  {unit}")
+
+
+if __name__ == "__main__":
+    main()
