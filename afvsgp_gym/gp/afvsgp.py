@@ -170,11 +170,13 @@ class AFVSGP(SparseLearner):
         self._phi = phi
         self._phi_p = phi ** p
         self._pow = phi ** np.arange(p, dtype=float)
-        self._win_xi = np.zeros((p, b))
+        self._win_aug = np.zeros((p, 2 * b))  # [xi, xi^2] per sample (for new columns)
+        self._win_xi = self._win_aug[:, :b]
         self._win_ub = np.zeros((p, c))
         # rows [z, k(x, o_1), ..., k(x, o_M)] of the window samples
         self._win = np.zeros((p, self._cap + 1))
         self._win_xi[:n] = xi
+        self._win_aug[:n, b:] = xi * xi
         self._win_ub[:n] = ubar(u)
         self._win[:n, 0] = z
         self._win[:n, 1:len(xo) + 1] = kernel._gram(xi, ubar(u), xo, ubar(uo))
@@ -265,7 +267,7 @@ class AFVSGP(SparseLearner):
             self._count += 1
         self._stats = dger(scale, k_new, y, a=stats, overwrite_a=1)
         win[slot, : m + 1] = y
-        self._win_xi[slot] = xi
+        self._win_aug[slot] = self._ind._v  # [xi, xi^2], set by kt() above
         self._win_ub[slot] = ub
         self._head = slot
         self.n_seen_ += 1
@@ -293,8 +295,7 @@ class AFVSGP(SparseLearner):
         self._renormalise()
         m = self._ind.M
         cnt = self._count
-        col = self.kernel_._gram(self._win_xi[:cnt], self._win_ub[:cnt], xi[None, :],
-                                 ub[None, :])[:, 0]  # k(window, o_new)
+        col = self._window_column(xi, ub)  # k(window, o_new)
         lc = self._weights() * col
         # enlarged [r, S] (M+1, M+2): new row and column from the window (eq. 30)
         stats = np.empty((m + 1, m + 2), order="F")
@@ -329,6 +330,22 @@ class AFVSGP(SparseLearner):
             self._set_koo_chol(low)
             return
         self._remove(drop, low)
+
+    def _window_column(self, xi: np.ndarray, ub: np.ndarray) -> np.ndarray:
+        """``k(x_t, (xi, ub))`` for the window samples with one (cnt, 2b) x (2b, m+1) product:
+        ``log k_i = log s_i - |xi/l_i|^2/2 + x_t.(xi/l_i^2) - x_t^2.(1/(2 l_i^2))``."""
+        cnt = self._count
+        inv_ls2 = self._ind.inv_ls2  # (m+1, b)
+        b = inv_ls2.shape[1]
+        g = np.empty((2 * b, inv_ls2.shape[0]))
+        g[:b] = (inv_ls2 * xi).T
+        g[b:] = -0.5 * inv_ls2.T
+        e = self._win_aug[:cnt] @ g
+        e += self._ind.log_var - 0.5 * (inv_ls2 @ (xi * xi))
+        np.minimum(e, self._ind.log_var, out=e)
+        np.exp(e, out=e)
+        e *= self._win_ub[:cnt]
+        return e @ ub
 
     def _remove(self, j: int, low: np.ndarray) -> None:
         """Drop inducing point j (eq. 32): delete its row/column everywhere, O(P M)."""
