@@ -23,6 +23,7 @@ from afvsgp_gym.envs.scenario import (
     ObstacleSpec,
     check_action,
     check_choice,
+    check_number,
     make_terms,
     parse_obstacles,
     sphere_barrier,
@@ -203,11 +204,9 @@ class FrankaObstacleEnv(MujocoEnv):
         self.scenario = check_choice("scenario", scenario, SCENARIOS)
         self.nominal_model = check_choice("nominal_model", cfg["nominal_model"], NOMINAL_MODELS)
         for name in ("payload_mass", "damping", "friction", "armature", "reset_noise"):
-            if not (np.isfinite(float(cfg[name])) and float(cfg[name]) >= 0):
-                raise ValueError(f"{name} must be >= 0, got {cfg[name]}")
+            cfg[name] = check_number(name, cfg[name], strictly_positive=False)
         for name in ("physics_dt", "ee_radius", "obstacle_speed"):
-            if not (np.isfinite(float(cfg[name])) and float(cfg[name]) > 0):
-                raise ValueError(f"{name} must be > 0, got {cfg[name]}")
+            cfg[name] = check_number(name, cfg[name], strictly_positive=True)
         frame_skip = int(cfg["frame_skip"])
         if frame_skip < 1:
             raise ValueError(f"frame_skip must be >= 1, got {cfg['frame_skip']}")
@@ -311,7 +310,12 @@ class FrankaObstacleEnv(MujocoEnv):
         if np.ndim(scale) == 0:
             factors = np.full(9, float(scale))
         else:
-            lo, hi = (float(x) for x in scale)
+            try:
+                lo, hi = (float(x) for x in scale)
+            except (TypeError, ValueError):
+                raise ValueError(
+                    f"mass_scale must be a float > 0 or (low, high), got {scale}"
+                ) from None
             if not (0 < lo <= hi):
                 raise ValueError(f"mass_scale must be a float > 0 or (low, high), got {scale}")
             factors = np.random.default_rng(int(cfg["plant_seed"])).uniform(lo, hi, 9)

@@ -14,6 +14,7 @@ from afvsgp_gym.envs.scenario import (
     ObstacleSpec,
     check_action,
     check_choice,
+    check_number,
     make_terms,
     parse_obstacles,
     sphere_barrier,
@@ -165,13 +166,9 @@ class PointMassObstacleEnv(gym.Env):
         if self.dim not in (2, 3):
             raise ValueError(f"dim must be 2 or 3, got {cfg['dim']}")
         for name in ("dt", "mass", "nominal_mass", "max_force", "agent_radius", "obstacle_speed"):
-            val = float(cfg[name])
-            if not (np.isfinite(val) and val > 0):
-                raise ValueError(f"{name} must be a positive finite number, got {cfg[name]}")
+            cfg[name] = check_number(name, cfg[name], strictly_positive=True)
         for name in ("drag", "nominal_drag", "tracking_weight", "control_weight", "reset_noise"):
-            val = float(cfg[name])
-            if not (np.isfinite(val) and val >= 0):
-                raise ValueError(f"{name} must be >= 0, got {cfg[name]}")
+            cfg[name] = check_number(name, cfg[name], strictly_positive=False)
         self.dt = float(cfg["dt"])
         self.mass, self.drag = float(cfg["mass"]), float(cfg["drag"])
         self.nominal_mass, self.nominal_drag = (

@@ -210,3 +210,15 @@ def check_choice(name: str, value, valid: Sequence[str]) -> str:
     if value not in valid:
         raise ValueError(f"{name}={value!r} is not valid; choose one of {list(valid)}")
     return value
+
+
+def check_number(name: str, value, strictly_positive: bool) -> float:
+    """``float(value)``; ValueError naming ``name`` unless finite and > 0 (or >= 0)."""
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        x = math.nan
+    if not math.isfinite(x) or x < 0 or (strictly_positive and x == 0):
+        bound = "> 0" if strictly_positive else ">= 0"
+        raise ValueError(f"{name} must be a finite number {bound}, got {value!r}")
+    return x

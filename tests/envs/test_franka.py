@@ -228,6 +228,15 @@ def test_bad_input_never_reaches_mujoco():
         gym.make("afvsgp_gym/FrankaObstacleStatic-v0", scenario="nope")
     with pytest.raises(TypeError, match="payload_mass"):
         gym.make(IDS["static"], payload=1.0)
+    for kwargs, name in (
+        ({"payload_mass": -1.0}, "payload_mass"),
+        ({"physics_dt": "x"}, "physics_dt"),
+        ({"mass_scale": (1.0, 2.0, 3.0)}, "mass_scale"),
+        ({"nominal_model": "oracle"}, "nominal_model"),
+        ({"frame_skip": 0}, "frame_skip"),
+    ):
+        with pytest.raises(ValueError, match=name):
+            FrankaObstacleEnv(**kwargs)
 
 
 def test_out_of_range_actions_are_clipped():
