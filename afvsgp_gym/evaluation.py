@@ -240,7 +240,9 @@ def evaluate(
     env_id : a registered ``afvsgp_gym/...`` id.
     agent : ``"nominal"``, ``"random"`` or a path to a Stable-Baselines3 ``.zip``.
     learners : filter learner names (``afvsgp_gym.cbf.LEARNERS``); ``None`` runs the bare env.
-    episodes, seed : episode ``i`` is reset with ``seed + i``, in a fresh env and filter.
+    episodes, seed : episode ``i`` is reset with ``seed + i``, in a fresh env and filter (whose
+        warm-up exploration noise is seeded with the same number unless ``filter_kwargs`` sets
+        ``seed``).
     max_steps : optional cap on steps per episode (below the registered time limit).
     progress : show a tqdm bar (steps) on stderr.
     traces : also return per-step traces under ``"traces"`` (``{learner: [trace, ...]}``).
@@ -276,7 +278,8 @@ def evaluate(
             recs, times = [], []
             for i in range(episodes):
                 ep_seed = int(seed) + i
-                env = _make_env(env_id, learner, env_kwargs, filter_kwargs)
+                fkw = {"seed": ep_seed, **filter_kwargs}  # seeded warm-up exploration
+                env = _make_env(env_id, learner, env_kwargs, fkw)
                 try:
                     policy = make_policy(agent, env, seed=ep_seed)
                     if bar is not None:

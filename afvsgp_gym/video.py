@@ -51,7 +51,7 @@ def record_video(
     if learner is not None:
         from afvsgp_gym.wrappers import SafetyFilter
 
-        env = SafetyFilter(env, learner=learner, **(filter_kwargs or {}))
+        env = SafetyFilter(env, learner=learner, **{"seed": seed, **(filter_kwargs or {})})
     render_fps = float(env.metadata.get("render_fps") or 1.0 / float(env.unwrapped.dt))
     fps = float(fps) if fps is not None else max(render_fps / every, 1.0)
     policy = make_policy(agent, env, seed=seed)
