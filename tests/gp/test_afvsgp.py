@@ -46,10 +46,12 @@ def test_phi_one_no_overflow_fixed_set_equals_vsgp():
     np.testing.assert_allclose(a.S_, v.S_, rtol=1e-8)
 
 
+@pytest.mark.parametrize("phi", [0.95, 1.0])
 @pytest.mark.parametrize("adapt", [False, True])
-def test_forgetting_window_equals_batch_weighted_posterior(adapt):
+def test_forgetting_window_equals_batch_weighted_posterior(adapt, phi):
+    """>= 10 P streamed updates (window overflowing), with and without add/remove events."""
     rng = np.random.default_rng(1)
-    p, phi = 60, 0.95
+    p = 60
     n = p + 10 * p + 7
     xi, u, z, _ = synthetic(rng, n, noise_std=0.05)
     gp = AFVSGP(_kernel(), 0.0025, num_inducing=8, window=p, forgetting=phi,
