@@ -68,8 +68,10 @@ class BaseLearner:
 
     def predict_affine(self, xi):
         """``b`` (N, m+1), ``Sigma`` (N, m+1, m+1): mean ``b . ubar``, var ``ubar' Sigma ubar``."""
-        self._check_fitted()
-        b = self.kernel_.input_dim
+        try:
+            b = self.kernel_._b
+        except AttributeError:
+            raise RuntimeError(f"{type(self).__name__} is not fitted; call fit first") from None
         if not (type(xi) is np.ndarray and xi.dtype == np.float64 and xi.ndim == 2
                 and xi.shape[1] == b and xi.shape[0] > 0
                 and math.isfinite(xi.sum())):  # fast path for well-formed arrays

@@ -31,13 +31,14 @@ class InducingCache:
         self.xi = np.zeros((capacity, b))
         self.ub = np.zeros((capacity, c))
         self.ubt = np.zeros((c, capacity))  # ub transposed
-        self.xs2 = np.zeros((c, capacity, 2 * b))  # [xi_o / l_i^2, -1 / (2 l_i^2)]
-        self.const = np.zeros((c, capacity))  # log s_i - |xi_o / l_i|^2 / 2
+        # rows [xi_o / l_i^2, -1 / (2 l_i^2), log s_i - |xi_o / l_i|^2 / 2] per (i, o)
+        self.xs2 = np.zeros((c, capacity, 2 * b + 1))
+        self._a = self.xs2.reshape(c * capacity, 2 * b + 1)  # a view
         self.inv_ls2 = kernel._inv_ls ** 2
         self.var = kernel._var
         self.var_diag = np.diag(kernel._var)
         self.log_var = np.log(kernel._var)
-        self._v = np.empty(2 * b)
+        self._v = np.ones(2 * b + 1)  # [xi, xi^2, 1]
 
     def set(self, xi: np.ndarray, ub: np.ndarray) -> None:
         n = xi.shape[0]
@@ -55,15 +56,15 @@ class InducingCache:
         s = xi[None, :] * self.inv_ls2
         b = xi.shape[0]
         self.xs2[:, j, :b] = s
-        self.xs2[:, j, b:] = -0.5 * self.inv_ls2
-        self.const[:, j] = self.log_var - 0.5 * (s @ xi)
+        self.xs2[:, j, b:2 * b] = -0.5 * self.inv_ls2
+        self.xs2[:, j, 2 * b] = self.log_var - 0.5 * (s @ xi)
         self.M = j + 1
 
     def delete(self, j: int) -> None:
         m = self.M
         for arr in (self.xi, self.ub):
             arr[j:m - 1] = arr[j + 1:m]
-        for arr in (self.ubt, self.xs2, self.const):
+        for arr in (self.ubt, self.xs2):
             arr[:, j:m - 1] = arr[:, j + 1:m]
         self.M = m - 1
 
@@ -71,15 +72,14 @@ class InducingCache:
         """(m+1, M) per-component cross covariance of one point (eq. 21).
 
         ``log k_i(xi, o_j) = log s_i - |xi/l_i|^2/2 + (o_j/l_i^2).xi - |o_j/l_i|^2/2``: one
-        matrix-vector product (with ``[xi, xi^2]``) for all components and inducing points.
+        matrix-vector product (with ``[xi, xi^2, 1]``) for all components and inducing points.
         """
         c, cap, b2 = self.xs2.shape
         v = self._v
         b = b2 // 2
         v[:b] = xi
-        np.multiply(xi, xi, out=v[b:])
-        e = (self.xs2.reshape(c * cap, b2) @ v).reshape(c, cap)
-        e += self.const
+        np.multiply(xi, xi, out=v[b:2 * b])
+        e = (self._a @ v).reshape(c, cap)
         np.exp(e, out=e)
         e *= self.ubt
         return e[:, : self.M]

@@ -187,6 +187,7 @@ class AFVSGP(SparseLearner):
         self._refresh_every = p if self.refresh_every is None else int(self.refresh_every)
         self._since_refresh = 0
         self._ub_new = np.ones(c)
+        self._bm = (b, c - 1)
         self.n_seen_ = n
         self.n_added_ = 0
         self.n_removed_ = 0
@@ -227,8 +228,10 @@ class AFVSGP(SparseLearner):
     # ------------------------------------------------------------------ update
     def update(self, xi, u, z) -> AFVSGP:
         """Stream one sample (eqs. 24-28); O(M^2) plus O(P M) on inducing changes."""
-        self._check_fitted()
-        b, m_act = self._dims()
+        try:
+            b, m_act = self._bm
+        except AttributeError:
+            raise RuntimeError("AFVSGP is not fitted; call fit first") from None
         if not (isinstance(xi, np.ndarray) and xi.dtype == np.float64 and xi.shape == (b,)):
             xi = check_matrix(xi, "xi", ndim=1, nrows=b)
         if not (isinstance(u, np.ndarray) and u.dtype == np.float64 and u.shape == (m_act,)):
@@ -267,7 +270,7 @@ class AFVSGP(SparseLearner):
             self._count += 1
         self._stats = dger(scale, k_new, y, a=stats, overwrite_a=1)
         win[slot, : m + 1] = y
-        self._win_aug[slot] = self._ind._v  # [xi, xi^2], set by kt() above
+        self._win_aug[slot] = self._ind._v[:-1]  # [xi, xi^2], set by kt() above
         self._win_ub[slot] = ub
         self._head = slot
         self.n_seen_ += 1
