@@ -175,3 +175,23 @@ def test_window_samples_are_the_last_p_with_weights():
     np.testing.assert_array_equal(wu, u[-50:])
     np.testing.assert_array_equal(wz, z[-50:])
     np.testing.assert_allclose(w, 0.9 ** np.arange(49, -1, -1))
+
+
+def test_predict_affine_agrees_with_predict_for_random_u():
+    rng = np.random.default_rng(8)
+    xi, u, z, _ = synthetic(rng, 300)
+    gp = AFVSGP(num_inducing=15, window=100, forgetting=0.98).fit(xi[:100], u[:100], z[:100])
+    for i in range(100, 300):
+        gp.update(xi[i], u[i], z[i])
+    xs, us = rng.normal(size=(8, 3)), rng.uniform(-2, 2, (8, 2))
+    mean, var = gp.predict(xs, us)
+    bvec, sig = gp.predict_affine(xs)
+    ub = np.hstack([np.ones((8, 1)), us])
+    np.testing.assert_allclose(np.einsum("ni,ni->n", bvec, ub), mean, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(np.einsum("ni,nij,nj->n", ub, sig, ub), var, rtol=1e-6,
+                               atol=1e-10)
+    assert np.linalg.eigvalsh(sig).min() > -1e-10
+    for n in range(3):  # the one-point fast path equals the batch path
+        b1, s1 = gp.predict_affine(xs[n:n + 1])
+        np.testing.assert_allclose(b1[0], bvec[n], rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(s1[0], sig[n], rtol=1e-8, atol=1e-11)
