@@ -122,18 +122,23 @@ class FrankaObstacleEnv(MujocoEnv):
     ``warmup_steps`` (500 = 2 s), ramped to 0.28 m over 1 s; static scenario: turns to z at
     ``switch_time`` (10 s). Peak reference speed 0.44 m/s, acceleration 0.7 m/s^2.
 
-    - ``"static"``: sphere r = 0.05 m at c + (0, 0.20, -0.04): the full y motion passes 4 cm
-      from its centre (the tracker would penetrate the safe set by 6 cm, so the filter must
-      act); the warm-up motion stays >= 6 cm outside the safe-set boundary.
-    - ``"dynamic"``: sphere r = 0.05 m rests at c + (0.5, 0.15, -0.04) during warm-up, then
-      moves in -x onto the path, c + (0, 0.15, -0.04), with peak speed ``obstacle_speed``
+    - ``"static"``: sphere r = 0.05 m at c + (0, 0.20, -0.07): the full y motion passes 7 cm
+      above its centre, 3 cm inside the safe-set boundary (R = r + ee_radius = 0.1 m; the
+      zero-model tracker, sagging under the residual gravity, goes about 6 cm in), so the
+      filter must act; the warm-up motion stays >= 6 cm outside the boundary.
+    - ``"dynamic"``: sphere r = 0.05 m rests at c + (0.5, 0.15, -0.07) during warm-up, then
+      moves in -x onto the path, c + (0, 0.15, -0.07), with peak speed ``obstacle_speed``
       (0.15 m/s; the arm retreats at > 0.5 m/s) and stays there. No switch unless set.
     - ``"random"``: static or dynamic with radius in [0.04, 0.07] m, position along y in
       [R + 0.10, 0.24] m on either side (warm-up clearance >= 6 cm), offset in z in
-      [-0.06, -0.02] m and x in +-0.02 m, approach from +x or from outside along y at
+      [-0.09, -0.06] m and x in +-0.02 m, approach from +x or from outside along y at
       0.3-0.5 m, peak speed in [0.05, 0.2] m/s and an optional switch, drawn per reset.
 
-    Obstacles sit below the path so the hand (above the end-effector) passes over them.
+    The obstacles sit 6-9 cm below the path, so the end-effector passes over them and the
+    hand (about 17 cm wide, 4-13 cm above the end-effector site) clears them whenever h >= 0:
+    the barrier protects the end-effector sphere only (as in the paper), and ``collision``
+    reports any arm geometry. With the exact model a CBF-filtered run keeps h >= 0 with no arm
+    collision in every scenario and seed tested (tests/envs/test_franka.py).
 
     ## Arguments
     | Parameter | Default | Description |
@@ -342,7 +347,7 @@ class FrankaObstacleEnv(MujocoEnv):
         ex, ey, ez = np.eye(3)
         t_w = self.warmup_steps * self._control_dt
         kind, switch = self.scenario, self._switch_time_arg
-        radius, along, dz, dx = 0.05, 0.20, -0.04, 0.0
+        radius, along, dz, dx = 0.05, 0.20, -0.07, 0.0
         start_off = None
         if kind == "dynamic":
             along = 0.15
@@ -353,7 +358,7 @@ class FrankaObstacleEnv(MujocoEnv):
             big_r = radius + self.ee_radius
             along = float(rng.uniform(big_r + 0.10, max(big_r + 0.10, 0.24)))
             along *= 1.0 if rng.random() < 0.5 else -1.0
-            dz = float(rng.uniform(-0.06, -0.02))
+            dz = float(rng.uniform(-0.09, -0.06))
             dx = float(rng.uniform(-0.02, 0.02))
             dist = float(rng.uniform(0.3, 0.5))
             if rng.random() < 0.5:

@@ -123,6 +123,7 @@ def _run(env, steps, seed=0, oracle_margin=None):
     base = env.unwrapped
     lo, hi = env.action_space.low.astype(float), env.action_space.high.astype(float)
     hs, obs_log = [], [obs]
+    base.collisions = 0
     for _ in range(steps):
         u = policy(obs).astype(np.float64)
         assert np.all(u >= lo) and np.all(u <= hi)
@@ -130,6 +131,7 @@ def _run(env, steps, seed=0, oracle_margin=None):
             u = _oracle_filter(base, u, lo, hi, oracle_margin)
         obs, _, term, trunc, info = env.step(u)
         hs.append(info["h"])
+        base.collisions += info["collision"]
         obs_log.append(obs)
         if term or trunc:
             break
@@ -164,14 +166,16 @@ def test_warmup_clear_then_obstacle_in_the_way(scenario, seed):
     assert warm >= 250 and env.unwrapped.dt == pytest.approx(0.004)
     assert hs[:warm].min() > 0.04
     assert hs.min() < -0.02  # the unfiltered tracker enters the unsafe set
+    assert env.unwrapped.collisions > 0
 
 
 @pytest.mark.parametrize(("scenario", "seed"), [("static", 0), ("dynamic", 0), ("random", 2)])
 def test_solvable_with_exact_model(scenario, seed):
-    """With the true barrier terms a CBF-QP keeps h >= 0 (2 mm sampling margin)."""
+    """With the true barrier terms a CBF-QP keeps h >= 0 (2 mm sampling margin), no arm hits."""
     env = gym.make(IDS[scenario], nominal_model="exact")
     hs, _ = _run(env, 4000, seed=seed, oracle_margin=0.002)
     assert len(hs) == 4000 and hs.min() >= 0.0
+    assert env.unwrapped.collisions == 0
 
 
 def test_determinism_under_seed():
