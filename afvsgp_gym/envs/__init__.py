@@ -1,1 +1,9 @@
-"""afvsgp_gym.envs."""
+"""afvsgp_gym.envs: obstacle-avoidance environments with exact barrier ground truth.
+
+- ``point_mass``: ``PointMassObstacleEnv`` (analytic double integrator, closed-form terms).
+- ``franka``: ``FrankaObstacleEnv`` (MuJoCo Panda, torque control, hidden model mismatch).
+- ``franka_model``: assembling the Panda MJCF from gymnasium_robotics with MjSpec.
+- ``scenario``: reference motions, obstacle trajectories, the sphere barrier's kinematics.
+- ``registration``: the Gymnasium ids (string entry points: importing this package does
+  not import MuJoCo).
+"""

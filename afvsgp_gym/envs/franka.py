@@ -138,7 +138,9 @@ class FrankaObstacleEnv(MujocoEnv):
     hand (about 17 cm wide, 4-13 cm above the end-effector site) clears them whenever h >= 0:
     the barrier protects the end-effector sphere only (as in the paper), and ``collision``
     reports any arm geometry. With the exact model a CBF-filtered run keeps h >= 0 with no arm
-    collision in every scenario and seed tested (tests/envs/test_franka.py).
+    collision in every scenario and seed tested (tests/envs/test_franka.py); a filter that
+    routes the end-effector under or beside an obstacle can keep h >= 0 and still touch it
+    with the hand (raise ``ee_radius`` for a more conservative envelope).
 
     ## Arguments
     | Parameter | Default | Description |
