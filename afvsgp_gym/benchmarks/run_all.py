@@ -2,7 +2,8 @@
 afvsgp_gym.benchmarks.run_all [--quick]``).
 
 One public function, :func:`run_all`: imports ``afvsgp_gym.benchmarks.<area>`` for each area,
-calls its ``run(quick)`` and prints the figures (times ending in ``_s`` shown in microseconds).
+calls its ``run(quick)`` and prints the figures (times ending in ``_s`` shown in microseconds
+below one second).
 An area whose module is missing or fails is reported and skipped; the others still run.
 """
 
@@ -37,8 +38,8 @@ def _machine() -> str:
 def _format(key: str, val) -> str:
     if not isinstance(val, int | float):
         return str(val)
-    if key.endswith("_s") and "wall" not in key:
-        return f"{val * 1e6:12.1f} us"
+    if key.endswith("_s"):  # seconds: microseconds unless a second or more
+        return f"{val:12.2f} s " if val >= 1.0 else f"{val * 1e6:12.1f} us"
     return f"{val:12.4g}"
 
 
