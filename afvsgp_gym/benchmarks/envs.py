@@ -9,6 +9,9 @@ run as a reference point when it can be made. "closed loop" adds the NominalCont
 Rates are given per wall-clock second and per CPU second of this process (the latter is the
 meaningful one on a shared machine; everything runs in one thread).
 
+Cases run in interleaved rounds (every case once per round); figures are medians over the
+rounds, ratios to Ant-v5 the median of the per-round ratios.
+
 Run: ``python -m afvsgp_gym.benchmarks.envs [--quick]``.
 """
 
@@ -53,51 +56,50 @@ def _loop(
     return steps / (time.perf_counter() - t0), steps / (time.process_time() - c0)
 
 
-def run(quick: bool = False) -> dict[str, float]:
-    """Steps per second (name -> float) and ratios to Ant-v5 when it runs here."""
+def run(quick: bool = False, rounds: int | None = None) -> dict[str, float]:
+    """Median steps per second over interleaved rounds (name -> float), and the median of the
+    per-round ratios to Ant-v5 when it runs here.
+
+    Every round runs every case once (``steps`` steps each), so slow phases of a shared
+    machine hit all cases alike and the per-round ratios stay meaningful.
+    """
     from afvsgp_gym.agents import NominalController
 
-    steps = 500 if quick else 5000
-    out: dict[str, float] = {}
-    cases = [
-        ("point_mass", "afvsgp_gym/PointMassObstacle-v0", {}),
-        ("franka_static_zero", "afvsgp_gym/FrankaObstacleStatic-v0", {}),
-        ("franka_dynamic_zero", "afvsgp_gym/FrankaObstacleDynamic-v0", {}),
-        (
-            "franka_static_kinematic",
-            "afvsgp_gym/FrankaObstacleStatic-v0",
-            {"nominal_model": "kinematic"},
-        ),
-        (
-            "franka_static_perturbed",
-            "afvsgp_gym/FrankaObstacleStatic-v0",
-            {"nominal_model": "perturbed"},
-        ),
-        ("franka_static_exact", "afvsgp_gym/FrankaObstacleStatic-v0", {"nominal_model": "exact"}),
+    steps = 300 if quick else 1000
+    rounds = (2 if quick else 5) if rounds is None else int(rounds)
+    static = "afvsgp_gym/FrankaObstacleStatic-v0"
+    cases: list[tuple[str, gym.Env, bool, Callable | None]] = [
+        ("point_mass", gym.make("afvsgp_gym/PointMassObstacle-v0"), True, None),
+        ("franka_static_zero", gym.make(static), True, None),
+        ("franka_dynamic_zero", gym.make("afvsgp_gym/FrankaObstacleDynamic-v0"), True, None),
+        ("franka_static_kinematic", gym.make(static, nominal_model="kinematic"), True, None),
+        ("franka_static_perturbed", gym.make(static, nominal_model="perturbed"), True, None),
+        ("franka_static_exact", gym.make(static, nominal_model="exact"), True, None),
     ]
-    for name, env_id, kwargs in cases:
-        env = gym.make(env_id, **kwargs)
-        _put(out, name, _loop(env, steps, barrier=True))
-        env.close()
-    env = gym.make("afvsgp_gym/FrankaObstacleStatic-v0")
-    _put(out, "franka_static_closed_loop", _loop(env, steps, True, NominalController(env)))
-    env.close()
+    loop_env = gym.make(static)
+    cases.append(("franka_static_closed_loop", loop_env, True, NominalController(loop_env)))
     try:
-        ant = gym.make("Ant-v5")
+        cases.append(("ant_v5", gym.make("Ant-v5"), False, None))
     except Exception:  # noqa: BLE001 - reference only; absent MuJoCo assets must not fail the run
-        ant = None
-    if ant is not None:
-        _put(out, "ant_v5", _loop(ant, steps, barrier=False))
-        ant.close()
-        for clock in ("wall", "cpu"):
-            out[f"franka_static_zero_over_ant_v5_{clock}"] = (
-                out[f"franka_static_zero_steps_per_s_{clock}"] / out[f"ant_v5_steps_per_s_{clock}"]
-            )
+        pass
+    rates: dict[str, list[tuple[float, float]]] = {name: [] for name, *_ in cases}
+    for _ in range(rounds):
+        for name, env, barrier, policy in cases:
+            rates[name].append(_loop(env, steps, barrier, policy))
+    out: dict[str, float] = {}
+    for name, rs in rates.items():
+        arr = np.array(rs)
+        out[f"{name}_steps_per_s_wall"] = float(np.median(arr[:, 0]))
+        out[f"{name}_steps_per_s_cpu"] = float(np.median(arr[:, 1]))
+    if "ant_v5" in rates:
+        ant = np.array(rates["ant_v5"])
+        for name in ("franka_static_zero", "franka_static_perturbed", "franka_static_closed_loop"):
+            arr = np.array(rates[name])
+            for k, clock in enumerate(("wall", "cpu")):
+                out[f"{name}_over_ant_v5_{clock}"] = float(np.median(arr[:, k] / ant[:, k]))
+    for _, env, *_ in cases:
+        env.close()
     return out
-
-
-def _put(out: dict[str, float], name: str, rates: tuple[float, float]) -> None:
-    out[f"{name}_steps_per_s_wall"], out[f"{name}_steps_per_s_cpu"] = rates
 
 
 def machine() -> str:

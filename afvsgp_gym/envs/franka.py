@@ -423,6 +423,15 @@ class FrankaObstacleEnv(MujocoEnv):
         self._place_markers()
         mujoco.mj_forward(self.model, d)
         self._kin = self._kinematics(self.model, d)
+        # per obstacle: (h, h', n, curvature, xi), shared by every model's terms and the info
+        p, v = self._kin[0], self._kin[1]
+        qq = np.concatenate([d.qpos, d.qvel])
+        self._geo = []
+        for ob, (po, vo, _) in zip(self.obstacles, self._obs_states, strict=True):
+            h, hd, n, curv = sphere_barrier(p, v, po, vo, ob.radius + self.ee_radius)
+            xi = np.concatenate([qq, p - po, v - vo])
+            xi.flags.writeable = False
+            self._geo.append((h, hd, n, curv, xi))
         self._terms_cache = {}
 
     def _place_markers(self) -> None:
@@ -445,31 +454,28 @@ class FrankaObstacleEnv(MujocoEnv):
 
     def _compute_terms(self, kind: str) -> list[BarrierTerms]:
         m, d = self.model, self.data
-        q, qd = d.qpos.copy(), d.qvel.copy()
-        p, v, jac, jdqd = self._kin
+        jac, jdqd = self._kin[2], self._kin[3]
         if kind == "exact" or (kind == "perturbed" and self.nominal_mj_data is None):
             mujoco.mj_solveM(m, d, self._jminv, jac)
             a_free = jac @ d.qacc + jdqd
             gain = self._jminv * self.action_scale
         elif kind == "perturbed":
             mn, dn = self.nominal_mj_model, self.nominal_mj_data
-            dn.qpos[:] = q
-            dn.qvel[:] = qd
+            dn.qpos[:] = d.qpos
+            dn.qvel[:] = d.qvel
             dn.ctrl[:] = 0.0
             mujoco.mj_forward(mn, dn)
             mujoco.mj_solveM(mn, dn, self._jminv, jac)
             a_free = jac @ dn.qacc + jdqd
             gain = self._jminv * self.action_scale
         out = []
-        for ob, (po, vo, ao) in zip(self.obstacles, self._obs_states, strict=True):
-            h, hd, n, curv = sphere_barrier(p, v, po, vo, ob.radius + self.ee_radius)
+        for (h, hd, n, curv, xi), (_, _, ao) in zip(self._geo, self._obs_states, strict=True):
             if kind == "zero":
                 lf, lg = 0.0, np.zeros(7)
             elif kind == "kinematic":
                 lf, lg = float(n @ (jdqd - ao)) + curv, np.zeros(7)
             else:
                 lf, lg = float(n @ (a_free - ao)) + curv, n @ gain
-            xi = np.concatenate([q, qd, p - po, v - vo])
             out.append(make_terms(h, hd, lf, lg, xi))
         return out
 
@@ -494,16 +500,11 @@ class FrankaObstacleEnv(MujocoEnv):
             + [s[1] for s in self._obs_states]
             + [r, rd, rdd]
         )
-        return np.clip(obs, -self._obs_high, self._obs_high).astype(np.float32)
+        np.clip(obs, -self._obs_high, self._obs_high, out=obs)
+        return obs.astype(np.float32)
 
     def _h_values(self) -> np.ndarray:
-        p = self.data.site_xpos[self._site]
-        return np.array(
-            [
-                math.sqrt(float((p - po) @ (p - po))) - ob.radius - self.ee_radius
-                for ob, (po, _, _) in zip(self.obstacles, self._obs_states, strict=True)
-            ]
-        )
+        return np.array([g[0] for g in self._geo])
 
     def _collision(self) -> bool:
         m, d = self.model, self.data

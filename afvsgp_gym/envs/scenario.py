@@ -60,12 +60,20 @@ class ObstacleSpec:
         dist = float(np.linalg.norm(self.position - self.start))
         return QUINTIC_PEAK_SLOPE * dist / self.speed if dist > 0 else 0.0
 
+    @functools.cached_property
+    def _rest(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        zero = np.zeros(self.position.shape)
+        out = (self.position.copy(), zero, zero.copy())
+        for arr in out:
+            arr.flags.writeable = False
+        return out
+
     def state(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Obstacle centre position, velocity and acceleration at time ``t``."""
+        """Obstacle centre position, velocity and acceleration at time ``t`` (read-only when
+        static)."""
         T = self.duration
         if T == 0.0:
-            zero = np.zeros(self.position.shape)
-            return self.position.copy(), zero, zero.copy()
+            return self._rest
         s, ds, dds = quintic((t - self.start_time) / T)
         delta = self.position - self.start
         return self.start + s * delta, (ds / T) * delta, (dds / (T * T)) * delta
@@ -189,7 +197,8 @@ def make_terms(h: float, hdot: float, lf: float, lg: np.ndarray, xi: np.ndarray)
     lg = np.asarray(lg, dtype=np.float64)
     xi = np.asarray(xi, dtype=np.float64)
     for arr in (derivs, lg, xi):
-        arr.flags.writeable = False
+        if arr.flags.writeable:
+            arr.flags.writeable = False
     return BarrierTerms(derivs, float(lf), lg, xi)
 
 
