@@ -164,6 +164,11 @@ class FrankaObstacleEnv(MujocoEnv):
     | normalize_action | True | action in [-1, 1] (tau = u tau_max); False: action = tau in Nm |
     | render_mode, width, height | None, 480, 480 | "rgb_array", "depth_array", "human" (display) |
 
+    Custom ``obstacles`` replace the scenario's (the reference stays): each dict gives the
+    final ``position`` and ``radius``; with ``start`` the sphere rests there and moves to
+    ``position`` from ``start_time`` (default: the end of the warm-up) at peak ``speed``
+    (m/s, default 0.2). Keeping them clear of the warm-up motion is then up to the caller.
+
     ## Version History
     - v0: initial version.
     """

@@ -125,6 +125,11 @@ class PointMassObstacleEnv(gym.Env):
     | reset_noise | 0.01 | m |
     | render_mode | None | "rgb_array" |
 
+    Custom ``obstacles`` replace the scenario's (the reference stays): each dict gives the
+    final ``position`` and ``radius``; with ``start`` the sphere rests there and moves to
+    ``position`` from ``start_time`` (default: the end of the warm-up) at peak ``speed``
+    (m/s, default 0.2). Keeping them clear of the warm-up motion is then up to the caller.
+
     ## Version History
     - v0: initial version.
     """
