@@ -48,8 +48,16 @@ class FrankaObstacleEnv(MujocoEnv):
     *catalogue* model. The true plant differs from the catalogue: a ``payload_mass`` at the
     flange (not compensated), link masses and inertias scaled by per-link factors drawn from
     ``mass_scale`` with ``plant_seed``, joint ``damping``, ``friction`` (frictionloss) and
-    rotor ``armature``. The end-effector (site ``end_effector`` between the fingertips)
-    tracks the reference of paper Fig. 3; the safety filter keeps it out of the obstacles.
+    rotor ``armature``. The end-effector (site ``end_effector`` on the gripper axis between
+    the finger pads, 4-5 cm above the fingertips, which the 5 cm ``ee_radius`` sphere just
+    covers) tracks the reference of paper Fig. 3; the safety filter keeps it out of the
+    obstacles.
+
+    Gravity compensation, as with the real robot's torque interface: commanded torques act on
+    top of the robot's compensation of its catalogue model. Each link of the true plant gets
+    MuJoCo ``gravcomp = m_catalogue / m_true`` (set in the MjSpec before compiling), the
+    payload gravcomp 0, so ``(m_true - m_catalogue) g`` per link and the full payload weight
+    remain as unknown residual gravity.
 
     Physics: MuJoCo step ``physics_dt`` = 2 ms (Euler, implicit joint damping), ``frame_skip``
     = 2, so the control period ``dt`` = 4 ms (250 Hz); ``render_fps`` = 250.
@@ -57,7 +65,7 @@ class FrankaObstacleEnv(MujocoEnv):
     ## Barrier (paper eqs. 44-46)
     Per obstacle ``h = |p_ee - p_obs| - (r_obs + ee_radius)``, relative degree 2:
     ``h'' = n.(J q'' + J' q' - a_obs) + (|v_rel|^2 - (n.v_rel)^2)/|d|``, ``n = d/|d|``.
-    With ``q'' = q''_0 + M^-1 diag(tau_max) u`` (``q''_0``: acceleration at u = 0 from passive,
+    With ``q'' = q''_0 + M^-1 diag(action_scale) u`` (``q''_0``: acceleration at u = 0 from passive,
     bias, residual gravity and joint-limit forces), ``barrier_terms(model)`` gives
     ``lf = n.(J q''_0 + J' q' - a_obs) + curvature`` and ``lg = n' J M^-1 diag(action_scale)``:
 
