@@ -38,11 +38,11 @@ import math
 
 import numpy as np
 from scipy.linalg import cho_solve
-from scipy.linalg.blas import dger
-from scipy.linalg.lapack import dtrtri, dtrtrs
+from scipy.linalg.blas import dger, dtrsm
+from scipy.linalg.lapack import dpotrf, dtrtri, dtrtrs
 
 from afvsgp_gym.gp._base import SparseLearner
-from afvsgp_gym.gp._linalg import DEFAULT_JITTER, check_batch, check_matrix, ubar
+from afvsgp_gym.gp._linalg import DEFAULT_JITTER, check_batch, check_matrix, jittered_cholesky, ubar
 from afvsgp_gym.gp._sparse import fit_bound, greedy_inducing
 from afvsgp_gym.gp.kernels import ADPKernel
 
@@ -163,31 +163,54 @@ class AFVSGP(SparseLearner):
         self.jitter_ = jitter
         self.bound_ = bound
         self._cap = max(int(self.num_inducing), len(xo)) + 1
-        self._setup_inducing(xo, ubar(uo), self._cap)
-        # window ring buffer (slot `_head` holds the newest sample)
         b, c = kernel.input_dim, kernel.n_components
+        self._bm = (b, c - 1)
+        # Sample rows [z, k(x, o_1..o_cap), xi, ubar, xi^2, ubar^2]: the window ring buffer
+        # (slot `_head` holds the newest sample) and the update's scratch row share this layout,
+        # so a step stores its sample with one copy. ``ubar^2[0] = 1`` is the constant of the
+        # kernel-row product (see ``_setup_row_kernel``).
+        o = self._cap + 1
+        nf = 2 * (b + c)
+        self._o = o
+        self._row = np.zeros(o + nf)
+        self._row[o + b] = self._row[o + 2 * b + c] = 1.0
+        self._sl_xi = slice(o, o + b)
+        self._sl_u = slice(o + b + 1, o + b + c)
+        self._feat = self._row[o:]  # [xi, ubar, xi^2, ubar^2]
+        self._feat1 = self._row[o:o + b + c]
+        self._feat2 = self._row[o + b + c:]
+        self._ub_row = self._row[o + b:o + b + c]
+        self._wp = np.zeros(nf)  # the same features for one-point predictions (ubar = e_0)
+        self._wp[b] = self._wp[2 * b + c] = 1.0
+        self._wp_xi = self._wp[:b]
+        self._wp_sq = self._wp[b + c:2 * b + c]
+        self._ones_f = np.ones(b + c)
+        self._one_shape = (1, b)
+        self._nc = c
+        self._setup_inducing(xo, ubar(uo), self._cap)
         self._p = p
         self._phi = phi
         self._phi_p = phi ** p
         self._pow = phi ** np.arange(p, dtype=float)
-        self._win_aug = np.zeros((p, 2 * b))  # [xi, xi^2] per sample (for new columns)
-        self._win_xi = self._win_aug[:, :b]
-        self._win_ub = np.zeros((p, c))
-        # rows [z, k(x, o_1), ..., k(x, o_M)] of the window samples
-        self._win = np.zeros((p, self._cap + 1))
-        self._win_xi[:n] = xi
-        self._win_aug[:n, b:] = xi * xi
-        self._win_ub[:n] = ubar(u)
+        self._wbuf = np.zeros((p, o + nf))
+        self._win = self._wbuf[:, :o]
+        self._win_feat = self._wbuf[:, o:]
+        self._win_xi = self._wbuf[:, o:o + b]
+        self._win_ub = self._wbuf[:, o + b:o + b + c]
+        ub_fit = ubar(u)
         self._win[:n, 0] = z
-        self._win[:n, 1:len(xo) + 1] = kernel._gram(xi, ubar(u), xo, ubar(uo))
-        self._y = np.zeros(self._cap + 1)
+        self._win[:n, 1:len(xo) + 1] = kernel._gram(xi, ub_fit, xo, ubar(uo))
+        self._win_xi[:n] = xi
+        self._win_ub[:n] = ub_fit
+        self._win_feat[:n, b + c:] = self._win_feat[:n, :b + c] ** 2
+        # window-column product for inducing candidates (``_window_column``)
+        self._gcol = np.zeros((nf, c))
+        self._gcol[b + c:2 * b + c] = -0.5 * self._ind.inv_ls2.T
         self._inv_phi = 1.0 / phi
         self._count = n
         self._head = n - 1
         self._refresh_every = p if self.refresh_every is None else int(self.refresh_every)
         self._since_refresh = 0
-        self._ub_new = np.ones(c)
-        self._bm = (b, c - 1)
         self.n_seen_ = n
         self.n_added_ = 0
         self.n_removed_ = 0
@@ -218,7 +241,7 @@ class AFVSGP(SparseLearner):
         self._stats = np.asfortranarray(wk.T @ rows)  # [K' Lambda z, K' Lambda K]
         self._scale = 1.0
         self._since_refresh = 0
-        self._dirty = True
+        self._dirty = self._fdirty = True
 
     def _renormalise(self) -> None:
         if self._scale != 1.0:
@@ -227,7 +250,11 @@ class AFVSGP(SparseLearner):
 
     # ------------------------------------------------------------------ update
     def update(self, xi, u, z) -> AFVSGP:
-        """Stream one sample (eqs. 24-28); O(M^2) plus O(P M) on inducing changes."""
+        """Stream one sample (eqs. 24-28); O(M^2) plus O(P M) on inducing changes.
+
+        The per-step path is a fixed, short sequence of BLAS/ufunc calls on preallocated
+        buffers: one product gives the kernel row's exponents and ``k(x, x)`` together; two
+        rank-one updates (``dger``) slide the window."""
         try:
             b, m_act = self._bm
         except AttributeError:
@@ -240,56 +267,160 @@ class AFVSGP(SparseLearner):
             zf = float(z)
         except (TypeError, ValueError):
             raise ValueError(f"z must be a finite scalar, got {z!r}") from None
-        if not math.isfinite(float(xi.sum()) + float(u.sum()) + zf):  # one check for all
-            for arr, name in ((xi, "xi"), (u, "u"), (np.array([zf]), "z")):
-                if not np.isfinite(arr).all():
-                    raise ValueError(f"{name} contains NaN or inf")
-            raise ValueError("xi, u, z are too large (overflow)")
-
-        ub = self._ub_new
-        ub[1:] = u
+        row = self._row  # scratch: [z, k_new, xi, ubar, xi^2, ubar^2]
+        row[self._sl_xi] = xi
+        row[self._sl_u] = u
+        sq = self._feat2
+        np.multiply(self._feat1, self._feat1, out=sq)
+        if not math.isfinite(sq.dot(self._ones_f) + zf):  # one check for xi, u and z
+            self._reject(xi, u, zf)
+        e = np.dot(self._amat, self._feat, out=self._e)  # [k(x, x), log k_i(x, o_j)]
+        kss = float(e[0])  # sum_i s_i ubar_i^2, eq. 19
         m = self._ind.M
-        kt = self._ind.kt(xi)  # [m+1, M], eq. 21
-        y = self._y[: m + 1]  # [z, k_new]
-        k_new = y[1:]
-        np.dot(ub, kt, out=k_new)
-        y[0] = zf
+        ee = self._e_exp
+        np.exp(ee, out=ee)
+        kt = np.multiply(self._e2, self._ubt, out=self._kt_u)  # [m+1, M], eq. 21
+        k_new = np.dot(self._ub_row, kt, out=self._k_row)
+        row[0] = zf
         # sliding window with forgetting (DESIGN eqs. 25-26); phi S is folded into the scale
         scale = self._scale * self._inv_phi
         self._scale = scale
-        stats = self._stats
-        win = self._win
+        win = self._wbuf
         if self._count == self._p:
             slot = self._head + 1
             if slot == self._p:
                 slot = 0
-            old = win[slot, : m + 1]
-            stats = dger(-self._phi_p * scale, old[1:], old, a=stats, overwrite_a=1)
+            old = win[slot]
+            self._stats = dger(-self._phi_p * scale, old[1:m + 1], old[:m + 1], 1, 1,
+                               self._stats, 1, 1, 1)
         else:
             slot = self._count
             self._count += 1
-        self._stats = dger(scale, k_new, y, a=stats, overwrite_a=1)
-        win[slot, : m + 1] = y
-        self._win_aug[slot] = self._ind._v[:-1]  # [xi, xi^2], set by kt() above
-        self._win_ub[slot] = ub
+        self._stats = dger(scale, k_new, self._y_row, 1, 1, self._stats, 1, 1, 1)
+        win[slot] = row
         self._head = slot
         self.n_seen_ += 1
-        self._dirty = True
+        self._dirty = self._fdirty = True
         self._since_refresh += 1
         if self._since_refresh >= self._refresh_every:
             self._rebuild_stats()
         elif scale > 1e100:
             self._renormalise()
         if self.adapt_inducing:
-            kss = float(self._ind.var @ (ub * ub))
-            d = kss - float(k_new @ (self._koo_inv @ k_new))  # eq. 27 residual, weight 1
+            d = kss - float(np.dot(k_new, np.dot(self._koo_inv, k_new)))  # eq. 27, weight 1
             if (d > self.add_threshold * kss and d > self.noise_variance_
                     and d > 1e-6 * kss):
                 lvec = dtrtrs(self._l_oo, k_new, lower=1)[0]  # L_oo^-1 k_new
                 d = kss - float(lvec @ lvec)  # the same, from the factor (stable)
                 if d > 1e-6 * kss:
-                    self._consider_add(xi, ub.copy(), kss, k_new.copy(), lvec, d)
+                    self._consider_add(xi, self._ub_row.copy(), kss, k_new.copy(), lvec, d)
         return self
+
+    @staticmethod
+    def _reject(xi: np.ndarray, u: np.ndarray, z: float):
+        for arr, name in ((xi, "xi"), (u, "u"), (np.array([z]), "z")):
+            if not np.isfinite(arr).all():
+                raise ValueError(f"{name} contains NaN or inf")
+        raise ValueError("xi, u, z are too large (overflow)")
+
+    # ------------------------------------------------------------------ one-point predictive
+    def _setup_row_kernel(self) -> None:
+        """Buffers of the per-step path for the current inducing set (rebuilt on changes).
+
+        ``_amat`` (1 + (m+1) M, 2(b+m+1)) times the features ``[xi, ubar, xi^2, ubar^2]`` gives
+        ``k(x, x) = sum_i s_i ubar_i^2`` and the exponents
+        ``log k_i(xi, o_j) = log s_i - |o_j/l_i|^2/2 + (o_j/l_i^2).xi - (1/(2 l_i^2)).xi^2``
+        (the constant sits in the ``ubar_0^2 = 1`` column).
+        """
+        ind = self._ind
+        m = ind.M
+        b, c = self.kernel_.input_dim, self.kernel_.n_components
+        nf = 2 * (b + c)
+        a = np.zeros((1 + c * m, nf))
+        a[0, 2 * b + c:] = ind.var
+        blk = a[1:].reshape(c, m, nf)
+        blk[:, :, :b] = ind.xs2[:, :m, :b]
+        blk[:, :, b + c:2 * b + c] = ind.xs2[:, :m, b:2 * b]
+        blk[:, :, 2 * b + c] = ind.xs2[:, :m, 2 * b]
+        self._amat = a
+        self._e = np.empty(1 + c * m)
+        self._e_exp = self._e[1:]
+        self._e2 = self._e_exp.reshape(c, m)
+        self._ubt = ind.ubt[:, :m].copy()
+        self._kt_u = np.empty((c, m))
+        self._k_row = self._row[1:m + 1]
+        self._y_row = self._row[:m + 1]
+        # K_oo + S/s2 (factored in place) and the right-hand side [Kt', r/s2] (Fortran order:
+        # Kt (m+1, M) is its contiguous first block)
+        self._sig = np.zeros((m, m), order="F")
+        rhs = np.zeros((m, c + 1), order="F")
+        self._rhs = rhs
+        self._rhs_kt = rhs[:, :c]
+        self._rhs_ktT = rhs[:, :c].T
+        self._rhs_r = rhs[:, c]
+        self._l_oo_f = np.asfortranarray(self._l_oo)
+        self._fdirty = True
+
+    def _set_koo_chol(self, low: np.ndarray) -> None:
+        super()._set_koo_chol(low)
+        self._setup_row_kernel()
+
+    def _refresh_factor(self) -> None:
+        """``chol(K_oo + S/s2)`` and ``r/s2`` for one-point predictions."""
+        st = self._stats
+        inv_s = 1.0 / (self.noise_variance_ * self._scale)
+        np.multiply(st[:, 0], inv_s, out=self._rhs_r)
+        sig = self._sig
+        np.multiply(st[:, 1:], inv_s, out=sig)
+        sig += self._koo
+        info = dpotrf(sig, 1, 0, 1)[1]  # in place, lower triangle
+        if info != 0:
+            sig = np.multiply(st[:, 1:], inv_s)
+            sig += self._koo
+            self._sig[:] = jittered_cholesky(sig, name="K_oo + S/s2")
+        self._fdirty = False
+
+    def _predict_one(self, x: np.ndarray):
+        """``(b (1, m+1), Sigma (1, m+1, m+1))`` at one point (eq. 20), or None if ``x`` is
+        not finite (or overflows ``|x|^2``).
+
+        With ``L = chol(B^-1)`` and ``F = L^-1 [Kt', r/s2]``: ``F'F = [[Kt B Kt', b'], [b, .]]``;
+        the Nystroem term ``Kt K_oo^-1 Kt' = G'G`` with ``G = L_oo^-1 Kt'``. Both Grams are
+        BLAS ``syrk`` (exactly symmetric)."""
+        if not math.isfinite(x.dot(x)):
+            return None
+        self._wp_xi[:] = x
+        np.multiply(x, x, out=self._wp_sq)
+        np.dot(self._amat, self._wp, out=self._e)
+        if self._fdirty:
+            self._refresh_factor()
+        ee = self._e_exp
+        np.exp(ee, out=ee)
+        np.multiply(self._e2, self._ubt, out=self._rhs_ktT)  # Kt (m+1, M), eq. 21
+        g = dtrsm(1.0, self._l_oo_f, self._rhs_kt, 0, 1, 0, 0, 0)
+        f = dtrsm(1.0, self._sig, self._rhs, 0, 1, 0, 0, 0)
+        ff = np.dot(f.T, f)
+        c = self._nc
+        sig = np.subtract(ff[:c, :c], np.dot(g.T, g))
+        sig += self._ind.var_diag
+        return ff[c:, :c], sig[None]
+
+    def predict_affine(self, xi):
+        """``b`` (N, m+1), ``Sigma`` (N, m+1, m+1): mean ``b . ubar``, var ``ubar' Sigma ubar``
+        (eq. 20); one float64 point (the per-control-step call) takes a short fast path."""
+        if (type(xi) is np.ndarray and xi.shape == getattr(self, "_one_shape", None)
+                and xi.dtype == np.float64):
+            out = self._predict_one(xi[0])
+            if out is not None:
+                return out
+        return super().predict_affine(xi)
+
+    def _predict_affine(self, xi):
+        if xi.shape[0] == 1:
+            out = self._predict_one(xi[0])
+            if out is not None:
+                return out
+        return super()._predict_affine(xi)
 
     # ------------------------------------------------------------------ inducing set
     def _consider_add(self, xi, ub, kss, k_new, lvec, d) -> None:
@@ -335,15 +466,15 @@ class AFVSGP(SparseLearner):
         self._remove(drop, low)
 
     def _window_column(self, xi: np.ndarray, ub: np.ndarray) -> np.ndarray:
-        """``k(x_t, (xi, ub))`` for the window samples with one (cnt, 2b) x (2b, m+1) product:
+        """``k(x_t, (xi, ub))`` for the window samples with one (cnt, 2(b+m+1)) x (., m+1)
+        product on the stored features:
         ``log k_i = log s_i - |xi/l_i|^2/2 + x_t.(xi/l_i^2) - x_t^2.(1/(2 l_i^2))``."""
         cnt = self._count
         inv_ls2 = self._ind.inv_ls2  # (m+1, b)
         b = inv_ls2.shape[1]
-        g = np.empty((2 * b, inv_ls2.shape[0]))
+        g = self._gcol  # rows for ubar and ubar^2 stay zero
         g[:b] = (inv_ls2 * xi).T
-        g[b:] = -0.5 * inv_ls2.T
-        e = self._win_aug[:cnt] @ g
+        e = self._win_feat[:cnt] @ g
         e += self._ind.log_var - 0.5 * (inv_ls2 @ (xi * xi))
         np.minimum(e, self._ind.log_var, out=e)
         np.exp(e, out=e)
