@@ -180,11 +180,11 @@ class AFVSGP(SparseLearner):
         self._feat1 = self._row[o:o + b + c]
         self._feat2 = self._row[o + b + c:]
         self._ub_row = self._row[o + b:o + b + c]
-        self._wp = np.zeros(nf)  # the same features for one-point predictions (ubar = e_0)
-        self._wp[b] = self._wp[2 * b + c] = 1.0
-        self._wp_xi = self._wp[:b]
-        self._wp_sq = self._wp[b + c:2 * b + c]
+        self._feat0 = self._feat.copy()  # clean features (ubar = e_0)
+        self._xi2_row = self._row[o + b + c:o + 2 * b + c]
+        self._ub2_row = self._row[o + 2 * b + c:]
         self._ones_f = np.ones(b + c)
+        self._var = kernel._var
         self._one_shape = (1, b)
         self._nc = c
         self._setup_inducing(xo, ubar(uo), self._cap)
@@ -253,8 +253,10 @@ class AFVSGP(SparseLearner):
         """Stream one sample (eqs. 24-28); O(M^2) plus O(P M) on inducing changes.
 
         The per-step path is a fixed, short sequence of BLAS/ufunc calls on preallocated
-        buffers: one product gives the kernel row's exponents and ``k(x, x)`` together; two
-        rank-one updates (``dger``) slide the window."""
+        buffers: one product gives the kernel row's exponents, two rank-one updates (``dger``)
+        slide the window. When ``xi`` is the point of the last one-point ``predict_affine``
+        (the filter predicts at ``xi_t``, then learns from ``(xi_t, u_t, z_t)``), the kernel
+        row ``Kt`` that prediction computed (same inducing set, same arithmetic) is reused."""
         try:
             b, m_act = self._bm
         except AttributeError:
@@ -268,19 +270,27 @@ class AFVSGP(SparseLearner):
         except (TypeError, ValueError):
             raise ValueError(f"z must be a finite scalar, got {z!r}") from None
         row = self._row  # scratch: [z, k_new, xi, ubar, xi^2, ubar^2]
-        row[self._sl_xi] = xi
         row[self._sl_u] = u
-        sq = self._feat2
-        np.multiply(self._feat1, self._feat1, out=sq)
-        if not math.isfinite(sq.dot(self._ones_f) + zf):  # one check for xi, u and z
-            self._reject(xi, u, zf)
-        e = np.dot(self._amat, self._feat, out=self._e)  # [k(x, x), log k_i(x, o_j)]
-        kss = float(e[0])  # sum_i s_i ubar_i^2, eq. 19
+        ub = self._ub_row
+        if xi.tobytes() == self._kt_key:  # Kt of this xi is in the prediction buffer
+            np.multiply(ub, ub, out=self._ub2_row)
+            kss = self._ub2_row.dot(self._var)  # sum_i s_i ubar_i^2, eq. 19
+            if not math.isfinite(kss + zf):  # checks u and z (xi was checked in predict)
+                self._reject(xi, u, zf)
+            kt = self._rhs_ktT
+        else:
+            self._kt_key = None
+            row[self._sl_xi] = xi
+            sq = self._feat2
+            np.multiply(self._feat1, self._feat1, out=sq)
+            if not math.isfinite(sq.dot(self._ones_f) + zf):  # one check for xi, u and z
+                self._reject(xi, u, zf)
+            kss = self._ub2_row.dot(self._var)
+            e = np.dot(self._amat, self._feat, out=self._e)  # log k_i(x, o_j)
+            np.exp(e, out=e)
+            kt = np.multiply(self._e2, self._ubt, out=self._kt_u)  # [m+1, M], eq. 21
         m = self._ind.M
-        ee = self._e_exp
-        np.exp(ee, out=ee)
-        kt = np.multiply(self._e2, self._ubt, out=self._kt_u)  # [m+1, M], eq. 21
-        k_new = np.dot(self._ub_row, kt, out=self._k_row)
+        k_new = np.dot(ub, kt, out=self._k_row)
         row[0] = zf
         # sliding window with forgetting (DESIGN eqs. 25-26); phi S is folded into the scale
         scale = self._scale * self._inv_phi
@@ -307,17 +317,20 @@ class AFVSGP(SparseLearner):
         elif scale > 1e100:
             self._renormalise()
         if self.adapt_inducing:
-            d = kss - float(np.dot(k_new, np.dot(self._koo_inv, k_new)))  # eq. 27, weight 1
+            d = kss - k_new.dot(self._koo_inv.dot(k_new))  # eq. 27 residual, weight 1
             if (d > self.add_threshold * kss and d > self.noise_variance_
                     and d > 1e-6 * kss):
                 lvec = dtrtrs(self._l_oo, k_new, lower=1)[0]  # L_oo^-1 k_new
                 d = kss - float(lvec @ lvec)  # the same, from the factor (stable)
                 if d > 1e-6 * kss:
-                    self._consider_add(xi, self._ub_row.copy(), kss, k_new.copy(), lvec, d)
+                    self._consider_add(xi, ub.copy(), kss, k_new.copy(), lvec, d)
         return self
 
-    @staticmethod
-    def _reject(xi: np.ndarray, u: np.ndarray, z: float):
+    def _reject(self, xi: np.ndarray, u: np.ndarray, z: float):
+        """Raise the ValueError for a non-finite sample; clear the scratch row (the next
+        prediction reads its features) so no state changes."""
+        self._kt_key = None
+        self._feat[:] = self._feat0
         for arr, name in ((xi, "xi"), (u, "u"), (np.array([z]), "z")):
             if not np.isfinite(arr).all():
                 raise ValueError(f"{name} contains NaN or inf")
@@ -327,8 +340,8 @@ class AFVSGP(SparseLearner):
     def _setup_row_kernel(self) -> None:
         """Buffers of the per-step path for the current inducing set (rebuilt on changes).
 
-        ``_amat`` (1 + (m+1) M, 2(b+m+1)) times the features ``[xi, ubar, xi^2, ubar^2]`` gives
-        ``k(x, x) = sum_i s_i ubar_i^2`` and the exponents
+        ``_amat`` ((m+1) M, 2(b+m+1)) times the features ``[xi, ubar, xi^2, ubar^2]`` gives
+        the exponents
         ``log k_i(xi, o_j) = log s_i - |o_j/l_i|^2/2 + (o_j/l_i^2).xi - (1/(2 l_i^2)).xi^2``
         (the constant sits in the ``ubar_0^2 = 1`` column).
         """
@@ -336,16 +349,14 @@ class AFVSGP(SparseLearner):
         m = ind.M
         b, c = self.kernel_.input_dim, self.kernel_.n_components
         nf = 2 * (b + c)
-        a = np.zeros((1 + c * m, nf))
-        a[0, 2 * b + c:] = ind.var
-        blk = a[1:].reshape(c, m, nf)
+        a = np.zeros((c * m, nf))
+        blk = a.reshape(c, m, nf)
         blk[:, :, :b] = ind.xs2[:, :m, :b]
         blk[:, :, b + c:2 * b + c] = ind.xs2[:, :m, b:2 * b]
         blk[:, :, 2 * b + c] = ind.xs2[:, :m, 2 * b]
         self._amat = a
-        self._e = np.empty(1 + c * m)
-        self._e_exp = self._e[1:]
-        self._e2 = self._e_exp.reshape(c, m)
+        self._e = np.empty(c * m)
+        self._e2 = self._e.reshape(c, m)
         self._ubt = ind.ubt[:, :m].copy()
         self._kt_u = np.empty((c, m))
         self._k_row = self._row[1:m + 1]
@@ -358,7 +369,11 @@ class AFVSGP(SparseLearner):
         self._rhs_kt = rhs[:, :c]
         self._rhs_ktT = rhs[:, :c].T
         self._rhs_r = rhs[:, c]
-        self._l_oo_f = np.asfortranarray(self._l_oo)
+        self._koo_f = np.asfortranarray(self._koo)  # same layout as _sig (cheaper sum)
+        # L_oo^-T for the Nystroem term (refreshed with the inducing set; triangular inverse)
+        linv, info = dtrtri(self._l_oo, lower=1)
+        self._l_oo_invt = linv.T if info == 0 else np.linalg.inv(self._l_oo).T
+        self._kt_key = None  # xi (bytes) whose Kt is in _rhs_ktT
         self._fdirty = True
 
     def _set_koo_chol(self, low: np.ndarray) -> None:
@@ -372,7 +387,7 @@ class AFVSGP(SparseLearner):
         np.multiply(st[:, 0], inv_s, out=self._rhs_r)
         sig = self._sig
         np.multiply(st[:, 1:], inv_s, out=sig)
-        sig += self._koo
+        sig += self._koo_f
         info = dpotrf(sig, 1, 0, 1)[1]  # in place, lower triangle
         if info != 0:
             sig = np.multiply(st[:, 1:], inv_s)
@@ -385,23 +400,24 @@ class AFVSGP(SparseLearner):
         not finite (or overflows ``|x|^2``).
 
         With ``L = chol(B^-1)`` and ``F = L^-1 [Kt', r/s2]``: ``F'F = [[Kt B Kt', b'], [b, .]]``;
-        the Nystroem term ``Kt K_oo^-1 Kt' = G'G`` with ``G = L_oo^-1 Kt'``. Both Grams are
+        the Nystroem term ``Kt K_oo^-1 Kt' = G G'`` with ``G = Kt L_oo^-T``. Both Grams are
         BLAS ``syrk`` (exactly symmetric)."""
         if not math.isfinite(x.dot(x)):
             return None
-        self._wp_xi[:] = x
-        np.multiply(x, x, out=self._wp_sq)
-        np.dot(self._amat, self._wp, out=self._e)
+        # features in the update's scratch row (its ubar part has zero weight here)
+        self._row[self._sl_xi] = x
+        np.multiply(x, x, out=self._xi2_row)
+        e = np.dot(self._amat, self._feat, out=self._e)
         if self._fdirty:
             self._refresh_factor()
-        ee = self._e_exp
-        np.exp(ee, out=ee)
+        np.exp(e, out=e)
         np.multiply(self._e2, self._ubt, out=self._rhs_ktT)  # Kt (m+1, M), eq. 21
-        g = dtrsm(1.0, self._l_oo_f, self._rhs_kt, 0, 1, 0, 0, 0)
+        self._kt_key = x.tobytes()
+        g = self._rhs_ktT.dot(self._l_oo_invt)
         f = dtrsm(1.0, self._sig, self._rhs, 0, 1, 0, 0, 0)
-        ff = np.dot(f.T, f)
+        ff = f.T.dot(f)
         c = self._nc
-        sig = np.subtract(ff[:c, :c], np.dot(g.T, g))
+        sig = np.subtract(ff[:c, :c], g.dot(g.T))
         sig += self._ind.var_diag
         return ff[c:, :c], sig[None]
 
