@@ -1,0 +1,166 @@
+"""AFVSGP per-step fast path: the one-point ``predict_affine`` and the update that reuses its
+kernel row, checked against the independent batch formula and against the general paths."""
+
+import numpy as np
+import pytest
+from gp_batch_formulas import synthetic, weighted_titsias_affine
+
+from afvsgp_gym.gp import AFVSGP, ADPKernel
+
+
+def _rel(a, b):
+    return np.max(np.abs(a - b)) / np.max(np.abs(b))
+
+
+def _kernel(b=3, m=2):
+    return ADPKernel(np.full((m + 1, b), 1.3), np.array([1.0, 0.6, 0.4][: m + 1]))
+
+
+def _learner(xi, u, z, p, **kw):
+    opts = dict(num_inducing=8, window=p, forgetting=0.95, add_threshold=0.05,
+                swap_margin=0.0)
+    opts.update(kw)
+    return AFVSGP(_kernel(), 0.0025, **opts).fit(xi[:p], u[:p], z[:p], False)
+
+
+def _batch(gp, xi, u, z, xs):
+    p, phi = gp.window, gp.forgetting
+    w = phi ** np.arange(p - 1, -1, -1, dtype=float)
+    k = gp.kernel_
+    return weighted_titsias_affine(k.lengthscales, k.variances, gp.noise_variance_,
+                                   xi[-p:], u[-p:], z[-p:], w, gp.inducing_xi_,
+                                   gp.inducing_u_, xs, jitter=gp.jitter_)
+
+
+@pytest.mark.parametrize("reuse", [True, False])
+def test_one_point_predictions_equal_batch_formula_through_inducing_events(reuse):
+    """Stream with a prediction each step (at the next update's xi, so the update reuses the
+    kernel row, or at another point); every one-point prediction at checkpoints equals the
+    batch weighted Titsias posterior, also right after add/remove events."""
+    rng = np.random.default_rng(11)
+    p = 40
+    n = p + 8 * p
+    xi, u, z, _ = synthetic(rng, n, noise_std=0.05)
+    gp = _learner(xi, u, z, p)
+    other = rng.normal(size=(1, 3))
+    checked_after_event = 0
+    for i in range(p, n):
+        before = gp.n_added_
+        gp.update(xi[i], u[i], z[i])
+        if i + 1 < n:
+            bvec, sig = gp.predict_affine(xi[i + 1:i + 2] if reuse else other)
+        if i % 23 == 0 or gp.n_added_ != before:
+            xs = xi[i + 1:i + 2] if (reuse and i + 1 < n) else other
+            b1, s1 = gp.predict_affine(xs)
+            bref, sref = _batch(gp, xi[: i + 1], u[: i + 1], z[: i + 1], xs)
+            assert _rel(b1, bref) < 1e-8
+            assert _rel(s1, sref) < 1e-8
+            np.testing.assert_array_equal(s1[0], s1[0].T)  # exactly symmetric
+            checked_after_event += gp.n_added_ != before
+    assert gp.n_added_ > 0 and gp.n_removed_ > 0 and checked_after_event > 0
+
+
+def test_one_point_path_equals_general_path():
+    rng = np.random.default_rng(12)
+    p = 50
+    xi, u, z, _ = synthetic(rng, 300)
+    gp = _learner(xi, u, z, p)
+    for i in range(p, 300):
+        gp.update(xi[i], u[i], z[i])
+    xs = rng.normal(size=(4, 3))
+    ball, sall = gp.predict_affine(xs)  # N > 1: the general (cached B, D) path
+    for n in range(4):
+        for arg in (xs[n:n + 1], xs[n:n + 1].tolist()):  # fast path, validated path
+            b1, s1 = gp.predict_affine(arg)
+            assert b1.shape == (1, 3) and s1.shape == (1, 3, 3)
+            np.testing.assert_allclose(b1[0], ball[n], rtol=1e-9, atol=1e-12)
+            np.testing.assert_allclose(s1[0], sall[n], rtol=1e-9, atol=1e-12)
+    # results are fresh arrays: a later call does not change earlier results
+    b1, s1 = gp.predict_affine(xs[:1])
+    keep = b1.copy(), s1.copy()
+    gp.predict_affine(xs[1:2])
+    gp.update(xi[0], u[0], z[0])
+    np.testing.assert_array_equal(b1, keep[0])
+    np.testing.assert_array_equal(s1, keep[1])
+
+
+def test_row_reuse_gives_the_same_state_as_a_fresh_kernel_row():
+    """Predicting at each next xi (kernel row reused by the update) or not at all gives
+    identical learners: same statistics, inducing set and predictions."""
+    rng = np.random.default_rng(13)
+    p = 40
+    xi, u, z, _ = synthetic(rng, 500, noise_std=0.05)
+    a = _learner(xi, u, z, p)
+    b = _learner(xi, u, z, p)
+    for i in range(p, 500):
+        a.predict_affine(xi[i:i + 1])
+        a.update(xi[i], u[i], z[i])
+        b.update(xi[i], u[i], z[i])
+    assert a.n_added_ == b.n_added_ > 0
+    np.testing.assert_array_equal(a.inducing_xi_, b.inducing_xi_)
+    np.testing.assert_array_equal(a.S_, b.S_)
+    np.testing.assert_array_equal(a.r_, b.r_)
+    xs = rng.normal(size=(1, 3))
+    for got, ref in zip(a.predict_affine(xs), b.predict_affine(xs), strict=True):
+        np.testing.assert_array_equal(got, ref)
+
+
+def test_update_at_a_point_other_than_the_prediction_does_not_reuse_its_row():
+    """predict at x1, update at x0 (no reuse), update at x1: the row of x1 is stale by then
+    (the scratch row holds x0) and must be recomputed."""
+    rng = np.random.default_rng(14)
+    p = 30
+    xi, u, z, _ = synthetic(rng, 200)
+    a = _learner(xi, u, z, p)
+    b = _learner(xi, u, z, p)
+    for i in range(p, 198, 2):
+        a.predict_affine(xi[i + 1:i + 2])
+        a.update(xi[i], u[i], z[i])
+        a.update(xi[i + 1], u[i + 1], z[i + 1])
+        b.update(xi[i], u[i], z[i])
+        b.update(xi[i + 1], u[i + 1], z[i + 1])
+    np.testing.assert_array_equal(a.S_, b.S_)
+    np.testing.assert_array_equal(a.r_, b.r_)
+    for got, ref in zip(a.window_samples(), b.window_samples(), strict=True):
+        np.testing.assert_array_equal(got, ref)
+
+
+@pytest.mark.parametrize("bad", ["u", "xi", "z"])
+def test_rejected_update_after_prediction_leaves_state_and_row_intact(bad):
+    rng = np.random.default_rng(15)
+    p = 30
+    xi, u, z, _ = synthetic(rng, 100)
+    gp = _learner(xi, u, z, p)
+    ref = _learner(xi, u, z, p)
+    for i in range(p, 60):
+        gp.update(xi[i], u[i], z[i])
+        ref.update(xi[i], u[i], z[i])
+    x = xi[60:61]
+    before = gp.predict_affine(x)
+    args = {"xi": (np.array([np.nan, 0.0, 0.0]), u[60], z[60]),
+            "u": (xi[60], np.array([np.inf, 0.0]), z[60]),
+            "z": (xi[60], u[60], np.nan)}[bad]
+    with pytest.raises(ValueError, match=bad):
+        gp.update(*args)
+    after = gp.predict_affine(x)
+    for got, exp in zip(after, before, strict=True):
+        np.testing.assert_array_equal(got, exp)
+    gp.update(xi[60], u[60], z[60])
+    ref.update(xi[60], u[60], z[60])
+    np.testing.assert_array_equal(gp.S_, ref.S_)
+    for got, exp in zip(gp.predict_affine(x), ref.predict_affine(x), strict=True):
+        np.testing.assert_array_equal(got, exp)
+
+
+@pytest.mark.filterwarnings("ignore:overflow:RuntimeWarning",
+                            "ignore:invalid value:RuntimeWarning")
+def test_one_point_prediction_far_away_and_huge_inputs_are_finite():
+    rng = np.random.default_rng(16)
+    xi, u, z, _ = synthetic(rng, 60)
+    gp = _learner(xi, u, z, 30)
+    for x in ([[1e3, -1e3, 0.0]], [[1e200, 0.0, 0.0]]):
+        bvec, sig = gp.predict_affine(np.array(x))
+        assert np.all(np.isfinite(bvec)) and np.all(np.isfinite(sig))
+        np.testing.assert_allclose(sig[0], np.diag(gp.kernel_.variances), atol=1e-12)
+    with pytest.raises(ValueError, match="xi"):
+        gp.predict_affine(np.array([[np.inf, 0.0, 0.0]]))
