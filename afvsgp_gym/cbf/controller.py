@@ -28,6 +28,13 @@ from afvsgp_gym.cbf.measurement import measure
 from afvsgp_gym.cbf.socp import SOCPFilter
 from afvsgp_gym.types import BarrierTerms
 
+#: Learner settings used unless ``learner_kwargs`` overrides them. AFVSGP: the paper's window
+#: P = 200 with phi = 0.99 remembers ~100 samples (0.4 s at the Franka's 250 Hz); with a
+#: "zero" nominal model the action gain L_g L_f h is only identifiable from the exploration
+#: of the warm-up, and forgetting it within a second of smooth tracking left the model with a
+#: wrong gain (and violations) on the dynamic scenario. window 1000, phi = 0.999 keeps it.
+DEFAULT_LEARNER_KWARGS: dict[str, dict] = {"afvsgp": {"window": 1000, "forgetting": 0.999}}
+
 #: Default confidence multiplier of the chance constraint. Eq. 49's bound (Castaneda et al.
 #: 2021, Thm. 2) is far too conservative to be feasible in practice (it grows with
 #: ln^3(P / delta)); like Castaneda et al. we use a constant. beta = 2 is a one-sided 97.7 %
@@ -106,7 +113,7 @@ class SafetyController:
         Std of the Gaussian noise added to the action during warm-up, as a fraction of the
         half range of the bounds (default 0.3).
     learner_kwargs : dict or None
-        Passed to the learner's constructor.
+        Passed to the learner's constructor, on top of :data:`DEFAULT_LEARNER_KWARGS`.
     learn_hyperparameters : bool
         Maximise the bound at the end of warm-up (True) or keep the given kernel.
     kernel_init : {"uniform", "data"} or float
@@ -183,7 +190,10 @@ class SafetyController:
         self.learn_hyperparameters = bool(learn_hyperparameters)
         self.kernel_init = kernel_init
         self.learning = bool(online)
-        self._learner_kwargs = dict(learner_kwargs or {})
+        self._learner_kwargs = {
+            **DEFAULT_LEARNER_KWARGS.get(self.learner_name, {}),
+            **(learner_kwargs or {}),
+        }
         self.learners = [
             make_learner(self.learner_name, self.action_dim, **self._learner_kwargs)
             for _ in range(self.n_obstacles)
@@ -231,12 +241,49 @@ class SafetyController:
             ok = np.all(np.isfinite(xi), axis=1) & np.all(np.isfinite(u), axis=1)
             ok &= np.isfinite(z)
             xi, u, z = xi[ok], u[ok], z[ok]
-            if self.kernel_init != "data" and "kernel" not in self._learner_kwargs:
-                kwargs = dict(self._learner_kwargs, kernel=self._initial_kernel(xi, u, z))
-                self.learners[k] = make_learner(self.learner_name, self.action_dim, **kwargs)
-            self.learners[k].fit(xi, u, z, learn_hyperparameters=self.learn_hyperparameters)
+            self.learners[k] = self._fit_one(xi, u, z)
         self.fitted = True
         return self
+
+    def _fit_one(self, xi, u, z):
+        """Fit one learner; restart from other initial points if the optimiser did not move.
+
+        L-BFGS-B on the collapsed bound sometimes stops at its initial point (a failed line
+        search: the first step lands where the Cholesky fails); the restarts are a smaller
+        initial noise variance, doubled lengthscales and the learner's own data heuristic.
+        """
+        user_kernel = "kernel" in self._learner_kwargs
+        if not self.learn_hyperparameters or user_kernel or self.kernel_init == "data":
+            starts = [{}]
+        else:
+            k0 = self._initial_kernel(xi, u, z)
+            vz = float(np.var(z)) if len(z) > 1 else 1.0
+            starts = [
+                {"kernel": k0},
+                {"kernel": k0, "noise_variance": max(0.01 * vz, 1e-8)},
+                {"kernel": type(k0)(2.0 * k0.lengthscales, k0.variances)},
+                {"kernel": None},
+            ]
+        best, best_bound = None, -np.inf
+        for start in starts:
+            kwargs = {**self._learner_kwargs, **start}
+            learner = make_learner(self.learner_name, self.action_dim, **kwargs)
+            learner.fit(xi, u, z, learn_hyperparameters=self.learn_hyperparameters)
+            if len(starts) == 1:
+                return learner
+            k0 = start.get("kernel")
+            fitted_kernel = getattr(learner, "kernel_", None)
+            moved = (
+                k0 is None
+                or fitted_kernel is None
+                or not np.allclose(fitted_kernel.theta, k0.theta)
+            )
+            bound = float(getattr(learner, "bound_", None) or 0.0)
+            if moved:
+                return learner
+            if best is None or bound > best_bound:
+                best, best_bound = learner, bound
+        return best
 
     def _initial_kernel(self, xi, u, z):
         from afvsgp_gym.gp import ADPKernel
