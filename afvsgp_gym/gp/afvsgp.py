@@ -48,6 +48,8 @@ from afvsgp_gym.gp.kernels import ADPKernel
 
 __all__ = ["AFVSGP"]
 
+_F64 = np.dtype(np.float64)
+
 
 def _chol_delete(low: np.ndarray, j: int) -> np.ndarray:
     """Cholesky factor of K with row/column j removed, from chol(K): O(M^2) rank-one update
@@ -164,7 +166,6 @@ class AFVSGP(SparseLearner):
         self.bound_ = bound
         self._cap = max(int(self.num_inducing), len(xo)) + 1
         b, c = kernel.input_dim, kernel.n_components
-        self._bm = (b, c - 1)
         # Sample rows [z, k(x, o_1..o_cap), xi, ubar, xi^2, ubar^2]: the window ring buffer
         # (slot `_head` holds the newest sample) and the update's scratch row share this layout,
         # so a step stores its sample with one copy. ``ubar^2[0] = 1`` is the constant of the
@@ -186,6 +187,7 @@ class AFVSGP(SparseLearner):
         self._ones_f = np.ones(b + c)
         self._var = kernel._var
         self._one_shape = (1, b)
+        self._shapes = ((b,), (c - 1,))
         self._nc = c
         self._setup_inducing(xo, ubar(uo), self._cap)
         self._p = p
@@ -258,13 +260,13 @@ class AFVSGP(SparseLearner):
         (the filter predicts at ``xi_t``, then learns from ``(xi_t, u_t, z_t)``), the kernel
         row ``Kt`` that prediction computed (same inducing set, same arithmetic) is reused."""
         try:
-            b, m_act = self._bm
+            shape_xi, shape_u = self._shapes
         except AttributeError:
             raise RuntimeError("AFVSGP is not fitted; call fit first") from None
-        if not (isinstance(xi, np.ndarray) and xi.dtype == np.float64 and xi.shape == (b,)):
-            xi = check_matrix(xi, "xi", ndim=1, nrows=b)
-        if not (isinstance(u, np.ndarray) and u.dtype == np.float64 and u.shape == (m_act,)):
-            u = check_matrix(u, "u", ndim=1, nrows=m_act)
+        if not (type(xi) is np.ndarray and xi.dtype is _F64 and xi.shape == shape_xi):
+            xi = check_matrix(xi, "xi", ndim=1, nrows=shape_xi[0])
+        if not (type(u) is np.ndarray and u.dtype is _F64 and u.shape == shape_u):
+            u = check_matrix(u, "u", ndim=1, nrows=shape_u[0])
         try:
             zf = float(z)
         except (TypeError, ValueError):
@@ -272,9 +274,10 @@ class AFVSGP(SparseLearner):
         row = self._row  # scratch: [z, k_new, xi, ubar, xi^2, ubar^2]
         row[self._sl_u] = u
         ub = self._ub_row
+        ub2 = self._ub2_row
         if xi.tobytes() == self._kt_key:  # Kt of this xi is in the prediction buffer
-            np.multiply(ub, ub, out=self._ub2_row)
-            kss = self._ub2_row.dot(self._var)  # sum_i s_i ubar_i^2, eq. 19
+            np.multiply(ub, ub, out=ub2)
+            kss = float(ub2.dot(self._var))  # sum_i s_i ubar_i^2, eq. 19
             if not math.isfinite(kss + zf):  # checks u and z (xi was checked in predict)
                 self._reject(xi, u, zf)
             kt = self._rhs_ktT
@@ -285,29 +288,27 @@ class AFVSGP(SparseLearner):
             np.multiply(self._feat1, self._feat1, out=sq)
             if not math.isfinite(sq.dot(self._ones_f) + zf):  # one check for xi, u and z
                 self._reject(xi, u, zf)
-            kss = self._ub2_row.dot(self._var)
+            kss = float(ub2.dot(self._var))
             e = np.dot(self._amat, self._feat, out=self._e)  # log k_i(x, o_j)
             np.exp(e, out=e)
             kt = np.multiply(self._e2, self._ubt, out=self._kt_u)  # [m+1, M], eq. 21
-        m = self._ind.M
         k_new = np.dot(ub, kt, out=self._k_row)
         row[0] = zf
         # sliding window with forgetting (DESIGN eqs. 25-26); phi S is folded into the scale
         scale = self._scale * self._inv_phi
         self._scale = scale
-        win = self._wbuf
+        stats = self._stats
+        head = self._head
         if self._count == self._p:
-            slot = self._head + 1
-            if slot == self._p:
-                slot = 0
-            old = win[slot]
-            self._stats = dger(-self._phi_p * scale, old[1:m + 1], old[:m + 1], 1, 1,
-                               self._stats, 1, 1, 1)
+            slot = head + 1 if head + 1 < self._p else 0
+            old = self._wbuf[slot]
+            stats = dger(-self._phi_p * scale, old[self._sl_k], old[self._sl_y], 1, 1, stats,
+                         1, 1, 1)
         else:
             slot = self._count
-            self._count += 1
-        self._stats = dger(scale, k_new, self._y_row, 1, 1, self._stats, 1, 1, 1)
-        win[slot] = row
+            self._count = slot + 1
+        self._stats = dger(scale, k_new, self._y_row, 1, 1, stats, 1, 1, 1)
+        self._wbuf[slot] = row
         self._head = slot
         self.n_seen_ += 1
         self._dirty = self._fdirty = True
@@ -317,7 +318,7 @@ class AFVSGP(SparseLearner):
         elif scale > 1e100:
             self._renormalise()
         if self.adapt_inducing:
-            d = kss - k_new.dot(self._koo_inv.dot(k_new))  # eq. 27 residual, weight 1
+            d = kss - float(k_new.dot(self._koo_inv.dot(k_new)))  # eq. 27 residual, weight 1
             if (d > self.add_threshold * kss and d > self.noise_variance_
                     and d > 1e-6 * kss):
                 lvec = dtrtrs(self._l_oo, k_new, lower=1)[0]  # L_oo^-1 k_new
@@ -361,6 +362,8 @@ class AFVSGP(SparseLearner):
         self._kt_u = np.empty((c, m))
         self._k_row = self._row[1:m + 1]
         self._y_row = self._row[:m + 1]
+        self._sl_k = slice(1, m + 1)
+        self._sl_y = slice(0, m + 1)
         # K_oo + S/s2 (factored in place) and the right-hand side [Kt', r/s2] (Fortran order:
         # Kt (m+1, M) is its contiguous first block)
         self._sig = np.zeros((m, m), order="F")
@@ -425,7 +428,7 @@ class AFVSGP(SparseLearner):
         """``b`` (N, m+1), ``Sigma`` (N, m+1, m+1): mean ``b . ubar``, var ``ubar' Sigma ubar``
         (eq. 20); one float64 point (the per-control-step call) takes a short fast path."""
         if (type(xi) is np.ndarray and xi.shape == getattr(self, "_one_shape", None)
-                and xi.dtype == np.float64):
+                and xi.dtype is _F64):
             out = self._predict_one(xi[0])
             if out is not None:
                 return out
