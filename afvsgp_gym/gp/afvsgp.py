@@ -364,14 +364,14 @@ class AFVSGP(SparseLearner):
         self._y_row = self._row[:m + 1]
         self._sl_k = slice(1, m + 1)
         self._sl_y = slice(0, m + 1)
-        # K_oo + S/s2 (factored in place) and the right-hand side [Kt', r/s2] (Fortran order:
-        # Kt (m+1, M) is its contiguous first block)
-        self._sig = np.zeros((m, m), order="F")
-        rhs = np.zeros((m, c + 1), order="F")
-        self._rhs = rhs
-        self._rhs_kt = rhs[:, :c]
-        self._rhs_ktT = rhs[:, :c].T
-        self._rhs_r = rhs[:, c]
+        # one Fortran-order block [Kt', r/s2, K_oo + S/s2]: the last M columns are factored in
+        # place, the first m+2 are the right-hand side (Kt (m+1, M) is its contiguous start);
+        # [r/s2, S/s2] is one product with the [r, S] statistics
+        work = np.zeros((m, c + 1 + m), order="F")
+        self._rhs = work[:, :c + 1]
+        self._rhs_ktT = work[:, :c].T
+        self._scaled = work[:, c:]
+        self._sig = work[:, c + 1:]
         self._koo_f = np.asfortranarray(self._koo)  # same layout as _sig (cheaper sum)
         # L_oo^-T for the Nystroem term (refreshed with the inducing set; triangular inverse)
         linv, info = dtrtri(self._l_oo, lower=1)
@@ -387,9 +387,8 @@ class AFVSGP(SparseLearner):
         """``chol(K_oo + S/s2)`` and ``r/s2`` for one-point predictions."""
         st = self._stats
         inv_s = 1.0 / (self.noise_variance_ * self._scale)
-        np.multiply(st[:, 0], inv_s, out=self._rhs_r)
+        np.multiply(st, inv_s, out=self._scaled)  # [r/s2, S/s2]
         sig = self._sig
-        np.multiply(st[:, 1:], inv_s, out=sig)
         sig += self._koo_f
         info = dpotrf(sig, 1, 0, 1)[1]  # in place, lower triangle
         if info != 0:

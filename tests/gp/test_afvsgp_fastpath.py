@@ -164,3 +164,23 @@ def test_one_point_prediction_far_away_and_huge_inputs_are_finite():
         np.testing.assert_allclose(sig[0], np.diag(gp.kernel_.variances), atol=1e-12)
     with pytest.raises(ValueError, match="xi"):
         gp.predict_affine(np.array([[np.inf, 0.0, 0.0]]))
+
+
+def test_singular_posterior_matrix_falls_back_to_jittered_factor():
+    """Duplicate inducing points, no jitter and no data nearby: K_oo + S/s2 is singular, the
+    in-place factorisation fails, the jittered retry warns and matches the general path."""
+    rng = np.random.default_rng(17)
+    xi, u, z, _ = synthetic(rng, 40)
+    ind = (np.vstack([xi[:3], xi[:3]]), np.vstack([u[:3], u[:3]]))
+    gp = AFVSGP(_kernel(), 0.01, num_inducing=6, window=20, inducing=ind,
+                adapt_inducing=False, jitter=0.0)
+    with pytest.warns(RuntimeWarning, match="K_oo"):
+        gp.fit(xi[:20] + 50.0, u[:20], z[:20], learn_hyperparameters=False)
+    gp.update(xi[21] + 50.0, u[21], z[21])
+    with pytest.warns(RuntimeWarning, match="K_oo \\+ S/s2"):
+        b1, s1 = gp.predict_affine(xi[:1])
+    with pytest.warns(RuntimeWarning, match="K_oo \\+ S/s2"):
+        ball, sall = gp.predict_affine(xi[:2])
+    assert np.all(np.isfinite(b1)) and np.all(np.isfinite(s1))
+    np.testing.assert_allclose(b1[0], ball[0], atol=1e-12)
+    np.testing.assert_allclose(s1[0], sall[0], rtol=1e-9, atol=1e-12)
