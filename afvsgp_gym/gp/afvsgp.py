@@ -13,6 +13,12 @@ Per step (DESIGN's corrected eqs. 25-26), with ``k`` the sample's row of K_xo:
 refactored lazily at the next prediction (M = 20: a few microseconds); S and r are rebuilt from
 the stored window rows every ``refresh_every`` updates to bound round-off drift.
 
+Per-step cost is Python/LAPACK call overhead, not flops, so the step is a short fixed sequence of
+calls on preallocated buffers: the kernel row of a point is one product on ``[xi, ubar, xi^2,
+ubar^2]``; the one-point ``predict_affine`` is one factorisation, one triangular solve and two
+``syrk`` Grams (``_predict_one``); an ``update`` at the point of the last one-point prediction
+reuses that prediction's kernel row (bit-identical to recomputing it).
+
 Inducing set (``adapt_inducing=True``):
 
 - add rule (eq. 27, for the new sample, weight 1): the residual prior variance
@@ -172,7 +178,6 @@ class AFVSGP(SparseLearner):
         # kernel-row product (see ``_setup_row_kernel``).
         o = self._cap + 1
         nf = 2 * (b + c)
-        self._o = o
         self._row = np.zeros(o + nf)
         self._row[o + b] = self._row[o + 2 * b + c] = 1.0
         self._sl_xi = slice(o, o + b)
