@@ -156,7 +156,8 @@ def _cmd_evaluate(args: argparse.Namespace, parser: argparse.ArgumentParser) -> 
 def _cmd_reproduce(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
     from afvsgp_gym.reproduce import ReproduceConfig, reproduce, table1_markdown
 
-    out_dir = _check_out(parser, args.out, "--out", directory=True)
+    out = args.out or ("reproduce_quick" if args.quick else "docs")  # quick never overwrites docs
+    out_dir = _check_out(parser, out, "--out", directory=True)
     json_path = _check_out(parser, args.json, "--json")
     cfg = ReproduceConfig.quick() if args.quick else ReproduceConfig()
     if args.seed is not None:
@@ -285,8 +286,9 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--quick", action="store_true", help="smaller sizes (< 10 min on 2 cores)")
     rp.add_argument("--json", default=None, metavar="PATH",
                     help="results JSON (default OUT/reproduce.json)")
-    rp.add_argument("--out", default="docs", metavar="DIR",
-                    help="figures, tables and traces (default docs)")
+    rp.add_argument("--out", default=None, metavar="DIR",
+                    help="figures, tables and traces (default docs, or reproduce_quick with "
+                         "--quick)")
     rp.add_argument("--seed", type=int, default=None)
 
     pl = sub.add_parser("plot", help="Fig. 2/4/6-like PNGs from reproduce's traces")
