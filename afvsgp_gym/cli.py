@@ -74,6 +74,24 @@ def _check_agent(parser: argparse.ArgumentParser, agent: str) -> str:
     raise AssertionError  # unreachable: parser.error exits
 
 
+def _check_agent_fits(parser: argparse.ArgumentParser, agent: str, env_id: str,
+                      env_kwargs: dict) -> None:
+    """A model zip must match the env's spaces; checked before the run starts."""
+    if not agent.endswith(".zip"):
+        return
+    import gymnasium as gym
+
+    from afvsgp_gym.agents.sb3 import load_policy
+
+    env = gym.make(env_id, **env_kwargs)
+    try:
+        load_policy(agent, env=env)
+    except ValueError as exc:
+        parser.error(str(exc))
+    finally:
+        env.close()
+
+
 def _require_sb3(parser: argparse.ArgumentParser) -> None:
     from afvsgp_gym.agents.sb3 import require_sb3
 
@@ -137,6 +155,7 @@ def _cmd_evaluate(args: argparse.Namespace, parser: argparse.ArgumentParser) -> 
     json_path = _check_out(parser, args.json, "--json")
     csv_path = _check_out(parser, args.csv, "--csv")
     env_kwargs = _json_arg(parser, args.env_kwargs, "--env-kwargs")
+    _check_agent_fits(parser, args.agent, args.env, env_kwargs)
     filter_kwargs = _json_arg(parser, args.filter_kwargs, "--filter-kwargs")
     result = evaluate(args.env, agent=args.agent, learners=learners, episodes=args.episodes,
                       seed=args.seed, max_steps=args.max_steps, env_kwargs=env_kwargs,

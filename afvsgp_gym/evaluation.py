@@ -116,7 +116,7 @@ def make_policy(agent: str, env: Any, seed: int | None = None) -> Policy:
     if str(agent).endswith(".zip"):
         from afvsgp_gym.agents.sb3 import load_policy
 
-        return load_policy(agent)
+        return load_policy(agent, env=env)
     raise ValueError(
         f"agent must be one of {', '.join(BUILTIN_AGENTS)} or a path to a Stable-Baselines3 "
         f".zip file, got {agent!r}"

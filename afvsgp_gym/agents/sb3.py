@@ -157,13 +157,22 @@ def _detect_algo(path: Path) -> str:
     raise ValueError(f"cannot tell the algorithm of {str(path)!r}; supported: {', '.join(ALGOS)}")
 
 
-def load_policy(path: str | os.PathLike, *, deterministic: bool = True) -> Any:
-    """Load a PPO/SAC zip saved by :func:`train` as an ``obs -> action`` callable."""
+def load_policy(path: str | os.PathLike, *, deterministic: bool = True, env: Any = None) -> Any:
+    """Load a PPO/SAC zip saved by :func:`train` as an ``obs -> action`` callable.
+
+    With ``env``, its observation and action spaces must match the model's (ValueError).
+    """
     require_sb3()
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"agent zip {str(path)!r} does not exist")
     model = _algo_class(_detect_algo(path)).load(path, device="cpu")
+    if env is not None:
+        for kind in ("observation_space", "action_space"):
+            want, got = getattr(model, kind).shape, getattr(env, kind).shape
+            if want != got:
+                raise ValueError(f"agent {str(path)!r} was trained with {kind} of shape {want}, "
+                                 f"the env has {got}: train it on this env id")
 
     def policy(obs: np.ndarray) -> np.ndarray:
         action, _ = model.predict(obs, deterministic=deterministic)

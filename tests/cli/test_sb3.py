@@ -4,6 +4,7 @@ import json
 
 import gymnasium as gym
 import numpy as np
+import pytest
 
 import afvsgp_gym  # noqa: F401
 from afvsgp_gym.agents.sb3 import load_policy, train
@@ -24,6 +25,12 @@ def test_train_then_evaluate_zip(tmp_path, capsys):
                  "--no-progress"]) == 0
     rec = json.loads(jpath.read_text())["episodes"][0]
     assert rec["steps"] == 25
+    # the same zip on an env with other spaces is refused before the run
+    with pytest.raises(SystemExit) as exc:
+        main(["evaluate", "--env", "afvsgp_gym/FrankaObstacleStatic-v0", "--agent", str(zpath),
+              "--learner", "none", "--episodes", "1000", "--no-progress"])
+    assert exc.value.code == 2
+    assert "observation_space" in capsys.readouterr().err
     policy = load_policy(zpath)
     env = gym.make(PM)
     obs, _ = env.reset(seed=0)
