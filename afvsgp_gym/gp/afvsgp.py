@@ -182,13 +182,9 @@ class AFVSGP(SparseLearner):
         self._row[o + b] = self._row[o + 2 * b + c] = 1.0
         self._sl_xi = slice(o, o + b)
         self._sl_u = slice(o + b + 1, o + b + c)
-        self._feat = self._row[o:]  # [xi, ubar, xi^2, ubar^2]
-        self._feat1 = self._row[o:o + b + c]
-        self._feat2 = self._row[o + b + c:]
-        self._ub_row = self._row[o + b:o + b + c]
-        self._feat0 = self._feat.copy()  # clean features (ubar = e_0)
-        self._xi2_row = self._row[o + b + c:o + 2 * b + c]
-        self._ub2_row = self._row[o + 2 * b + c:]
+        self._feat0 = self._row[o:].copy()  # clean features (ubar = e_0)
+        self._wbuf = np.zeros((p, o + nf))
+        self._bind_row_views()
         self._ones_f = np.ones(b + c)
         self._var = kernel._var
         self._one_shape = (1, b)
@@ -199,11 +195,6 @@ class AFVSGP(SparseLearner):
         self._phi = phi
         self._phi_p = phi ** p
         self._pow = phi ** np.arange(p, dtype=float)
-        self._wbuf = np.zeros((p, o + nf))
-        self._win = self._wbuf[:, :o]
-        self._win_feat = self._wbuf[:, o:]
-        self._win_xi = self._wbuf[:, o:o + b]
-        self._win_ub = self._wbuf[:, o + b:o + b + c]
         ub_fit = ubar(u)
         self._win[:n, 0] = z
         self._win[:n, 1:len(xo) + 1] = kernel._gram(xi, ub_fit, xo, ubar(uo))
@@ -223,6 +214,56 @@ class AFVSGP(SparseLearner):
         self.n_removed_ = 0
         self._rebuild_stats()
         return self
+
+    # ------------------------------------------------------------------ buffer views
+    _VIEWS = ("_feat", "_feat1", "_feat2", "_ub_row", "_xi2_row", "_ub2_row", "_win",
+              "_win_feat", "_win_xi", "_win_ub", "_e2", "_k_row", "_y_row", "_rhs", "_rhs_ktT",
+              "_scaled", "_sig")
+
+    def _bind_row_views(self) -> None:
+        """Views of the sample row ``[z, k(cap), xi, ubar, xi^2, ubar^2]`` and the window."""
+        b, c = self.kernel_.input_dim, self.kernel_.n_components
+        o = self._cap + 1
+        row = self._row
+        self._feat = row[o:]  # [xi, ubar, xi^2, ubar^2]
+        self._feat1 = row[o:o + b + c]
+        self._feat2 = row[o + b + c:]
+        self._ub_row = row[o + b:o + b + c]
+        self._xi2_row = row[o + b + c:o + 2 * b + c]
+        self._ub2_row = row[o + 2 * b + c:]
+        win = self._wbuf
+        self._win = win[:, :o]
+        self._win_feat = win[:, o:]
+        self._win_xi = win[:, o:o + b]
+        self._win_ub = win[:, o + b:o + b + c]
+
+    def _bind_kernel_views(self) -> None:
+        """Views that depend on the inducing-set size M (see ``_setup_row_kernel``)."""
+        c = self.kernel_.n_components
+        m = self._ind.M
+        self._e2 = self._e.reshape(c, m)
+        self._k_row = self._row[1:m + 1]
+        self._y_row = self._row[:m + 1]
+        work = self._work
+        self._rhs = work[:, :c + 1]
+        self._rhs_ktT = work[:, :c].T
+        self._scaled = work[:, c:]
+        self._sig = work[:, c + 1:]
+
+    def __getstate__(self) -> dict:
+        """Pickle/deepcopy without the buffer views (copies would lose the aliasing)."""
+        state = self.__dict__.copy()
+        for name in self._VIEWS:
+            state.pop(name, None)
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        if "_row" in state:  # fitted: rebind the views onto the copied buffers
+            self._bind_row_views()
+            self._bind_kernel_views()
+            ind = self._ind
+            ind._a = ind.xs2.reshape(-1, ind.xs2.shape[2])  # InducingCache's gemv view
 
     def _initial_inducing(self, kernel, xi, u):
         if self.inducing is not None:
@@ -362,21 +403,15 @@ class AFVSGP(SparseLearner):
         blk[:, :, 2 * b + c] = ind.xs2[:, :m, 2 * b]
         self._amat = a
         self._e = np.empty(c * m)
-        self._e2 = self._e.reshape(c, m)
         self._ubt = ind.ubt[:, :m].copy()
         self._kt_u = np.empty((c, m))
-        self._k_row = self._row[1:m + 1]
-        self._y_row = self._row[:m + 1]
         self._sl_k = slice(1, m + 1)
         self._sl_y = slice(0, m + 1)
         # one Fortran-order block [Kt', r/s2, K_oo + S/s2]: the last M columns are factored in
         # place, the first m+2 are the right-hand side (Kt (m+1, M) is its contiguous start);
         # [r/s2, S/s2] is one product with the [r, S] statistics
-        work = np.zeros((m, c + 1 + m), order="F")
-        self._rhs = work[:, :c + 1]
-        self._rhs_ktT = work[:, :c].T
-        self._scaled = work[:, c:]
-        self._sig = work[:, c + 1:]
+        self._work = np.zeros((m, c + 1 + m), order="F")
+        self._bind_kernel_views()
         self._koo_f = np.asfortranarray(self._koo)  # same layout as _sig (cheaper sum)
         # L_oo^-T for the Nystroem term (refreshed with the inducing set; triangular inverse)
         linv, info = dtrtri(self._l_oo, lower=1)

@@ -184,3 +184,35 @@ def test_singular_posterior_matrix_falls_back_to_jittered_factor():
     assert np.all(np.isfinite(b1)) and np.all(np.isfinite(s1))
     np.testing.assert_allclose(b1[0], ball[0], atol=1e-12)
     np.testing.assert_allclose(s1[0], sall[0], rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("how", ["deepcopy", "pickle"])
+def test_copies_of_a_fitted_learner_stream_identically_and_independently(how):
+    """The per-step buffers are views of a few arrays; a copy rebinds them (a copy that kept
+    stale views would diverge at its first update)."""
+    import copy
+    import pickle
+
+    rng = np.random.default_rng(18)
+    p = 40
+    xi, u, z, _ = synthetic(rng, 400, noise_std=0.05)
+    gp = _learner(xi, u, z, p)
+    for i in range(p, 100):
+        gp.predict_affine(xi[i:i + 1])
+        gp.update(xi[i], u[i], z[i])
+    gp.predict_affine(xi[100:101])  # the copy also carries the reusable kernel row
+    dup = copy.deepcopy(gp) if how == "deepcopy" else pickle.loads(pickle.dumps(gp))
+    ref = _learner(xi, u, z, p)
+    for i in range(p, 100):
+        ref.update(xi[i], u[i], z[i])
+    for i in range(100, 400):
+        for learner in (dup, ref):
+            learner.predict_affine(xi[i:i + 1])
+            learner.update(xi[i], u[i], z[i])
+    assert dup.n_added_ > gp.n_added_  # inducing events happened after the copy
+    assert gp.n_seen_ == 100  # the original is untouched
+    xs = rng.normal(size=(1, 3))
+    for got, exp in zip(dup.predict_affine(xs), ref.predict_affine(xs), strict=True):
+        np.testing.assert_array_equal(got, exp)
+    for got, exp in zip(dup.window_samples(), ref.window_samples(), strict=True):
+        np.testing.assert_array_equal(got, exp)
