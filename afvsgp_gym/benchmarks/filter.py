@@ -2,7 +2,7 @@
 
 ``run(quick)`` returns ``{name: float}``; ``main()`` prints the tables. Command line::
 
-    python -m afvsgp_gym.benchmarks.filter [--quick] [--timing-only] [--seeds N]
+    python -m afvsgp_gym.benchmarks.filter [--quick] [--no-sweeps]
 
 Timing is per call on the current process (pin it to one core, e.g. ``taskset -c 0``, with
 ``OMP_NUM_THREADS=1``). Tracking error "away from the obstacle" is ``|p - r|`` (m, the env's
@@ -181,8 +181,11 @@ def time_filtered_step(
     return {"filter": t_f, "observe": t_o, "step": t_f + t_o}
 
 
-def run(quick: bool = False) -> dict[str, float]:
-    """Timing figures (s) and, unless ``quick``, the acceptance sweeps (counts, m)."""
+def run(quick: bool = False, sweeps: bool | None = None) -> dict[str, float]:
+    """Timing figures (s) and, unless ``quick`` (or ``sweeps=False``), the acceptance sweeps
+    (counts, m): point mass 20 seeds, Franka static and dynamic 10 seeds each, for the
+    unfiltered tracker ("None"), "none", "oracle" and "afvsgp"."""
+    sweeps = (not quick) if sweeps is None else sweeps
     out: dict[str, float] = {}
     t = time_socp(300 if quick else 3000)
     out["socp_median_s"], out["socp_p99_s"] = float(np.median(t)), float(np.percentile(t, 99))
@@ -191,7 +194,7 @@ def run(quick: bool = False) -> dict[str, float]:
         for part, arr in ts.items():
             out[f"franka_{learner}_{part}_median_s"] = float(np.median(arr))
             out[f"franka_{learner}_{part}_p99_s"] = float(np.percentile(arr, 99))
-    if not quick:
+    if sweeps:
         plan = [
             ("pointmass", (None, "none", "oracle", "afvsgp"), range(20)),
             ("franka_static", (None, "none", "oracle", "afvsgp"), range(10)),
@@ -206,9 +209,10 @@ def run(quick: bool = False) -> dict[str, float]:
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--quick", action="store_true", help="short timing, no sweeps")
+    parser.add_argument("--no-sweeps", action="store_true", help="full timing only")
     args = parser.parse_args(argv)
-    res = run(quick=args.quick)
+    res = run(quick=args.quick, sweeps=False if args.no_sweeps else None)
     width = max(len(k) for k in res)
     for key, val in res.items():
         unit = (

@@ -88,6 +88,10 @@ def test_nan_action_gives_flagged_fallback():
         ({"exploration_noise": -0.1}, "exploration_noise"),
         ({"alpha": 0.0}, "alpha"),
         ({"learner": "none", "learner_kwargs": {"x": 1}}, "learner_kwargs"),
+        ({"online_exploration": -1.0}, "online_exploration"),
+        ({"noise_floor": np.nan}, "noise_floor"),
+        ({"barrier_margin": -1.0}, "barrier_margin"),
+        ({"kernel_init": "magic"}, "kernel_init"),
     ],
 )
 def test_bad_options(kwargs, match):

@@ -82,3 +82,22 @@ def test_frozen_learning_keeps_model():
     ctrl = SafetyController(-np.ones(1), np.ones(1), learner="afvsgp", warmup_samples=10**6)
     ctrl.learning = False
     assert ctrl.warming_up  # warm-up still collects: learning=False only freezes online updates
+
+
+def test_online_exploration_only_perturbs_when_enabled(disc):
+    rng = np.random.default_rng(2)
+    for noise in (0.0, 0.05):
+        ctrl = SafetyController(
+            -np.ones(2),
+            np.ones(2),
+            learner="afvsgp",
+            warmup_samples=30,
+            online_exploration=noise,
+            learner_kwargs={"num_inducing": 10},
+        )
+        _drive(disc, ctrl, 31, rng)
+        far = disc().terms()[0]
+        far = type(far)(np.array([5.0, 0.0]), 0.0, np.zeros(2), far.xi)  # h = 5: inactive
+        res = ctrl.filter(np.array([0.3, -0.2]), [far])
+        assert not res.warmup
+        assert np.array_equal(res.u, [0.3, -0.2]) == (noise == 0.0)
