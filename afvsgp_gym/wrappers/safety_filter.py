@@ -34,6 +34,13 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
     written), steps the env with the safe action and feeds the eq. 48 measurement to the
     learners. The controller, and what it learned, persist across episodes.
 
+    With a learning learner the applied action carries exploration noise: during warm-up
+    (``exploration_noise``, the nominal-only filter) and, by default, a small persistent
+    excitation afterwards (``online_exploration`` = 0.05 of the half range), added to the
+    proposal before the projection; set it to 0 for a pure projection. With the nominal "zero"
+    model nothing can be certified during warm-up: the env must keep obstacles away then (the
+    provided scenarios do, for a tracking agent), or pass a recorded ``dataset``.
+
     The wrapped env must provide ``barrier_terms(model)``, ``dt``, ``relative_degree`` and
     ``n_obstacles`` on ``env.unwrapped`` and a finite ``Box`` action space. Its
     ``warmup_steps`` (steps after reset with the obstacles kept away) bounds the default

@@ -101,3 +101,27 @@ def test_online_exploration_only_perturbs_when_enabled(disc):
         res = ctrl.filter(np.array([0.3, -0.2]), [far])
         assert not res.warmup
         assert np.array_equal(res.u, [0.3, -0.2]) == (noise == 0.0)
+
+
+def test_variance_calibration_grows_when_the_model_is_wrong(disc):
+    rng = np.random.default_rng(3)
+    rec = SafetyController(-np.ones(2), np.ones(2), learner="afvsgp", warmup_samples=10**6)
+    _drive(disc, rec, 80, rng)
+    kw = {"num_inducing": 10}
+    ctrl = SafetyController(
+        -np.ones(2),
+        np.ones(2),
+        learner="afvsgp",
+        dataset=rec.dataset()[0],
+        learner_kwargs=kw,
+        calibration_rate=0.05,
+    )
+    ctrl.learning = False  # frozen model, plant with the opposite action gain
+    sim = disc(gain=-0.6, wind=(0.2, -0.1))
+    sim.p = np.array([-1.2, 0.05])
+    for _ in range(100):
+        terms = sim.terms()
+        res = ctrl.filter(rng.uniform(-1, 1, 2), terms)
+        sim.step(res.u)
+        ctrl.observe(terms, res.u, sim.terms(), sim.dt)
+    assert ctrl.variance_scale[0] > 2.0
