@@ -357,7 +357,8 @@ def reproduce(
     result = {"table1": table1, "dynamic": dynamic, "margin": _margin(dynamic)}
     protocol = {"config": _jsonable(asdict(cfg)), "train_start": train_start,
                 "stream_start": stream_start, "switch_time_s": float(stream["switch_time"]),
-                "elapsed_s": time.perf_counter() - t_start, "paper": PAPER}
+                "elapsed_s": time.perf_counter() - t_start, "code": _code_version(),
+                "paper": PAPER}
     if out_dir is not None:
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
@@ -372,6 +373,25 @@ def reproduce(
         Path(json_path).write_text(json.dumps(_jsonable(result), indent=2) + "\n")
     log(f"done in {time.perf_counter() - t_start:.0f} s")
     return result
+
+
+def _code_version() -> dict:
+    """Package version and, in a git checkout, the commit and whether the tree was modified."""
+    import subprocess
+
+    import afvsgp_gym
+
+    out: dict[str, Any] = {"version": afvsgp_gym.__version__}
+    root = Path(afvsgp_gym.__file__).resolve().parent.parent
+    try:
+        out["git_commit"] = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, text=True,
+                                           capture_output=True, timeout=5).stdout.strip()
+        out["git_modified"] = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"], cwd=root, text=True,
+            capture_output=True, timeout=5).stdout.splitlines()
+    except (OSError, subprocess.SubprocessError):
+        pass
+    return out
 
 
 def _jsonable(x: Any) -> Any:
