@@ -128,37 +128,43 @@ class SOCPFilter:
         self.tol = float(tol)
         self.fallback_regularization = float(fallback_regularization)
         self._solvers: dict[str, clarabel.DefaultSolver] = {}
+        self._buffers: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         m = self.m
         self._box_A = np.vstack([np.eye(m), -np.eye(m)])
         self._box_b = np.concatenate([high, -low])
 
     # ------------------------------------------------------------------ problem data
     def _data(self, kind: str, u_nom, a0, a, G):
-        """Dense (A, b, q) for ``kind`` in {"qp", "socp", "fallback"}."""
+        """Dense (A, b, q) for ``kind`` in {"qp", "socp", "fallback"} (preallocated buffers)."""
         m, K = self.m, self.n_constraints
-        nx = m + 1 if kind == "fallback" else m
+        buf = self._buffers.get(kind)
+        if buf is None:
+            nx = m + 1 if kind == "fallback" else m
+            rows = 2 * m + (K if kind == "qp" else K * (m + 2))
+            A = np.zeros((rows, nx))
+            A[: 2 * m, :m] = self._box_A
+            b = np.zeros(rows)
+            b[: 2 * m] = self._box_b
+            buf = self._buffers[kind] = (A, b)
+        A, b = buf
         if kind == "qp":
-            rows = [np.hstack([self._box_A, np.zeros((2 * m, nx - m))]), -a]
-            b = np.concatenate([self._box_b, a0])
+            A[2 * m :, :] = -a
+            b[2 * m :] = a0
         else:
-            rows = [np.hstack([self._box_A, np.zeros((2 * m, nx - m))])]
-            bs = [self._box_b]
             for k in range(K):
-                blk = np.zeros((m + 2, nx))
-                blk[0, :m] = -a[k]
-                blk[1:, :m] = -G[k][:, 1:]
+                r0 = 2 * m + k * (m + 2)
+                A[r0, :m] = -a[k]
+                A[r0 + 1 : r0 + m + 2, :m] = -G[k][:, 1:]
                 if kind == "fallback":
-                    blk[0, m] = 1.0
-                rows.append(blk)
-                bs.append(np.concatenate([[a0[k]], G[k][:, 0]]))
-            b = np.concatenate(bs)
-        A = np.vstack(rows)
+                    A[r0, m] = 1.0
+                b[r0] = a0[k]
+                b[r0 + 1 : r0 + m + 2] = G[k][:, 0]
         if kind == "fallback":
             eps = self.fallback_regularization
             q = np.concatenate([-eps * u_nom, [-1.0]])
         else:
             q = -u_nom
-        return A, b, q
+        return A, b.copy(), q
 
     def _cones(self, kind: str):
         m, K = self.m, self.n_constraints
@@ -204,10 +210,11 @@ class SOCPFilter:
     # ------------------------------------------------------------------ public
     def margins(self, u, a0, a, G=None) -> np.ndarray:
         """``a0 + a @ u - ||G ubar||`` for every barrier."""
-        ubar = np.concatenate([[1.0], u])
         out = np.asarray(a0, dtype=np.float64) + np.asarray(a, dtype=np.float64) @ u
         if G is not None:
-            out = out - np.linalg.norm(np.asarray(G) @ ubar, axis=-1)
+            G = np.asarray(G, dtype=np.float64)
+            Gu = G[:, :, 0] + G[:, :, 1:] @ u
+            out = out - np.sqrt(np.einsum("ki,ki->k", Gu, Gu))
         return out
 
     def solve(self, u_nom, a0, a, G=None) -> SOCPResult:
@@ -233,10 +240,15 @@ class SOCPFilter:
             raise ValueError(f"u_nom must have shape ({m},) and a0 ({K},)")
 
         # sanitise: invalid constraints become vacuous, a NaN nominal becomes the box centre
-        valid = np.isfinite(a0) & np.all(np.isfinite(a), axis=1)
-        if G is not None:
-            valid &= np.all(np.isfinite(G), axis=(1, 2))
-        nom_ok = bool(np.all(np.isfinite(u_nom)))
+        total = u_nom.sum() + a0.sum() + a.sum() + (0.0 if G is None else G.sum())
+        if np.isfinite(total):
+            valid = np.ones(K, dtype=bool)
+            nom_ok = True
+        else:
+            valid = np.isfinite(a0) & np.all(np.isfinite(a), axis=1)
+            if G is not None:
+                valid &= np.all(np.isfinite(G), axis=(1, 2))
+            nom_ok = bool(np.all(np.isfinite(u_nom)))
         invalid = not (nom_ok and np.all(valid))
         if not nom_ok:
             u_nom = np.clip(np.zeros(m), self.low, self.high)
