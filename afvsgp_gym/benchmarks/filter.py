@@ -137,7 +137,9 @@ def time_filtered_step(
     scenario: str = "franka_static", learner: str = "afvsgp", steps: int = 1500, seed: int = 0
 ) -> dict[str, np.ndarray]:
     """Per-step times (s) after warm-up: ``filter`` (predict_affine + SOCP), ``observe``
-    (eq. 48 + learner update) and their sum, the full filtered step without the simulator."""
+    (eq. 48 + learner update) and their sum, the full filtered step without the simulator;
+    ``filter_active`` / ``filter_inactive``: the filter times of the steps where a cone
+    program was solved / where the proposal was already safe (early exit)."""
     import gymnasium as gym
 
     import afvsgp_gym  # noqa: F401
@@ -158,7 +160,7 @@ def time_filtered_step(
     )
     policy = NominalController(env)
     obs, _ = env.reset(seed=seed)
-    t_f, t_o = [], []
+    t_f, t_o, act = [], [], []
     for _ in range(base.warmup_steps + steps):
         terms = base.barrier_terms("nominal")
         true = base.barrier_terms("true") if learner == "oracle" else None
@@ -174,11 +176,17 @@ def time_filtered_step(
         if not ctrl.warming_up:
             t_f.append(t1 - t0)
             t_o.append(t3 - t2)
+            act.append(res.active)
         if term or trunc:
             obs, _ = env.reset()
     env.close()
-    t_f, t_o = np.array(t_f), np.array(t_o)
-    return {"filter": t_f, "observe": t_o, "step": t_f + t_o}
+    t_f, t_o, act = np.array(t_f), np.array(t_o), np.array(act, dtype=bool)
+    out = {"filter": t_f, "observe": t_o, "step": t_f + t_o}
+    if act.any():
+        out["filter_active"] = t_f[act]
+    if not act.all():
+        out["filter_inactive"] = t_f[~act]
+    return out
 
 
 def run(quick: bool = False, sweeps: bool | None = None) -> dict[str, float]:
@@ -194,6 +202,8 @@ def run(quick: bool = False, sweeps: bool | None = None) -> dict[str, float]:
         for part, arr in ts.items():
             out[f"franka_{learner}_{part}_median_s"] = float(np.median(arr))
             out[f"franka_{learner}_{part}_p99_s"] = float(np.percentile(arr, 99))
+        if "filter_active" in ts:
+            out[f"franka_{learner}_active_fraction"] = len(ts["filter_active"]) / len(ts["filter"])
     if sweeps:
         plan = [
             ("pointmass", (None, "none", "oracle", "afvsgp"), range(20)),

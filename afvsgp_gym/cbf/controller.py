@@ -16,6 +16,7 @@ period ``dt``; read the new terms; ``ctrl.observe(terms, res.u, new_terms, dt)``
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -84,7 +85,7 @@ def _cone_matrix(sigma: np.ndarray, beta: float) -> np.ndarray:
     """``G = beta L'`` with ``Sigma = L L'`` (eigen-factor: robust for singular PSD Sigma)."""
     sigma = 0.5 * (sigma + sigma.T)
     w, v = np.linalg.eigh(sigma)
-    return (beta * np.sqrt(np.clip(w, 0.0, None)))[:, None] * v.T
+    return (beta * np.sqrt(np.maximum(w, 0.0)))[:, None] * v.T
 
 
 class SafetyController:
@@ -211,6 +212,7 @@ class SafetyController:
         self._margin_gain = float(np.prod(self.hocbf.gains))  # d psi_r / d h
         self.socp = SOCPFilter(action_low, action_high, n_obstacles, qp_solver=qp_solver)
         self.low, self.high = self.socp.low, self.socp.high
+        self._half_range = 0.5 * (self.high - self.low)
         self.action_dim = self.socp.m
         self.n_obstacles = int(n_obstacles)
         self.relative_degree = int(relative_degree)
@@ -354,6 +356,14 @@ class SafetyController:
     # ------------------------------------------------------------------ filter
     def _terms_ok(self, terms: Sequence[BarrierTerms]) -> np.ndarray:
         ok = np.ones(self.n_obstacles, dtype=bool)
+        total = 0.0
+        try:  # one sum per term: finite unless a NaN/inf is present (or overflow)
+            for t in terms:
+                total += float(t.lf) + float(t.derivatives.sum() + t.lg.sum() + t.xi.sum())
+        except (AttributeError, TypeError):
+            total = np.nan
+        if math.isfinite(total):
+            return ok
         for k, t in enumerate(terms):
             ok[k] = bool(
                 np.all(np.isfinite(t.derivatives))
@@ -391,10 +401,12 @@ class SafetyController:
         noise = self.exploration_noise if warm else self.online_exploration
         if self.learner_name not in LEARNING:
             noise = 0.0
-        if noise > 0 and np.all(np.isfinite(u_nom)):
-            half = 0.5 * (self.high - self.low)
-            u_nom = u_nom + noise * half * self._rng.standard_normal(m)
-            u_nom = np.clip(u_nom, self.low, self.high)
+        nom_finite = math.isfinite(float(u_nom.sum())) or bool(np.all(np.isfinite(u_nom)))
+        if noise > 0 and nom_finite:
+            u_nom = u_nom + noise * self._half_range * self._rng.standard_normal(m)
+        u_clip = np.clip(u_nom, self.low, self.high)  # what the SOCP clips to (identical)
+        if noise > 0 and nom_finite:
+            u_nom = u_clip
 
         ok = self._terms_ok(terms)
         a0 = np.full(K, np.nan)
@@ -417,19 +429,29 @@ class SafetyController:
                     a[k] += b[0, 1:]
                     if self.beta > 0:
                         scale = max(1.0, float(self.variance_scale[k]))
-                        G[k] = _cone_matrix(s[0], self.beta * np.sqrt(scale))
+                        G[k] = _cone_matrix(s[0], self.beta * math.sqrt(scale))
                         use_cone = True
             except ValueError:
                 raise
             except Exception as exc:  # a learner failure must not stop the loop
                 self.last_error = f"{type(exc).__name__}: {exc}"
                 a0[k] = np.nan
-        res = self.socp.solve(u_nom, a0, a, G if use_cone else None)
+        Gc = G if use_cone else None
+        if nom_finite and math.isfinite(float(a0.sum() + a.sum() + G.sum())):
+            # Checked data: skip SOCPFilter.solve's validation. It returns the clipped
+            # proposal at once (status "inactive") when it satisfies every chance constraint:
+            # it is then the SOCP optimum itself, and no cone program is solved.
+            marg = self.socp.margins(u_clip, a0, a, Gc)
+            res = self.socp.solve_checked(u_nom, u_clip, a0, a, Gc, marg, t0)
+        else:
+            res = self.socp.solve(u_nom, a0, a, Gc)
         u = res.u
-        ubar = np.concatenate([[1.0], u])
-        self._last_pred = None if warm else (bs.copy(), sig.copy(), u.copy())
+        ubar = np.empty(m + 1)
+        ubar[0] = 1.0
+        ubar[1:] = u
+        self._last_pred = None if warm else (bs, sig, u.copy())
         mean = bs @ ubar
-        std = np.sqrt(np.clip(np.einsum("i,kij,j->k", ubar, sig, ubar), 0.0, None))
+        std = np.sqrt(np.maximum(((sig @ ubar) * ubar).sum(axis=1), 0.0))
         return FilterResult(
             u=u,
             feasible=res.feasible,

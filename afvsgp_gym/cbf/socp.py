@@ -25,6 +25,7 @@ finite and inside the bounds.
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 
@@ -135,18 +136,19 @@ class SOCPFilter:
 
     # ------------------------------------------------------------------ problem data
     def _data(self, kind: str, u_nom, a0, a, G):
-        """Dense (A, b, q) for ``kind`` in {"qp", "socp", "fallback"} (preallocated buffers)."""
+        """Dense (A transposed, b, q) for ``kind`` in {"qp", "socp", "fallback"} (reused)."""
         m, K = self.m, self.n_constraints
         buf = self._buffers.get(kind)
         if buf is None:
             nx = m + 1 if kind == "fallback" else m
             rows = 2 * m + (K if kind == "qp" else K * (m + 2))
-            A = np.zeros((rows, nx))
-            A[: 2 * m, :m] = self._box_A
+            At = np.zeros((nx, rows))  # A transposed: At.ravel() is A's CSC value order
+            At[:m, : 2 * m] = self._box_A.T
             b = np.zeros(rows)
             b[: 2 * m] = self._box_b
-            buf = self._buffers[kind] = (A, b)
-        A, b = buf
+            buf = self._buffers[kind] = (At, b)
+        At, b = buf
+        A = At.T  # a view
         if kind == "qp":
             A[2 * m :, :] = -a
             b[2 * m :] = a0
@@ -164,7 +166,7 @@ class SOCPFilter:
             q = np.concatenate([-eps * u_nom, [-1.0]])
         else:
             q = -u_nom
-        return A, b.copy(), q
+        return At, b.copy(), q
 
     def _cones(self, kind: str):
         m, K = self.m, self.n_constraints
@@ -173,21 +175,21 @@ class SOCPFilter:
         return [clarabel.NonnegativeConeT(2 * m)] + [clarabel.SecondOrderConeT(m + 2)] * K
 
     def _run(self, kind: str, u_nom, a0, a, G):
-        A, b, q = self._data(kind, u_nom, a0, a, G)
+        At, b, q = self._data(kind, u_nom, a0, a, G)
         solver = self._solvers.get(kind)
         if solver is None:
             if kind == "fallback":
                 P = np.diag(np.concatenate([np.full(self.m, self.fallback_regularization), [0.0]]))
             else:
                 P = np.eye(self.m)
-            A_pattern = sp.csc_matrix(np.ones_like(A))
-            A_pattern.data[:] = A.T.ravel()
+            A_pattern = sp.csc_matrix(np.ones_like(At.T))
+            A_pattern.data[:] = At.ravel()
             solver = clarabel.DefaultSolver(
                 sp.csc_matrix(np.triu(P)), q, A_pattern, b, self._cones(kind), _settings(self.tol)
             )
             self._solvers[kind] = solver
         else:
-            solver.update(q=q, b=b, A=A.T.ravel())
+            solver.update(q=q, b=b, A=At.ravel())
         sol = solver.solve()
         return np.asarray(sol.x, dtype=np.float64), str(sol.status)
 
@@ -259,27 +261,40 @@ class SOCPFilter:
             if G is not None:
                 G = np.where(valid[:, None, None], G, 0.0)
 
-        use_qp = G is None or not np.any(G)
-        Gz = np.zeros((K, m + 1, m + 1)) if G is None else G
-        status = "invalid_input"
         if not invalid:
             marg = self.margins(u_nom_c, a0, a, G)
-            if np.all(marg >= 0.0):  # the (clipped) nominal action is safe: inactive filter
-                return SOCPResult(u_nom_c, True, "inactive", marg, time.perf_counter() - t0)
-            try:
-                if use_qp and self.qp_solver is not None:
-                    x, status = self._run_qpsolvers(u_nom, a0, a)
-                else:
-                    x, status = self._run("qp" if use_qp else "socp", u_nom, a0, a, Gz)
-                u = x[:m]
-                if status in _SOLVED and np.all(np.isfinite(u)):
-                    u = np.clip(u, self.low, self.high)
-                    marg = self.margins(u, a0, a, G)
-                    if np.all(marg >= -1e-6 * (1.0 + np.abs(a0))):
-                        return SOCPResult(u, True, status, marg, time.perf_counter() - t0)
-                    status = "constraint_violated"
-            except Exception as exc:  # never raise in the control loop
-                status = f"error:{type(exc).__name__}"
+            return self.solve_checked(u_nom, u_nom_c, a0, a, G, marg, t0)
+        return self._fallback("invalid_input", u_nom, u_nom_c, a0, a, G, valid, t0)
+
+    def solve_checked(self, u_nom, u_nom_c, a0, a, G, marg, t0: float) -> SOCPResult:
+        """:meth:`solve` after validation: every input finite and of the right shape (float64),
+        ``u_nom_c`` the clipped ``u_nom`` and ``marg = margins(u_nom_c, a0, a, G)``; ``t0``
+        the ``perf_counter`` start. Lets a caller that already checked its data skip the
+        checks; identical results."""
+        m = self.m
+        if bool((marg >= 0.0).all()):  # the (clipped) nominal action is safe: inactive filter
+            return SOCPResult(u_nom_c, True, "inactive", marg, time.perf_counter() - t0)
+        use_qp = G is None or not G.any()
+        Gz = np.zeros((self.n_constraints, m + 1, m + 1)) if G is None else G
+        try:
+            if use_qp and self.qp_solver is not None:
+                x, status = self._run_qpsolvers(u_nom, a0, a)
+            else:
+                x, status = self._run("qp" if use_qp else "socp", u_nom, a0, a, Gz)
+            u = x[:m]
+            if status in _SOLVED and math.isfinite(float(u.sum())):
+                u = np.clip(u, self.low, self.high)
+                marg = self.margins(u, a0, a, G)
+                if bool((marg >= -1e-6 * (1.0 + np.abs(a0))).all()):
+                    return SOCPResult(u, True, status, marg, time.perf_counter() - t0)
+                status = "constraint_violated"
+        except Exception as exc:  # never raise in the control loop
+            status = f"error:{type(exc).__name__}"
+        return self._fallback(status, u_nom, u_nom_c, a0, a, G, None, t0)
+
+    def _fallback(self, status, u_nom, u_nom_c, a0, a, G, valid, t0) -> SOCPResult:
+        m = self.m
+        Gz = np.zeros((self.n_constraints, m + 1, m + 1)) if G is None else G
         # fallback: maximise the worst margin within the bounds
         u = u_nom_c
         try:
@@ -290,5 +305,6 @@ class SOCPFilter:
         except Exception as exc:
             status = f"fallback_failed:{type(exc).__name__}"
         marg = self.margins(u, a0, a, G)
-        marg = np.where(valid, marg, np.nan)
+        if valid is not None:
+            marg = np.where(valid, marg, np.nan)
         return SOCPResult(u, False, status, marg, time.perf_counter() - t0)

@@ -1,0 +1,94 @@
+"""Early exit of the filter: a safe (clipped) proposal is returned as is, and it is the SOCP
+optimum (checked against the full cone solve); the checked fast path equals ``solve``."""
+
+import numpy as np
+import pytest
+
+from afvsgp_gym.cbf import SafetyController, SOCPFilter
+from afvsgp_gym.types import BarrierTerms
+
+
+def _margins(u, a0, a, G):
+    ubar = np.concatenate([[1.0], u])
+    return a0 + a @ u - np.linalg.norm(G @ ubar, axis=-1)
+
+
+def _safe_instance(rng, m, K):
+    """Random instance whose clipped proposal satisfies every cone with slack."""
+    low, high = -rng.uniform(0.5, 2, m), rng.uniform(0.5, 2, m)
+    a = rng.normal(size=(K, m))
+    G = rng.normal(scale=0.3, size=(K, m + 1, m + 1))
+    u_nom = rng.uniform(1.5 * low, 1.5 * high)
+    uc = np.clip(u_nom, low, high)
+    a0 = -_margins(uc, np.zeros(K), a, G) + rng.uniform(1e-3, 0.5, K)
+    return low, high, u_nom, a0, a, G
+
+
+@pytest.mark.parametrize("seed", range(10))
+def test_early_exit_is_the_socp_optimum(seed):
+    rng = np.random.default_rng(seed)
+    m, K = int(rng.integers(2, 8)), int(rng.integers(1, 4))
+    low, high, u_nom, a0, a, G = _safe_instance(rng, m, K)
+    f = SOCPFilter(low, high, K)
+    res = f.solve(u_nom, a0, a, G)
+    assert res.status == "inactive" and res.feasible
+    np.testing.assert_array_equal(res.u, np.clip(u_nom, low, high))
+    # the full cone program on the same data (no early exit) gives the same action
+    x, status = f._run("socp", u_nom, a0, a, G)
+    assert status in ("Solved", "AlmostSolved")
+    # feasible and no worse than the solver's optimum (its 1e-9 gap tolerance leaves ~1e-6
+    # in x where a bound is active), so the early exit is the optimum itself
+    f_exit, f_full = 0.5 * np.sum((res.u - u_nom) ** 2), 0.5 * np.sum((x[:m] - u_nom) ** 2)
+    assert f_exit <= f_full + 1e-9
+    assert f_full - f_exit <= 1e-6
+    np.testing.assert_allclose(res.u, x[:m], atol=1e-5)
+    assert np.all(_margins(res.u, a0, a, G) >= 0)
+
+
+@pytest.mark.parametrize("seed", range(10))
+def test_solve_checked_equals_solve(seed):
+    rng = np.random.default_rng(100 + seed)
+    m, K = int(rng.integers(2, 8)), int(rng.integers(1, 4))
+    low, high, u_nom, a0, a, G = _safe_instance(rng, m, K)
+    if seed % 2:  # make the proposal unsafe: the cone program runs
+        a0 = a0 - rng.uniform(0.5, 2.0, K)
+    f1, f2 = SOCPFilter(low, high, K), SOCPFilter(low, high, K)
+    r1 = f1.solve(u_nom, a0, a, G)
+    uc = np.clip(u_nom, low, high)
+    r2 = f2.solve_checked(u_nom, uc, a0, a, G, f2.margins(uc, a0, a, G), 0.0)
+    assert (r1.status, r1.feasible) == (r2.status, r2.feasible)
+    np.testing.assert_array_equal(r1.u, r2.u)
+    np.testing.assert_array_equal(r1.margins, r2.margins)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_controller_matches_plain_solve(seed):
+    """SafetyController.filter (fast path) returns what SOCPFilter.solve returns on its data,
+    with ``active`` False exactly when the proposal is returned unchanged."""
+    rng = np.random.default_rng(200 + seed)
+    m = 3
+    ctrl = SafetyController(-np.ones(m), np.ones(m), 2, learner="none", alpha=2.0)
+    ref = SOCPFilter(-np.ones(m), np.ones(m), 2)
+    for _ in range(20):
+        terms = [
+            BarrierTerms(
+                rng.uniform([0.0, -1.0], [0.5, 1.0]),
+                float(rng.normal()),
+                rng.normal(size=m),
+                rng.normal(size=4),
+            )
+            for _ in range(2)
+        ]
+        u_nom = rng.uniform(-1.5, 1.5, m)
+        res = ctrl.filter(u_nom, terms)
+        a0 = np.empty(2)
+        a = np.empty((2, m))
+        for k, t in enumerate(terms):
+            c0, c = ctrl.hocbf.constraint(t)
+            a0[k], a[k] = c0 - ctrl.barrier_margin * ctrl._margin_gain, c
+        r = ref.solve(u_nom, a0, a)
+        assert res.status == r.status
+        np.testing.assert_array_equal(res.u, r.u)
+        assert res.active == (r.status != "inactive")
+        if not res.active:
+            np.testing.assert_array_equal(res.u, np.clip(u_nom, -1, 1))
