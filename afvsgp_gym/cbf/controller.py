@@ -26,7 +26,7 @@ import numpy as np
 from afvsgp_gym.cbf.hocbf import HOCBF
 from afvsgp_gym.cbf.learners import LEARNING, check_learner_name, make_learner
 from afvsgp_gym.cbf.measurement import measure
-from afvsgp_gym.cbf.socp import SOCPFilter
+from afvsgp_gym.cbf.socp import SOCPFilter, SOCPResult
 from afvsgp_gym.types import BarrierTerms
 
 #: Learner settings used unless ``learner_kwargs`` overrides them. AFVSGP: the paper's window
@@ -86,6 +86,43 @@ def _cone_matrix(sigma: np.ndarray, beta: float) -> np.ndarray:
     sigma = 0.5 * (sigma + sigma.T)
     w, v = np.linalg.eigh(sigma)
     return (beta * np.sqrt(np.maximum(w, 0.0)))[:, None] * v.T
+
+
+#: Slack (relative to trace(Sigma) |ubar|^2) covering the rounding of the eigen-factor of
+#: ``_cone_matrix`` (~n eps ||Sigma||) in :func:`_certainly_inactive`, with a wide margin.
+_FACTOR_SLACK = 2e-12
+
+
+def _certainly_inactive(u, a0, a, sig, betas) -> SOCPResult | None:
+    """Early exit without factoring Sigma: the "inactive" result when the clipped proposal
+    ``u`` satisfies every chance constraint with a margin that provably covers the rounding
+    of ``G = _cone_matrix(Sigma, beta)``, else None (then the exact check decides).
+
+    ``||G ubar||^2 = beta^2 sum_i max(w_i, 0) (v_i' ubar)^2 <= beta^2 (ubar' Sigma ubar +
+    delta)`` where ``delta`` bounds the eigen-solver's backward error plus any negative
+    eigenvalue; a successful Cholesky factorisation certifies that Sigma has none beyond
+    rounding, so ``delta <= _FACTOR_SLACK trace(Sigma) |ubar|^2``. The test is sufficient
+    for the exact one (``SOCPFilter.margins >= 0`` with that G), so the result (``u``
+    unchanged, status "inactive") is the same; only the reported margins differ by rounding.
+    """
+    lin = a0 + a @ u
+    if not bool((lin >= 0.0).all()):
+        return None
+    ubar = np.empty(u.size + 1)
+    ubar[0] = 1.0
+    ubar[1:] = u
+    sym = 0.5 * (sig + sig.transpose(0, 2, 1))
+    q = ((sym @ ubar) * ubar).sum(axis=1)
+    tr = np.maximum(np.trace(sym, axis1=1, axis2=2), 0.0)
+    std = np.sqrt(np.maximum(q, 0.0))
+    need = betas * (std + math.sqrt(float(ubar @ ubar)) * np.sqrt(_FACTOR_SLACK * tr))
+    if not bool((lin >= need * (1.0 + 1e-9)).all()):
+        return None
+    try:
+        np.linalg.cholesky(sym[betas > 0])
+    except np.linalg.LinAlgError:
+        return None
+    return SOCPResult(u, True, "inactive", lin - betas * std, 0.0)
 
 
 class SafetyController:
@@ -414,6 +451,7 @@ class SafetyController:
         bs = np.zeros((K, m + 1))
         G = np.zeros((K, m + 1, m + 1))
         sig = np.zeros((K, m + 1, m + 1))
+        betas = np.zeros(K)  # cone multiplier per obstacle (0: no cone)
         use_cone = False
         for k, t in enumerate(terms):
             if not ok[k]:
@@ -429,21 +467,31 @@ class SafetyController:
                     a[k] += b[0, 1:]
                     if self.beta > 0:
                         scale = max(1.0, float(self.variance_scale[k]))
-                        G[k] = _cone_matrix(s[0], self.beta * math.sqrt(scale))
-                        use_cone = True
+                        betas[k] = self.beta * math.sqrt(scale)
             except ValueError:
                 raise
             except Exception as exc:  # a learner failure must not stop the loop
                 self.last_error = f"{type(exc).__name__}: {exc}"
                 a0[k] = np.nan
+        res = None
+        if betas.any() and nom_finite and math.isfinite(float(a0.sum() + a.sum() + sig.sum())):
+            res = _certainly_inactive(u_clip, a0, a, sig, betas)
+        if res is None:  # factor the covariances (only now: most safe steps never get here)
+            for k in np.flatnonzero(betas):
+                try:
+                    G[k] = _cone_matrix(sig[k], betas[k])
+                    use_cone = True
+                except Exception as exc:
+                    self.last_error = f"{type(exc).__name__}: {exc}"
+                    a0[k] = np.nan
         Gc = G if use_cone else None
-        if nom_finite and math.isfinite(float(a0.sum() + a.sum() + G.sum())):
+        if res is None and nom_finite and math.isfinite(float(a0.sum() + a.sum() + G.sum())):
             # Checked data: skip SOCPFilter.solve's validation. It returns the clipped
             # proposal at once (status "inactive") when it satisfies every chance constraint:
             # it is then the SOCP optimum itself, and no cone program is solved.
             marg = self.socp.margins(u_clip, a0, a, Gc)
             res = self.socp.solve_checked(u_nom, u_clip, a0, a, Gc, marg, t0)
-        else:
+        elif res is None:
             res = self.socp.solve(u_nom, a0, a, Gc)
         u = res.u
         ubar = np.empty(m + 1)
