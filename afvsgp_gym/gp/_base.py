@@ -95,6 +95,26 @@ class SparseLearner(BaseLearner):
     ``_scale`` absorbs AFVSGP's forgetting (``phi S`` becomes ``scale /= phi``).
     """
 
+    def _fit_hyperparameters(self, xi, u, z, weights, learn_hyperparameters):
+        """Initial kernel/noise, inducing set and jitter; maximise the weighted bound (eq. 23).
+
+        Returns ``(kernel, noise, xo, uo, jitter, bound)``; ``bound`` is None without learning.
+        Needs ``_initial_inducing``, ``jitter``, ``inducing`` and ``max_iter`` on the subclass.
+        """
+        from afvsgp_gym.gp._sparse import fit_bound
+
+        kernel, noise = self._init_hyper(xi, u, z)
+        xo, uo = self._initial_inducing(kernel, xi, u)
+        jitter = self.jitter * float(np.mean(kernel.diag(xi, u)))
+        bound = None
+        if learn_hyperparameters:
+            kernel, noise, bound = fit_bound(kernel, noise, xi, u, z, weights, xo, uo, jitter,
+                                             self.max_iter)
+            if self.inducing is None:
+                xo, uo = self._initial_inducing(kernel, xi, u)
+            jitter = self.jitter * float(np.mean(kernel.diag(xi, u)))
+        return kernel, noise, xo, uo, jitter, bound
+
     def _set_stats(self, S: np.ndarray, r: np.ndarray) -> None:
         m = r.shape[0]
         st = np.empty((m, m + 1), order="F")

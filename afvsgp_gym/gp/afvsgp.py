@@ -49,7 +49,7 @@ from scipy.linalg.lapack import dpotrf, dtrtri, dtrtrs
 
 from afvsgp_gym.gp._base import SparseLearner
 from afvsgp_gym.gp._linalg import DEFAULT_JITTER, check_batch, check_matrix, jittered_cholesky, ubar
-from afvsgp_gym.gp._sparse import fit_bound, greedy_inducing
+from afvsgp_gym.gp._sparse import greedy_inducing
 from afvsgp_gym.gp.kernels import ADPKernel
 
 __all__ = ["AFVSGP"]
@@ -156,16 +156,8 @@ class AFVSGP(SparseLearner):
         n = len(z)
         phi = float(self.forgetting)
         weights = phi ** np.arange(n - 1, -1, -1, dtype=float)
-        kernel, noise = self._init_hyper(xi, u, z)
-        xo, uo = self._initial_inducing(kernel, xi, u)
-        jitter = self.jitter * float(np.mean(kernel.diag(xi, u)))
-        bound = None
-        if learn_hyperparameters:
-            kernel, noise, bound = fit_bound(kernel, noise, xi, u, z, weights, xo, uo, jitter,
-                                             self.max_iter)
-            if self.inducing is None:
-                xo, uo = self._initial_inducing(kernel, xi, u)
-            jitter = self.jitter * float(np.mean(kernel.diag(xi, u)))
+        kernel, noise, xo, uo, jitter, bound = self._fit_hyperparameters(
+            xi, u, z, weights, learn_hyperparameters)
         self.kernel_ = kernel
         self.noise_variance_ = noise
         self.jitter_ = jitter

@@ -8,7 +8,7 @@ import numpy as np
 
 from afvsgp_gym.gp._base import SparseLearner
 from afvsgp_gym.gp._linalg import DEFAULT_JITTER, check_batch, check_sample, ubar
-from afvsgp_gym.gp._sparse import fit_bound, greedy_inducing
+from afvsgp_gym.gp._sparse import greedy_inducing
 from afvsgp_gym.gp.kernels import ADPKernel
 
 __all__ = ["VSGP"]
@@ -54,17 +54,8 @@ class VSGP(SparseLearner):
         xi, u, z = check_batch(xi, u, z)
         if int(self.num_inducing) < 1:
             raise ValueError(f"num_inducing must be >= 1, got {self.num_inducing}")
-        kernel, noise = self._init_hyper(xi, u, z)
-        xo, uo = self._initial_inducing(kernel, xi, u)
-        jitter = self.jitter * float(np.mean(kernel.diag(xi, u)))
-        weights = np.ones(len(z))
-        bound = None
-        if learn_hyperparameters:
-            kernel, noise, bound = fit_bound(kernel, noise, xi, u, z, weights, xo, uo, jitter,
-                                             self.max_iter)
-            if self.inducing is None:
-                xo, uo = self._initial_inducing(kernel, xi, u)
-            jitter = self.jitter * float(np.mean(kernel.diag(xi, u)))
+        kernel, noise, xo, uo, jitter, bound = self._fit_hyperparameters(
+            xi, u, z, np.ones(len(z)), learn_hyperparameters)
         self.kernel_ = kernel
         self.noise_variance_ = noise
         self.jitter_ = jitter
