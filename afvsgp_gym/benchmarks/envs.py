@@ -17,8 +17,6 @@ Run: ``python -m afvsgp_gym.benchmarks.envs [--quick]``.
 
 from __future__ import annotations
 
-import os
-import platform
 import sys
 import time
 from collections.abc import Callable
@@ -27,6 +25,7 @@ import gymnasium as gym
 import numpy as np
 
 import afvsgp_gym  # noqa: F401  (registers the ids)
+from afvsgp_gym.benchmarks._machine import machine
 
 __all__ = ["main", "run"]
 
@@ -100,19 +99,6 @@ def run(quick: bool = False, rounds: int | None = None) -> dict[str, float]:
     for _, env, *_ in cases:
         env.close()
     return out
-
-
-def machine() -> str:
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as fh:
-            for line in fh:
-                if line.startswith("model name"):
-                    cpu = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}"
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -10,29 +10,16 @@ An area whose module is missing or fails is reported and skipped; the others sti
 from __future__ import annotations
 
 import importlib
-import os
-import platform
 import sys
 import time
 import traceback
 from collections.abc import Sequence
 
+from afvsgp_gym.benchmarks._machine import machine
+
 __all__ = ["AREAS", "main", "run_all"]
 
 AREAS = ("gp", "envs", "filter")
-
-
-def _machine() -> str:
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as fh:
-            for line in fh:
-                if line.startswith("model name"):
-                    cpu = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}"
 
 
 def _format(key: str, val) -> str:
@@ -51,7 +38,7 @@ def run_all(quick: bool = False, areas: Sequence[str] | None = None,
     unknown = [a for a in areas if a not in AREAS]
     if unknown:
         raise ValueError(f"unknown benchmark area(s) {unknown}; valid: {list(AREAS)}")
-    print(f"afvsgp-gym benchmarks ({'quick' if quick else 'full'}) on {_machine()}",
+    print(f"afvsgp-gym benchmarks ({'quick' if quick else 'full'}) on {machine()}",
           file=out, flush=True)
     results: dict[str, dict | None] = {}
     for area in areas:
