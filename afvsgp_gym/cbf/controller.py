@@ -10,8 +10,11 @@ Example
 >>> res.feasible, bool(res.active), np.round(res.u, 3).tolist()
 (True, True, [0.404, 0.5])
 
-In a real robot loop: ``res = ctrl.filter(u_nom, terms)``; apply ``res.u`` for one control
-period ``dt``; read the new terms; ``ctrl.observe(terms, res.u, new_terms, dt)``.
+In a real robot loop: ``res = ctrl.filter(u_nom, terms, u_backup=brake)``; apply ``res.u`` for
+one control period ``dt``; read the new terms; ``ctrl.observe(terms, res.u, new_terms, dt)``.
+``u_backup`` (optional) is the action to apply when no action satisfies the chance constraints,
+e.g. a joint-damping brake; without it the filter falls back to the action that maximises the
+worst predicted margin.
 """
 
 from __future__ import annotations
@@ -44,6 +47,12 @@ DEFAULT_LEARNER_KWARGS: dict[str, dict] = {"afvsgp": {"window": 1000, "forgettin
 #: overconfident away from the data, let 1-6 of 20 Franka episodes violate.
 DEFAULT_BETA = 3.0
 
+#: Default weight of the residual correction (an exponential average over ~1/0.2 = 5 steps of
+#: the measured minus the predicted ``Delta B^(r)``). Without it a model that is confidently
+#: wrong (3-10 predicted standard deviations, same sign for tens of steps) let the arm creep
+#: into the obstacle while every SOCP was "Solved" (benchmarks/filter.md).
+DEFAULT_RESIDUAL_CORRECTION = 0.2
+
 
 @dataclass(frozen=True)
 class FilterResult:
@@ -58,7 +67,8 @@ class FilterResult:
     active : bool
         True when the filter changed the (clipped) proposed action, or fell back.
     status : str
-        ``"inactive"``, the solver status, ``"fallback:..."`` or ``"invalid_input"``.
+        ``"inactive"``, the solver status, ``"backup:..."`` (infeasible: the backup action),
+        ``"fallback:..."`` (infeasible: max worst margin) or ``"invalid_input"``.
     margins : ndarray of shape (K,)
         Chance-constraint margins at ``u``.
     delta_b_mean, delta_b_std : ndarray of shape (K,)
@@ -157,6 +167,15 @@ class SafetyController:
         ``exploration_noise``; default 0.05). Persistent excitation: with a "zero" nominal model
         the action gain is only identifiable along directions the actions have explored. The
         noisy proposal is then filtered, so the constraint still holds.
+    residual_correction : float
+        Weight ``w`` in [0, 1) of the residual correction, a disturbance observer on top of the
+        learner: after every step the measured ``z`` (eq. 48) is compared with the learned mean
+        the filter used, ``e = z - b' ubar``, and ``bias <- (1 - w) bias + w e`` (one per
+        obstacle, ``residual_bias``) is added to the mean in the next constraints (eq. 05).
+        A learner that is wrong in a persistent direction (the drift or the action gain changed
+        faster than the posterior adapts) is thereby corrected within ~1/w steps; zero-mean
+        errors average out. Default :data:`DEFAULT_RESIDUAL_CORRECTION`; 0 disables it. Only
+        for learning learners, after warm-up.
     calibration_rate : float
         Online variance calibration: every observed ``z`` is compared with the prediction the
         filter used for that step, and an exponential average (rate ``calibration_rate``) of
@@ -207,6 +226,7 @@ class SafetyController:
         warmup_samples: int = 200,
         exploration_noise: float = 0.3,
         online_exploration: float = 0.05,
+        residual_correction: float = DEFAULT_RESIDUAL_CORRECTION,
         calibration_rate: float = 0.0,
         learner_kwargs: dict | None = None,
         learn_hyperparameters: bool = True,
@@ -241,6 +261,10 @@ class SafetyController:
             raise ValueError(f"noise_floor must be finite and >= 0. Got: {noise_floor!r}")
         if not (np.isfinite(exploration_noise) and exploration_noise >= 0):
             raise ValueError(f"exploration_noise must be >= 0. Got: {exploration_noise!r}")
+        if not (np.isfinite(residual_correction) and 0 <= residual_correction < 1):
+            raise ValueError(
+                f"residual_correction must be in [0, 1). Got: {residual_correction!r}"
+            )
         if not (np.isfinite(calibration_rate) and 0 <= calibration_rate <= 1):
             raise ValueError(f"calibration_rate must be in [0, 1]. Got: {calibration_rate!r}")
         if not (np.isfinite(online_exploration) and online_exploration >= 0):
@@ -258,6 +282,8 @@ class SafetyController:
         self.warmup_samples = int(warmup_samples)
         self.exploration_noise = float(exploration_noise)
         self.online_exploration = float(online_exploration)
+        self.residual_correction = float(residual_correction)
+        self.residual_bias = np.zeros(int(n_obstacles))
         self.calibration_rate = float(calibration_rate)
         self.variance_scale = np.ones(int(n_obstacles))
         self._last_pred: list | None = None
@@ -286,6 +312,11 @@ class SafetyController:
             self.fit(dataset)
 
     # ------------------------------------------------------------------ state
+    def reset_residuals(self) -> None:
+        """Forget the residual correction (e.g. at an episode reset: the state jumps)."""
+        self.residual_bias[:] = 0.0
+        self._last_pred = None
+
     @property
     def warming_up(self) -> bool:
         """True until the learners are fitted (Algorithm 1 warm-up)."""
@@ -415,11 +446,16 @@ class SafetyController:
         u_nom,
         terms: Sequence[BarrierTerms],
         true_terms: Sequence[BarrierTerms] | None = None,
+        u_backup=None,
     ) -> FilterResult:
         """Project ``u_nom`` onto the (chance-)constrained safe set (eq. 05).
 
         ``terms`` are the nominal barrier terms (one per obstacle); the oracle learner uses
-        ``true_terms`` instead. Never raises for NaN values: they give the flagged fallback.
+        ``true_terms`` instead. ``u_backup`` (array of shape (m,) or a zero-argument callable
+        returning one, evaluated only when needed) is applied, clipped to the bounds, when
+        the program is infeasible or fails (status ``"backup:..."``); without it, or if it is
+        not finite, the action maximising the worst margin is used (``"fallback:..."``).
+        Never raises for NaN values: they give the flagged fallback.
         """
         t0 = time.perf_counter()
         K, m = self.n_obstacles, self.action_dim
@@ -463,7 +499,7 @@ class SafetyController:
                 if not warm and self.learner_name in LEARNING:
                     b, s = self.learners[k].predict_affine(np.asarray(t.xi, np.float64)[None])
                     bs[k], sig[k] = b[0], s[0]
-                    a0[k] += b[0, 0]
+                    a0[k] += b[0, 0] + self.residual_bias[k]
                     a[k] += b[0, 1:]
                     if self.beta > 0:
                         scale = max(1.0, float(self.variance_scale[k]))
@@ -490,9 +526,13 @@ class SafetyController:
             # proposal at once (status "inactive") when it satisfies every chance constraint:
             # it is then the SOCP optimum itself, and no cone program is solved.
             marg = self.socp.margins(u_clip, a0, a, Gc)
-            res = self.socp.solve_checked(u_nom, u_clip, a0, a, Gc, marg, t0)
+            res = self.socp.solve_checked(
+                u_nom, u_clip, a0, a, Gc, marg, t0, max_margin=u_backup is None
+            )
         elif res is None:
-            res = self.socp.solve(u_nom, a0, a, Gc)
+            res = self.socp.solve(u_nom, a0, a, Gc, max_margin=u_backup is None)
+        if not res.feasible and u_backup is not None:
+            res = self._backup(res, u_nom, a0, a, Gc, u_backup, t0)
         u = res.u
         ubar = np.empty(m + 1)
         ubar[0] = 1.0
@@ -512,7 +552,42 @@ class SafetyController:
             warmup=warm,
         )
 
+    def _backup(self, res, u_nom, a0, a, G, u_backup, t0) -> SOCPResult:
+        """Replace an infeasible result by the clipped backup action (or, if that is not
+        finite, by the max-worst-margin fallback)."""
+        try:
+            ub = np.array(u_backup() if callable(u_backup) else u_backup, dtype=np.float64)
+            ok = ub.shape == (self.action_dim,) and bool(np.all(np.isfinite(ub)))
+        except Exception as exc:  # a failing backup must not stop the loop
+            self.last_error = f"{type(exc).__name__}: {exc}"
+            ok = False
+        status = res.status.removeprefix("fallback:")
+        if not ok:
+            return self.socp.solve(u_nom, a0, a, G)
+        u = np.clip(ub, self.low, self.high)
+        with np.errstate(invalid="ignore"):
+            marg = self.socp.margins(u, a0, a, G)
+        return SOCPResult(u, False, f"backup:{status}", marg, time.perf_counter() - t0)
+
     # ------------------------------------------------------------------ learning
+    def _update_residuals(self, samples, u) -> None:
+        """Residual correction (``residual_correction``) from the prediction used for the
+        step just taken, then the variance calibration (``calibration_rate``)."""
+        pred = self._last_pred
+        if pred is None or not np.allclose(pred[2], u):
+            self._last_pred = None
+            return
+        w = self.residual_correction
+        if w > 0:
+            ubar = np.concatenate([[1.0], u])
+            for k, s in enumerate(samples):
+                if s is None:
+                    continue
+                e = s[2] - float(pred[0][k] @ ubar)
+                if math.isfinite(e):
+                    self.residual_bias[k] += w * (e - self.residual_bias[k])
+        self._calibrate(samples, u)
+
     def _calibrate(self, samples, u) -> None:
         """Update ``variance_scale`` from the prediction used for the step just taken."""
         pred, self._last_pred = self._last_pred, None
@@ -579,7 +654,7 @@ class SafetyController:
                     for b in self._buffer:  # keep the newest half and retry later
                         del b[: len(b) // 2]
             return z_all
-        self._calibrate(samples, u)
+        self._update_residuals(samples, u)
         if not self.learning:
             return z_all
         for k, s in enumerate(samples):

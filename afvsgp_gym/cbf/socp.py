@@ -134,6 +134,13 @@ class SOCPFilter:
         self._box_A = np.vstack([np.eye(m), -np.eye(m)])
         self._box_b = np.concatenate([high, -low])
 
+    def __getstate__(self) -> dict:
+        """Pickle/deepcopy without the clarabel solver objects (not picklable; rebuilt on the
+        next solve with the same data layout)."""
+        state = self.__dict__.copy()
+        state["_solvers"] = {}
+        return state
+
     # ------------------------------------------------------------------ problem data
     def _data(self, kind: str, u_nom, a0, a, G):
         """Dense (A transposed, b, q) for ``kind`` in {"qp", "socp", "fallback"} (reused)."""
@@ -219,7 +226,7 @@ class SOCPFilter:
             out = out - np.sqrt(np.einsum("ki,ki->k", Gu, Gu))
         return out
 
-    def solve(self, u_nom, a0, a, G=None) -> SOCPResult:
+    def solve(self, u_nom, a0, a, G=None, max_margin: bool = True) -> SOCPResult:
         """Filter ``u_nom`` (never raises for finite-shaped inputs; NaN -> flagged fallback).
 
         Parameters
@@ -231,6 +238,9 @@ class SOCPFilter:
             Action coefficients.
         G : array_like of shape (K, m+1, m+1) or None
             Cone matrices ``beta L'``; None (or all zero) gives the plain QP.
+        max_margin : bool
+            On infeasibility, solve the max-worst-margin fallback (True) or return the clipped
+            ``u_nom`` flagged (False: the caller has its own backup action).
         """
         t0 = time.perf_counter()
         m, K = self.m, self.n_constraints
@@ -263,10 +273,12 @@ class SOCPFilter:
 
         if not invalid:
             marg = self.margins(u_nom_c, a0, a, G)
-            return self.solve_checked(u_nom, u_nom_c, a0, a, G, marg, t0)
-        return self._fallback("invalid_input", u_nom, u_nom_c, a0, a, G, valid, t0)
+            return self.solve_checked(u_nom, u_nom_c, a0, a, G, marg, t0, max_margin)
+        return self._fallback("invalid_input", u_nom, u_nom_c, a0, a, G, valid, t0, max_margin)
 
-    def solve_checked(self, u_nom, u_nom_c, a0, a, G, marg, t0: float) -> SOCPResult:
+    def solve_checked(
+        self, u_nom, u_nom_c, a0, a, G, marg, t0: float, max_margin: bool = True
+    ) -> SOCPResult:
         """:meth:`solve` after validation: every input finite and of the right shape (float64),
         ``u_nom_c`` the clipped ``u_nom`` and ``marg = margins(u_nom_c, a0, a, G)``; ``t0``
         the ``perf_counter`` start. Lets a caller that already checked its data skip the
@@ -290,17 +302,20 @@ class SOCPFilter:
                 status = "constraint_violated"
         except Exception as exc:  # never raise in the control loop
             status = f"error:{type(exc).__name__}"
-        return self._fallback(status, u_nom, u_nom_c, a0, a, G, None, t0)
+        return self._fallback(status, u_nom, u_nom_c, a0, a, G, None, t0, max_margin)
 
-    def _fallback(self, status, u_nom, u_nom_c, a0, a, G, valid, t0) -> SOCPResult:
+    def _fallback(
+        self, status, u_nom, u_nom_c, a0, a, G, valid, t0, max_margin=True
+    ) -> SOCPResult:
         m = self.m
         Gz = np.zeros((self.n_constraints, m + 1, m + 1)) if G is None else G
         # fallback: maximise the worst margin within the bounds
         u = u_nom_c
         try:
-            x, fb_status = self._run("fallback", u_nom, a0, a, Gz)
-            if fb_status in _SOLVED and np.all(np.isfinite(x[:m])):
-                u = np.clip(x[:m], self.low, self.high)
+            if max_margin:
+                x, fb_status = self._run("fallback", u_nom, a0, a, Gz)
+                if fb_status in _SOLVED and np.all(np.isfinite(x[:m])):
+                    u = np.clip(x[:m], self.low, self.high)
             status = f"fallback:{status}" if status != "invalid_input" else status
         except Exception as exc:
             status = f"fallback_failed:{type(exc).__name__}"

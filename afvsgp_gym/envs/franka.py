@@ -170,6 +170,7 @@ class FrankaObstacleEnv(MujocoEnv):
     | tracking_weight, control_weight | 1.0, 0.01 | reward weights |
     | reset_noise | 0.01 | rad |
     | normalize_action | True | action in [-1, 1] (tau = u tau_max); False: action = tau in Nm |
+    | brake_gain | 1.0 | ``backup_action``: tau = -brake_gain tau_max q' (per rad/s), saturated |
     | render_mode, width, height | None, 480, 480 | "rgb_array", "depth_array", "human" (display) |
 
     Custom ``obstacles`` replace the scenario's (the reference stays): each dict gives the
@@ -207,6 +208,7 @@ class FrankaObstacleEnv(MujocoEnv):
         control_weight=0.01,
         reset_noise=0.01,
         normalize_action=True,
+        brake_gain=1.0,
         render_mode=None,
         width=480,
         height=480,
@@ -243,6 +245,7 @@ class FrankaObstacleEnv(MujocoEnv):
         self.control_weight = float(cfg["control_weight"])
         self.reset_noise = float(cfg["reset_noise"])
         self.normalize_action = bool(cfg["normalize_action"])
+        self.brake_gain = check_number("brake_gain", cfg["brake_gain"], strictly_positive=False)
         physics_dt = float(cfg["physics_dt"])
         self._control_dt = physics_dt * frame_skip
         self._user_obstacles = (
@@ -499,6 +502,20 @@ class FrankaObstacleEnv(MujocoEnv):
         if kind not in self._terms_cache:
             self._terms_cache[kind] = self._compute_terms(kind)
         return self._terms_cache[kind]
+
+    def backup_action(self) -> np.ndarray:
+        """Model-free brake for the safety filter's backup: joint damping torque
+        ``tau = -brake_gain tau_max q'`` saturated at the torque limits, as an action.
+
+        It opposes every joint velocity, so it removes kinetic energy whatever the plant's
+        inertia, payload or friction (no model needed); ``SafetyFilter`` applies it when the
+        chance-constrained program is infeasible. It does not hold position: the arm sinks
+        under the uncompensated weight at ~0.1 rad/s. Gains above ~1.5 make the base joint
+        chatter at the 4 ms control period (discrete-time damping limit).
+        """
+        u = -self.brake_gain * np.asarray(self.data.qvel[:7], dtype=np.float64)
+        np.clip(u, -1.0, 1.0, out=u)
+        return u * (1.0 if self.normalize_action else self._gear)
 
     # ------------------------------------------------------------------ gym API
     def _ee(self) -> tuple[np.ndarray, np.ndarray]:

@@ -116,6 +116,7 @@ class PointMassObstacleEnv(gym.Env):
     | nominal_model | "zero" | "zero", "kinematic", "perturbed", "exact" |
     | nominal_mass, nominal_drag | 1.0, 0.0 | parameters of the "perturbed" model |
     | max_force | 5.0 | N per unit action |
+    | brake_gain | 2.0 | ``backup_action``: u = -brake_gain p' (per m/s), saturated |
     | agent_radius | 0.05 | m |
     | obstacles | None | list of dicts (position, radius[, start, start_time, speed]) |
     | obstacle_speed | 0.3 | m/s, dynamic scenario |
@@ -153,6 +154,7 @@ class PointMassObstacleEnv(gym.Env):
         tracking_weight=1.0,
         control_weight=0.01,
         reset_noise=0.01,
+        brake_gain=2.0,
         render_mode=None,
     )
     relative_degree = 2
@@ -181,6 +183,7 @@ class PointMassObstacleEnv(gym.Env):
             float(cfg["nominal_drag"]),
         )
         self.max_force = float(cfg["max_force"])
+        self.brake_gain = check_number("brake_gain", cfg["brake_gain"], strictly_positive=False)
         self.agent_radius = float(cfg["agent_radius"])
         self.obstacle_speed = float(cfg["obstacle_speed"])
         self.warmup_steps = int(cfg["warmup_steps"])
@@ -315,6 +318,11 @@ class PointMassObstacleEnv(gym.Env):
             xi = np.concatenate([self._p, self._v, self._p - po, self._v - vo])
             out.append(make_terms(h, hd, lf, lg, xi))
         return out
+
+    def backup_action(self) -> np.ndarray:
+        """Model-free brake for the safety filter's backup: ``u = -brake_gain p'`` (per m/s)
+        saturated at the bounds; it opposes the velocity whatever the mass and drag."""
+        return np.clip(-self.brake_gain * np.asarray(self._v, dtype=np.float64), -1.0, 1.0)
 
     # ------------------------------------------------------------------ gym API
     def _get_obs(self) -> np.ndarray:

@@ -46,10 +46,18 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
     ``warmup_steps`` (steps after reset with the obstacles kept away) bounds the default
     number of warm-up samples: ``min(200, warmup_steps - 1)``.
 
+    When no action satisfies the chance constraints (the SOCP is infeasible) the filter applies
+    a backup action: by default the env's ``backup_action()`` (the provided envs brake: a
+    damping torque against the joint or point velocities, which needs no model), else the
+    action that maximises the worst predicted margin.
+
     Args:
         env: the environment.
         learner: one of ``afvsgp_gym.cbf.LEARNERS`` ("none", "oracle", "gp", "vsgp", "sogp",
             "afvsgp").
+        backup: ``"env"`` (default: ``env.unwrapped.backup_action()`` if the env has one),
+            a callable ``obs -> action`` evaluated on the last observation, or None (the
+            max-worst-margin fallback only).
         **options: keyword options of :class:`~afvsgp_gym.cbf.SafetyController` (``alpha``,
             ``beta``, ``warmup_samples``, ``exploration_noise``, ``learner_kwargs``,
             ``dataset``, ``online``, ``qp_solver``, ``seed``, ...).
@@ -76,8 +84,10 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
      * v0.1.0 - Initially added.
     """
 
-    def __init__(self, env: gym.Env, learner: str = "afvsgp", **options: Any):
-        gym.utils.RecordConstructorArgs.__init__(self, learner=learner, **options)
+    def __init__(
+        self, env: gym.Env, learner: str = "afvsgp", backup: Any = "env", **options: Any
+    ):
+        gym.utils.RecordConstructorArgs.__init__(self, learner=learner, backup=backup, **options)
         gym.Wrapper.__init__(self, env)
         check_learner_name(learner)
         base = env.unwrapped
@@ -105,6 +115,18 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
         )
         self._dtype = space.dtype
         self.filter_fallbacks = 0
+        self._last_obs = None
+        if isinstance(backup, str) and backup == "env":
+            env_backup = getattr(base, "backup_action", None)
+            self._backup = env_backup if callable(env_backup) else None
+        elif backup is None:
+            self._backup = None
+        elif callable(backup):
+            self._backup = lambda: backup(self._last_obs)
+        else:
+            raise ValueError(
+                f"backup must be 'env', None or a callable obs -> action. Got: {backup!r}"
+            )
 
     @property
     def learning(self) -> bool:
@@ -117,7 +139,10 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         self.filter_fallbacks = 0
-        return self.env.reset(seed=seed, options=options)
+        self.controller.reset_residuals()
+        obs, info = self.env.reset(seed=seed, options=options)
+        self._last_obs = obs
+        return obs, info
 
     def step(self, action):
         base = self.env.unwrapped
@@ -126,9 +151,10 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
         true_terms = (
             base.barrier_terms("true") if self.controller.learner_name == "oracle" else None
         )
-        res = self.controller.filter(proposed, terms, true_terms)
+        res = self.controller.filter(proposed, terms, true_terms, self._backup)
         applied = res.u.astype(self._dtype)
         obs, reward, terminated, truncated, info = self.env.step(applied)
+        self._last_obs = obs
         self.controller.observe(
             terms, applied.astype(np.float64), base.barrier_terms("nominal"), float(base.dt)
         )

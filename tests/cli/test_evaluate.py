@@ -19,7 +19,7 @@ STEPS = 400
 
 
 def _hand_count(learner: str, seed: int) -> dict:
-    env = SafetyFilter(gym.make(PM), learner=learner, seed=seed)
+    env = SafetyFilter(gym.make(PM), learner=learner, seed=seed, backup=None)
     policy = NominalController(env)
     obs, _ = env.reset(seed=seed)
     ret, hs, coll, active, infeasible = 0.0, [], 0, 0, 0
@@ -43,7 +43,7 @@ def test_json_and_csv_match_a_hand_counted_loop(tmp_path, capsys):
     jpath, cpath = tmp_path / "out" / "report.json", tmp_path / "report.csv"
     rc = main(["evaluate", "--env", PM, "--agent", "nominal", "--compare", "none,oracle",
                "--episodes", "2", "--seed", "3", "--max-steps", str(STEPS), "--json", str(jpath),
-               "--csv", str(cpath), "--no-progress"])
+               "--csv", str(cpath), "--no-progress", "--filter-kwargs", '{"backup": null}'])
     assert rc == 0
     out = capsys.readouterr().out
     assert "Episodes" in out and "Summary" in out
@@ -68,7 +68,7 @@ def test_json_and_csv_match_a_hand_counted_loop(tmp_path, capsys):
         assert s["episodes_with_violations"] == sum(e["violation_steps"] > 0 for e in expected)
         assert s["min_h"] == pytest.approx(min(e["min_h"] for e in expected))
         assert s["return_mean"] == pytest.approx(np.mean([e["return"] for e in expected]))
-    # nominal-only filter with the zero model violates; the oracle does not
+    # nominal-only filter with the zero model (and no brake backup) violates; the oracle not
     assert data["summary"]["none"]["violation_steps"] > 0
     assert data["summary"]["oracle"]["violation_steps"] == 0
     with open(cpath, newline="") as fh:

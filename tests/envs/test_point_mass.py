@@ -225,3 +225,16 @@ def test_perturbed_model_with_true_parameters_is_exact():
     )
     _, _, _, _, info = env.step(np.array([0.2, -0.4]))
     np.testing.assert_allclose(info["delta_b_true"], 0.0, atol=1e-12)
+
+
+def test_backup_action_brakes_the_point():
+    env = gym.make("afvsgp_gym/PointMassObstacle-v0", nominal_model="zero").unwrapped
+    env.reset(seed=0)
+    env._v = np.array([0.4, -0.3])
+    u = env.backup_action()
+    np.testing.assert_allclose(u, [-0.8, 0.6])
+    speeds = []
+    for _ in range(60):
+        env.step(env.backup_action().astype(np.float32))
+        speeds.append(np.linalg.norm(env._v))
+    assert speeds[-1] < 0.05 * 0.5 and np.all(np.diff(speeds) <= 1e-12)

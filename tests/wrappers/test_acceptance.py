@@ -14,7 +14,9 @@ from afvsgp_gym.benchmarks.filter import run_episode
 
 
 def test_pointmass_none_violates():
-    assert run_episode("pointmass", "none", seed=0)["violations"] > 0
+    # without the brake backup: on the point mass the env's brake alone keeps "none" safe
+    # (benchmarks/filter.md), so the nominal-only HOCBF is judged on its own here
+    assert run_episode("pointmass", "none", seed=0, backup=None)["violations"] > 0
 
 
 def test_pointmass_afvsgp_zero_violations_20_seeds():

@@ -59,7 +59,7 @@ def test_info_keys_and_action_is_copied():
 
 
 def test_zero_nominal_none_violates_and_oracle_is_safe():
-    h_none, _ = run_episode(SafetyFilter(gym.make(PM), learner="none"), seed=0)
+    h_none, _ = run_episode(SafetyFilter(gym.make(PM), learner="none", backup=None), seed=0)
     h_oracle, infos = run_episode(SafetyFilter(gym.make(PM), learner="oracle"), seed=0)
     assert h_none.min() < 0
     assert h_oracle.min() >= 0
@@ -118,7 +118,7 @@ def test_learning_property_and_constructor_args():
     assert env.learning
     env.learning = False
     assert not env.controller.learning
-    assert env._saved_kwargs == {"learner": "none", "alpha": 2.0}
+    assert env._saved_kwargs == {"learner": "none", "backup": "env", "alpha": 2.0}
     assert env.controller.warmup_samples == 200
 
 
@@ -135,3 +135,47 @@ def test_make_vec_sync():
     assert info["filter_feasible"].shape == (2,)
     assert np.all(np.isfinite(obs))
     envs.close()
+
+
+def test_env_backup_brakes_on_infeasible_steps():
+    """Default backup: the env's brake, applied exactly (cast to the action dtype)."""
+    env = SafetyFilter(gym.make(PM), learner="none")
+    policy = NominalController(env.unwrapped)
+    obs, _ = env.reset(seed=0)
+    used = 0
+    for _ in range(600):
+        brake = env.unwrapped.backup_action().astype(np.float32)
+        obs, _, term, trunc, info = env.step(policy(obs))
+        if info["filter_status"].startswith("backup:"):
+            used += 1
+            assert not info["filter_feasible"]
+            np.testing.assert_array_equal(info["action_applied"], brake)
+        else:
+            assert not info["filter_status"].startswith("fallback")
+        if term or trunc:
+            break
+    assert used > 0
+
+
+def test_backup_none_and_callable():
+    env = SafetyFilter(gym.make(PM), learner="none", backup=None)
+    _, infos = run_episode(env, seed=0, max_steps=600)
+    statuses = {i["filter_status"].split(":")[0] for i in infos}
+    assert "fallback" in statuses and "backup" not in statuses
+    seen = []
+
+    def backup(obs):
+        seen.append(obs)
+        return np.zeros(2)
+
+    env = SafetyFilter(gym.make(PM), learner="none", backup=backup)
+    _, infos = run_episode(env, seed=0, max_steps=600)
+    used = [i for i in infos if i["filter_status"].startswith("backup:")]
+    assert used and len(seen) == len(used)
+    assert all(np.all(i["action_applied"] == 0) for i in used)
+    assert all(o.shape == env.observation_space.shape for o in seen)
+
+
+def test_bad_backup_is_rejected():
+    with pytest.raises(ValueError, match="backup"):
+        SafetyFilter(gym.make(PM), learner="none", backup="brake")

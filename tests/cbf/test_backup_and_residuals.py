@@ -1,0 +1,109 @@
+"""Backup action on infeasibility and the residual correction (disturbance observer)."""
+
+import numpy as np
+import pytest
+
+from afvsgp_gym.cbf import SafetyController, SOCPFilter
+from afvsgp_gym.types import BarrierTerms
+
+# nominal "zero" model: lg = 0, so with h' << 0 no action can satisfy the constraint
+_INFEASIBLE = [BarrierTerms(np.array([0.05, -2.0]), 0.0, np.zeros(2), np.zeros(3))]
+_SAFE = [BarrierTerms(np.array([1.0, 0.0]), 0.0, np.zeros(2), np.zeros(3))]
+
+
+def test_backup_action_replaces_infeasible_solution():
+    ctrl = SafetyController(-np.ones(2), np.ones(2), learner="none", alpha=2.0)
+    res = ctrl.filter(np.array([0.3, 0.1]), _INFEASIBLE, u_backup=np.array([-3.0, 0.4]))
+    assert not res.feasible and res.status.startswith("backup:")
+    np.testing.assert_array_equal(res.u, [-1.0, 0.4])  # clipped to the bounds
+    assert res.active
+
+
+def test_backup_callable_is_only_called_when_needed():
+    calls = []
+
+    def brake():
+        calls.append(1)
+        return np.array([0.5, -0.5])
+
+    ctrl = SafetyController(-np.ones(2), np.ones(2), learner="none", alpha=2.0)
+    res = ctrl.filter(np.array([0.3, 0.1]), _SAFE, u_backup=brake)
+    assert res.feasible and not calls
+    res = ctrl.filter(np.array([0.3, 0.1]), _INFEASIBLE, u_backup=brake)
+    assert len(calls) == 1 and res.status.startswith("backup:")
+
+
+@pytest.mark.parametrize("bad", [np.array([np.nan, 0.0]), np.zeros(3), lambda: 1 / 0])
+def test_unusable_backup_falls_back_to_max_margin(bad):
+    ctrl = SafetyController(-np.ones(2), np.ones(2), learner="none", alpha=2.0)
+    with_bad = ctrl.filter(np.array([0.3, 0.1]), _INFEASIBLE, u_backup=bad)
+    plain = ctrl.filter(np.array([0.3, 0.1]), _INFEASIBLE)
+    assert with_bad.status.startswith("fallback:") and not with_bad.feasible
+    np.testing.assert_allclose(with_bad.u, plain.u)
+    assert np.all(np.isfinite(with_bad.u)) and np.all(np.abs(with_bad.u) <= 1)
+
+
+def test_nan_terms_with_backup_apply_the_backup():
+    ctrl = SafetyController(-np.ones(2), np.ones(2), learner="none")
+    bad = [BarrierTerms(np.array([np.nan, 0.0]), 0.0, np.zeros(2), np.zeros(3))]
+    res = ctrl.filter(np.zeros(2), bad, u_backup=np.array([0.2, 0.2]))
+    assert not res.feasible and res.status == "backup:invalid_input"
+    np.testing.assert_array_equal(res.u, [0.2, 0.2])
+
+
+def _fitted_controller(w, rng):
+    """AFVSGP fitted offline on z = 1 + u . (2, -1) with frozen online learning."""
+    xi = rng.normal(size=(120, 3))
+    u = rng.uniform(-1, 1, size=(120, 2))
+    z = 1.0 + u @ np.array([2.0, -1.0]) + 0.05 * rng.normal(size=120)
+    return SafetyController(
+        -np.ones(2), np.ones(2), learner="afvsgp", alpha=2.0, residual_correction=w,
+        dataset=(xi, u, z), online=False, online_exploration=0.0, seed=0,
+        learner_kwargs={"num_inducing": 10},
+    )
+
+
+def test_residual_bias_is_the_exponential_average_of_the_residuals():
+    rng = np.random.default_rng(0)
+    w = 0.2
+    ctrl = _fitted_controller(w, rng)
+    terms = [BarrierTerms(np.array([0.5, 0.0]), 0.0, np.zeros(2), np.array([0.1, 0.2, 0.3]))]
+    expected = 0.0
+    offsets = [-3.0, -3.0, -1.0, 2.0, -3.0]
+    for off in offsets:
+        res = ctrl.filter(np.array([0.2, -0.1]), terms)
+        ubar = np.concatenate([[1.0], res.u])
+        b, _ = ctrl.learners[0].predict_affine(terms[0].xi[None])
+        z = float(b[0] @ ubar) + off  # measured = learned mean + offset
+        # eq. 48 with r = 2, zero nominal: z = (h'_after - h'_before) / dt
+        after = [BarrierTerms(np.array([0.5, z * 0.01]), 0.0, np.zeros(2), terms[0].xi)]
+        ctrl.observe(terms, res.u, after, 0.01)
+        expected = (1 - w) * expected + w * off
+    assert ctrl.residual_bias[0] == pytest.approx(expected, abs=1e-6)
+    ctrl.reset_residuals()
+    assert ctrl.residual_bias[0] == 0.0
+
+
+def test_residual_bias_shifts_the_constraint_mean():
+    """The filtered action equals an independent SOCP whose a0 carries the bias."""
+    rng = np.random.default_rng(1)
+    ctrl = _fitted_controller(0.2, rng)
+    ctrl.residual_bias[:] = -4.0
+    terms = [BarrierTerms(np.array([0.05, -0.3]), 0.0, np.zeros(2), np.array([0.1, 0.2, 0.3]))]
+    u_nom = np.array([-0.5, 0.5])
+    res = ctrl.filter(u_nom, terms)
+    b, sig = ctrl.learners[0].predict_affine(terms[0].xi[None])
+    c0, c = ctrl.hocbf.constraint(terms[0])
+    a0 = c0 - ctrl.barrier_margin * float(np.prod(ctrl.hocbf.gains)) + b[0, 0] - 4.0
+    w, v = np.linalg.eigh(0.5 * (sig[0] + sig[0].T))
+    G = (ctrl.beta * np.sqrt(np.maximum(w, 0)))[:, None] * v.T
+    ref = SOCPFilter(-np.ones(2), np.ones(2)).solve(u_nom, [a0], (c + b[0, 1:])[None], G[None])
+    assert res.status == ref.status
+    np.testing.assert_allclose(res.u, ref.u, atol=1e-7)
+    unbiased = _fitted_controller(0.2, np.random.default_rng(1)).filter(u_nom, terms)
+    assert not np.allclose(unbiased.u, res.u)
+
+
+def test_residual_correction_option_is_checked():
+    with pytest.raises(ValueError, match="residual_correction"):
+        SafetyController(-np.ones(2), np.ones(2), residual_correction=1.0)
