@@ -3,6 +3,7 @@
 Example
 -------
 >>> import numpy as np
+from scipy.linalg.lapack import dpotrf
 >>> from afvsgp_gym.types import BarrierTerms
 >>> ctrl = SafetyController(-np.ones(2), np.ones(2), learner="none", alpha=2.0)
 >>> terms = [BarrierTerms(np.array([0.1, -0.2]), 0.0, np.array([1.0, 0.0]), np.zeros(3))]
@@ -25,6 +26,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg.lapack import dpotrf
 
 from afvsgp_gym.cbf.hocbf import HOCBF
 from afvsgp_gym.cbf.learners import LEARNING, check_learner_name, make_learner
@@ -92,47 +94,17 @@ class FilterResult:
 
 
 def _cone_matrix(sigma: np.ndarray, beta: float) -> np.ndarray:
-    """``G = beta L'`` with ``Sigma = L L'`` (eigen-factor: robust for singular PSD Sigma)."""
-    sigma = 0.5 * (sigma + sigma.T)
-    w, v = np.linalg.eigh(sigma)
+    """``G = beta L'`` with ``Sigma = L L'`` (eq. 05 with the standard deviation, eq. 51):
+    ``||G ubar|| = beta sqrt(ubar' Sigma ubar)``. The Cholesky factor (LAPACK ``potrf``,
+    ``L' = U`` upper) when Sigma is numerically positive definite, else the eigen-factor
+    ``diag(sqrt(max(w, 0))) V'`` (singular or rounding-level indefinite Sigma)."""
+    sym = 0.5 * (sigma + sigma.T)
+    upper, info = dpotrf(sym, lower=0, clean=1)
+    if info == 0:
+        upper *= beta
+        return upper
+    w, v = np.linalg.eigh(sym)
     return (beta * np.sqrt(np.maximum(w, 0.0)))[:, None] * v.T
-
-
-#: Slack (relative to trace(Sigma) |ubar|^2) covering the rounding of the eigen-factor of
-#: ``_cone_matrix`` (~n eps ||Sigma||) in :func:`_certainly_inactive`, with a wide margin.
-_FACTOR_SLACK = 2e-12
-
-
-def _certainly_inactive(u, a0, a, sig, betas) -> SOCPResult | None:
-    """Early exit without factoring Sigma: the "inactive" result when the clipped proposal
-    ``u`` satisfies every chance constraint with a margin that provably covers the rounding
-    of ``G = _cone_matrix(Sigma, beta)``, else None (then the exact check decides).
-
-    ``||G ubar||^2 = beta^2 sum_i max(w_i, 0) (v_i' ubar)^2 <= beta^2 (ubar' Sigma ubar +
-    delta)`` where ``delta`` bounds the eigen-solver's backward error plus any negative
-    eigenvalue; a successful Cholesky factorisation certifies that Sigma has none beyond
-    rounding, so ``delta <= _FACTOR_SLACK trace(Sigma) |ubar|^2``. The test is sufficient
-    for the exact one (``SOCPFilter.margins >= 0`` with that G), so the result (``u``
-    unchanged, status "inactive") is the same; only the reported margins differ by rounding.
-    """
-    lin = a0 + a @ u
-    if not bool((lin >= 0.0).all()):
-        return None
-    ubar = np.empty(u.size + 1)
-    ubar[0] = 1.0
-    ubar[1:] = u
-    sym = 0.5 * (sig + sig.transpose(0, 2, 1))
-    q = ((sym @ ubar) * ubar).sum(axis=1)
-    tr = np.maximum(np.trace(sym, axis1=1, axis2=2), 0.0)
-    std = np.sqrt(np.maximum(q, 0.0))
-    need = betas * (std + math.sqrt(float(ubar @ ubar)) * np.sqrt(_FACTOR_SLACK * tr))
-    if not bool((lin >= need * (1.0 + 1e-9)).all()):
-        return None
-    try:
-        np.linalg.cholesky(sym[betas > 0])
-    except np.linalg.LinAlgError:
-        return None
-    return SOCPResult(u, True, "inactive", lin - betas * std, 0.0)
 
 
 class SafetyController:
@@ -509,19 +481,15 @@ class SafetyController:
             except Exception as exc:  # a learner failure must not stop the loop
                 self.last_error = f"{type(exc).__name__}: {exc}"
                 a0[k] = np.nan
-        res = None
-        if betas.any() and nom_finite and math.isfinite(float(a0.sum() + a.sum() + sig.sum())):
-            res = _certainly_inactive(u_clip, a0, a, sig, betas)
-        if res is None:  # factor the covariances (only now: most safe steps never get here)
-            for k in np.flatnonzero(betas):
-                try:
-                    G[k] = _cone_matrix(sig[k], betas[k])
-                    use_cone = True
-                except Exception as exc:
-                    self.last_error = f"{type(exc).__name__}: {exc}"
-                    a0[k] = np.nan
+        for k in np.flatnonzero(betas):  # factor the covariances
+            try:
+                G[k] = _cone_matrix(sig[k], betas[k])
+                use_cone = True
+            except Exception as exc:
+                self.last_error = f"{type(exc).__name__}: {exc}"
+                a0[k] = np.nan
         Gc = G if use_cone else None
-        if res is None and nom_finite and math.isfinite(float(a0.sum() + a.sum() + G.sum())):
+        if nom_finite and math.isfinite(float(a0.sum() + a.sum() + G.sum())):
             # Checked data: skip SOCPFilter.solve's validation. It returns the clipped
             # proposal at once (status "inactive") when it satisfies every chance constraint:
             # it is then the SOCP optimum itself, and no cone program is solved.
@@ -529,7 +497,7 @@ class SafetyController:
             res = self.socp.solve_checked(
                 u_nom, u_clip, a0, a, Gc, marg, t0, max_margin=u_backup is None
             )
-        elif res is None:
+        else:
             res = self.socp.solve(u_nom, a0, a, Gc, max_margin=u_backup is None)
         if not res.feasible and u_backup is not None:
             res = self._backup(res, u_nom, a0, a, Gc, u_backup, t0)
@@ -574,7 +542,10 @@ class SafetyController:
         """Residual correction (``residual_correction``) from the prediction used for the
         step just taken, then the variance calibration (``calibration_rate``)."""
         pred = self._last_pred
-        if pred is None or not np.allclose(pred[2], u):
+        if pred is None:
+            return
+        d = pred[2] - u  # the applied action may be a float32 copy of the filtered one
+        if not float(d @ d) <= 1e-12 * (1.0 + float(u @ u)):
             self._last_pred = None
             return
         w = self.residual_correction
