@@ -24,6 +24,7 @@ SCENARIOS = {
     "pointmass": ("afvsgp_gym/PointMassObstacle-v0", {}),
     "franka_static": ("afvsgp_gym/FrankaObstacleStatic-v0", {}),
     "franka_dynamic": ("afvsgp_gym/FrankaObstacleDynamic-v0", {}),
+    "franka_random": ("afvsgp_gym/FrankaObstacleRandom-v0", {}),
 }
 
 

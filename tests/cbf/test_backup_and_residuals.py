@@ -107,3 +107,22 @@ def test_residual_bias_shifts_the_constraint_mean():
 def test_residual_correction_option_is_checked():
     with pytest.raises(ValueError, match="residual_correction"):
         SafetyController(-np.ones(2), np.ones(2), residual_correction=1.0)
+
+
+def test_controller_deepcopies_and_pickles_with_its_state():
+    """The clarabel solver objects are not picklable: SOCPFilter drops them from its state and
+    rebuilds them, so a copied controller continues like the original (to the solver's
+    tolerance: a rebuilt solver scales its data afresh, a reused one keeps its first scaling)."""
+    import copy
+    import pickle
+
+    rng = np.random.default_rng(2)
+    ctrl = _fitted_controller(0.2, rng)
+    ctrl.residual_bias[:] = -2.0
+    terms = [BarrierTerms(np.array([0.05, -0.3]), 0.0, np.zeros(2), np.array([0.1, 0.2, 0.3]))]
+    ctrl.filter(np.array([-0.5, 0.5]), terms)  # builds a solver object
+    for clone in (copy.deepcopy(ctrl), pickle.loads(pickle.dumps(ctrl))):
+        for u_nom in rng.uniform(-1, 1, size=(5, 2)):
+            a, b = ctrl.filter(u_nom, terms), clone.filter(u_nom, terms)
+            assert a.status == b.status
+            np.testing.assert_allclose(a.u, b.u, atol=1e-7)
