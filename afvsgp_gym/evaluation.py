@@ -130,13 +130,14 @@ def run_episode(
     *,
     max_steps: int | None = None,
     trace: bool = False,
-    on_step: Callable[[], None] | None = None,
+    on_step: Callable[[dict], None] | None = None,
 ) -> tuple[dict, dict | None]:
     """Run one episode from ``env.reset(seed=seed)``; returns ``(record, trace)``.
 
     ``record`` has the keys of :data:`EPISODE_FIELDS` except ``learner``/``episode`` (the caller's)
     plus the raw ``"_filter_times"`` list. ``trace`` (when asked) holds per-step arrays ``t``,
     ``h``, ``delta_b_true``, ``delta_b_mean``, ``delta_b_std``, ``filter_active``.
+    ``on_step(info)`` (optional) is called after every step with the step's ``info``.
     """
     obs, info = env.reset(seed=int(seed))
     dt = float(getattr(env.unwrapped, "dt", 1.0))
@@ -168,7 +169,7 @@ def run_episode(
             tr["delta_b_std"].append(_first(info.get("delta_b_std")))
             tr["filter_active"].append(bool(info.get("filter_active", False)))
         if on_step is not None:
-            on_step()
+            on_step(info)
         if terminated or truncated or (max_steps is not None and steps >= max_steps):
             break
     record = {
@@ -284,7 +285,7 @@ def evaluate(
                     policy = make_policy(agent, env, seed=ep_seed)
                     if bar is not None:
                         bar.set_postfix_str(f"{name} ep {i + 1}/{episodes}")
-                    tick = None if bar is None else (lambda: bar.update(1))
+                    tick = None if bar is None else (lambda _info: bar.update(1))
                     rec, tr = run_episode(env, policy, ep_seed, max_steps=max_steps, trace=traces,
                                           on_step=tick)
                 finally:

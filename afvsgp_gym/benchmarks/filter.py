@@ -49,13 +49,16 @@ def run_episode(
 ) -> dict[str, float]:
     """One seeded episode with the nominal tracker; ``learner=None`` runs it unfiltered.
 
-    Returns violations (steps with h < 0), min h, fallbacks, interventions, mean/max tracking
-    error away from the obstacle, filter time median/p99 (s) and wall time (s).
+    The counting is :func:`afvsgp_gym.evaluation.run_episode`'s (the CLI's); this adds the
+    tracking error away from the obstacle. Returns violations (steps with h < 0), min h,
+    fallbacks (backup or max-margin steps), interventions, mean/max tracking error away from
+    the obstacle, filter time median/p99 (s) and wall time (s).
     """
     import gymnasium as gym
 
     import afvsgp_gym  # noqa: F401
     from afvsgp_gym.agents import NominalController
+    from afvsgp_gym.evaluation import run_episode as run_counted_episode
     from afvsgp_gym.wrappers import SafetyFilter
 
     env_id, kw = SCENARIOS[scenario]
@@ -63,36 +66,30 @@ def run_episode(
     if learner is not None:
         env = SafetyFilter(env, learner=learner, seed=seed, **filter_options)
     base = env.unwrapped
-    policy = NominalController(env)
-    t0 = time.perf_counter()
-    obs, _ = env.reset(seed=seed)
-    hs, errs, away, times = [], [], [], []
-    fallbacks = active = 0
-    while True:
-        obs, _, term, trunc, info = env.step(policy(obs))
-        hs.append(info["h"])
+    errs, away = [], []
+
+    def track(info: dict) -> None:
         if base.time > base.warmup_steps * base.dt:
             errs.append(-info["reward_tracking"] / base.tracking_weight)
             away.append(_reference_clearance(base) > clearance)
-        if learner is not None:
-            fallbacks += not info["filter_feasible"]
-            active += info["filter_active"]
-            times.append(info["filter_time_s"])
-        if term or trunc:
-            break
-    env.close()
-    hs, errs, away = np.array(hs), np.array(errs), np.array(away, dtype=bool)
+
+    t0 = time.perf_counter()
+    try:
+        rec, _ = run_counted_episode(env, NominalController(env), seed, on_step=track)
+    finally:
+        env.close()
+    errs, away = np.array(errs), np.array(away, dtype=bool)
     e = errs[away] if away.any() else np.array([np.nan])
     return {
-        "violations": float(np.sum(hs < 0)),
-        "min_h": float(hs.min()),
-        "fallbacks": float(fallbacks),
-        "interventions": float(active),
+        "violations": float(rec["violation_steps"]),
+        "min_h": float(rec["min_h"]),
+        "fallbacks": float(rec["infeasible_steps"]),
+        "interventions": float(rec["interventions"]),
         "track_mean": float(np.mean(e)),
         "track_max": float(np.max(e)),
-        "filter_median_s": float(np.median(times)) if times else np.nan,
-        "filter_p99_s": float(np.percentile(times, 99)) if times else np.nan,
-        "steps": float(len(hs)),
+        "filter_median_s": rec["filter_time_median_s"],
+        "filter_p99_s": rec["filter_time_p99_s"],
+        "steps": float(rec["steps"]),
         "wall_s": time.perf_counter() - t0,
     }
 
