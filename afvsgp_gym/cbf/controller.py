@@ -3,7 +3,6 @@
 Example
 -------
 >>> import numpy as np
-from scipy.linalg.lapack import dpotrf
 >>> from afvsgp_gym.types import BarrierTerms
 >>> ctrl = SafetyController(-np.ones(2), np.ones(2), learner="none", alpha=2.0)
 >>> terms = [BarrierTerms(np.array([0.1, -0.2]), 0.0, np.array([1.0, 0.0]), np.zeros(3))]
@@ -31,7 +30,7 @@ from scipy.linalg.lapack import dpotrf
 from afvsgp_gym.cbf.hocbf import HOCBF
 from afvsgp_gym.cbf.learners import LEARNING, check_learner_name, make_learner
 from afvsgp_gym.cbf.measurement import measure
-from afvsgp_gym.cbf.socp import SOCPFilter, SOCPResult
+from afvsgp_gym.cbf.socp import SOCPFilter
 from afvsgp_gym.types import BarrierTerms
 
 #: Learner settings used unless ``learner_kwargs`` overrides them. AFVSGP: the paper's window
@@ -494,13 +493,9 @@ class SafetyController:
             # proposal at once (status "inactive") when it satisfies every chance constraint:
             # it is then the SOCP optimum itself, and no cone program is solved.
             marg = self.socp.margins(u_clip, a0, a, Gc)
-            res = self.socp.solve_checked(
-                u_nom, u_clip, a0, a, Gc, marg, t0, max_margin=u_backup is None
-            )
+            res = self.socp.solve_checked(u_nom, u_clip, a0, a, Gc, marg, t0, u_backup)
         else:
-            res = self.socp.solve(u_nom, a0, a, Gc, max_margin=u_backup is None)
-        if not res.feasible and u_backup is not None:
-            res = self._backup(res, u_nom, a0, a, Gc, u_backup, t0)
+            res = self.socp.solve(u_nom, a0, a, Gc, u_backup)
         u = res.u
         ubar = np.empty(m + 1)
         ubar[0] = 1.0
@@ -520,33 +515,15 @@ class SafetyController:
             warmup=warm,
         )
 
-    def _backup(self, res, u_nom, a0, a, G, u_backup, t0) -> SOCPResult:
-        """Replace an infeasible result by the clipped backup action (or, if that is not
-        finite, by the max-worst-margin fallback)."""
-        try:
-            ub = np.array(u_backup() if callable(u_backup) else u_backup, dtype=np.float64)
-            ok = ub.shape == (self.action_dim,) and bool(np.all(np.isfinite(ub)))
-        except Exception as exc:  # a failing backup must not stop the loop
-            self.last_error = f"{type(exc).__name__}: {exc}"
-            ok = False
-        status = res.status.removeprefix("fallback:")
-        if not ok:
-            return self.socp.solve(u_nom, a0, a, G)
-        u = np.clip(ub, self.low, self.high)
-        with np.errstate(invalid="ignore"):
-            marg = self.socp.margins(u, a0, a, G)
-        return SOCPResult(u, False, f"backup:{status}", marg, time.perf_counter() - t0)
-
     # ------------------------------------------------------------------ learning
     def _update_residuals(self, samples, u) -> None:
         """Residual correction (``residual_correction``) from the prediction used for the
         step just taken, then the variance calibration (``calibration_rate``)."""
-        pred = self._last_pred
+        pred, self._last_pred = self._last_pred, None
         if pred is None:
             return
         d = pred[2] - u  # the applied action may be a float32 copy of the filtered one
         if not float(d @ d) <= 1e-12 * (1.0 + float(u @ u)):
-            self._last_pred = None
             return
         w = self.residual_correction
         if w > 0:
@@ -557,13 +534,11 @@ class SafetyController:
                 e = s[2] - float(pred[0][k] @ ubar)
                 if math.isfinite(e):
                     self.residual_bias[k] += w * (e - self.residual_bias[k])
-        self._calibrate(samples, u)
+        if self.calibration_rate > 0:
+            self._calibrate(pred, samples, u)
 
-    def _calibrate(self, samples, u) -> None:
-        """Update ``variance_scale`` from the prediction used for the step just taken."""
-        pred, self._last_pred = self._last_pred, None
-        if pred is None or self.calibration_rate == 0 or not np.allclose(pred[2], u):
-            return
+    def _calibrate(self, pred, samples, u) -> None:
+        """Update ``variance_scale`` from the prediction ``pred`` used for the step just taken."""
         ubar = np.concatenate([[1.0], u])
         for k, s in enumerate(samples):
             if s is None:

@@ -226,7 +226,7 @@ class SOCPFilter:
             out = out - np.sqrt(np.einsum("ki,ki->k", Gu, Gu))
         return out
 
-    def solve(self, u_nom, a0, a, G=None, max_margin: bool = True) -> SOCPResult:
+    def solve(self, u_nom, a0, a, G=None, backup=None) -> SOCPResult:
         """Filter ``u_nom`` (never raises for finite-shaped inputs; NaN -> flagged fallback).
 
         Parameters
@@ -238,9 +238,10 @@ class SOCPFilter:
             Action coefficients.
         G : array_like of shape (K, m+1, m+1) or None
             Cone matrices ``beta L'``; None (or all zero) gives the plain QP.
-        max_margin : bool
-            On infeasibility, solve the max-worst-margin fallback (True) or return the clipped
-            ``u_nom`` flagged (False: the caller has its own backup action).
+        backup : array_like of shape (m,), zero-argument callable returning one, or None
+            Action applied (clipped to the bounds, status ``"backup:..."``) when the program is
+            infeasible or fails; the callable is only evaluated then. None, or a backup that
+            is not finite, has the wrong shape or raises: the max-worst-margin fallback.
         """
         t0 = time.perf_counter()
         m, K = self.m, self.n_constraints
@@ -273,11 +274,11 @@ class SOCPFilter:
 
         if not invalid:
             marg = self.margins(u_nom_c, a0, a, G)
-            return self.solve_checked(u_nom, u_nom_c, a0, a, G, marg, t0, max_margin)
-        return self._fallback("invalid_input", u_nom, u_nom_c, a0, a, G, valid, t0, max_margin)
+            return self.solve_checked(u_nom, u_nom_c, a0, a, G, marg, t0, backup)
+        return self._fallback("invalid_input", u_nom, u_nom_c, a0, a, G, valid, t0, backup)
 
     def solve_checked(
-        self, u_nom, u_nom_c, a0, a, G, marg, t0: float, max_margin: bool = True
+        self, u_nom, u_nom_c, a0, a, G, marg, t0: float, backup=None
     ) -> SOCPResult:
         """:meth:`solve` after validation: every input finite and of the right shape (float64),
         ``u_nom_c`` the clipped ``u_nom`` and ``marg = margins(u_nom_c, a0, a, G)``; ``t0``
@@ -302,23 +303,35 @@ class SOCPFilter:
                 status = "constraint_violated"
         except Exception as exc:  # never raise in the control loop
             status = f"error:{type(exc).__name__}"
-        return self._fallback(status, u_nom, u_nom_c, a0, a, G, None, t0, max_margin)
+        return self._fallback(status, u_nom, u_nom_c, a0, a, G, None, t0, backup)
 
-    def _fallback(
-        self, status, u_nom, u_nom_c, a0, a, G, valid, t0, max_margin=True
-    ) -> SOCPResult:
-        m = self.m
-        Gz = np.zeros((self.n_constraints, m + 1, m + 1)) if G is None else G
-        # fallback: maximise the worst margin within the bounds
-        u = u_nom_c
+    def _backup_action(self, backup) -> np.ndarray | None:
+        """The clipped backup action, or None if there is none usable."""
+        if backup is None:
+            return None
         try:
-            if max_margin:
+            ub = np.array(backup() if callable(backup) else backup, dtype=np.float64)
+        except Exception:  # a failing backup must not stop the loop
+            return None
+        if ub.shape != (self.m,) or not np.all(np.isfinite(ub)):
+            return None
+        return np.clip(ub, self.low, self.high)
+
+    def _fallback(self, status, u_nom, u_nom_c, a0, a, G, valid, t0, backup=None) -> SOCPResult:
+        m = self.m
+        u = self._backup_action(backup)
+        if u is not None:
+            status = f"backup:{status}"
+        else:  # maximise the worst margin within the bounds
+            u = u_nom_c
+            Gz = np.zeros((self.n_constraints, m + 1, m + 1)) if G is None else G
+            try:
                 x, fb_status = self._run("fallback", u_nom, a0, a, Gz)
                 if fb_status in _SOLVED and np.all(np.isfinite(x[:m])):
                     u = np.clip(x[:m], self.low, self.high)
-            status = f"fallback:{status}" if status != "invalid_input" else status
-        except Exception as exc:
-            status = f"fallback_failed:{type(exc).__name__}"
+                status = f"fallback:{status}" if status != "invalid_input" else status
+            except Exception as exc:
+                status = f"fallback_failed:{type(exc).__name__}"
         marg = self.margins(u, a0, a, G)
         if valid is not None:
             marg = np.where(valid, marg, np.nan)

@@ -97,3 +97,12 @@ def test_nan_action_gives_flagged_fallback():
 def test_bad_options(kwargs, match):
     with pytest.raises(ValueError, match=match):
         SafetyController(-np.ones(2), np.ones(2), **kwargs)
+
+
+def test_module_doctest():
+    import doctest
+
+    import afvsgp_gym.cbf.controller as module
+
+    res = doctest.testmod(module)
+    assert res.attempted > 0 and res.failed == 0

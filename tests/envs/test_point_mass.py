@@ -238,3 +238,11 @@ def test_backup_action_brakes_the_point():
         env.step(env.backup_action().astype(np.float32))
         speeds.append(np.linalg.norm(env._v))
     assert speeds[-1] < 0.05 * 0.5 and np.all(np.diff(speeds) <= 1e-12)
+
+
+@pytest.mark.parametrize("env_id", ["afvsgp_gym/PointMassObstacle-v0",
+                                    "afvsgp_gym/FrankaObstacleStatic-v0"])
+@pytest.mark.parametrize("gain", [-1.0, float("nan"), "fast"])
+def test_bad_brake_gain_names_the_argument(env_id, gain):
+    with pytest.raises(ValueError, match="brake_gain"):
+        gym.make(env_id, brake_gain=gain)
