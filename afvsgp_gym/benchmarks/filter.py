@@ -150,10 +150,11 @@ def time_filtered_step(
     ctrl = SafetyController(
         env.action_space.low,
         env.action_space.high,
-        base.n_obstacles,
-        base.relative_degree,
+        base.n_barriers,
         learner=learner,
         seed=seed,
+        relative_degree=base.relative_degree,
+        activation_distance=getattr(base, "activation_distance", None) or float("inf"),
         warmup_samples=min(200, base.warmup_steps - 1),
     )
     policy = NominalController(env)

@@ -12,47 +12,38 @@ Example
 
 In a real robot loop: ``res = ctrl.filter(u_nom, terms, u_backup=brake)``; apply ``res.u`` for
 one control period ``dt``; read the new terms; ``ctrl.observe(terms, res.u, new_terms, dt)``.
-``u_backup`` (optional) is the action to apply when no action satisfies the chance constraints,
-e.g. a joint-damping brake; without it the filter falls back to the action that maximises the
-worst predicted margin.
+``terms`` holds one :class:`~afvsgp_gym.types.BarrierTerms` per barrier (or a
+:class:`~afvsgp_gym.types.BarrierSet`). ``u_backup`` (optional) is the action to apply when no
+action satisfies the chance constraints, e.g. a joint-damping brake; without it the filter
+falls back to the action that maximises the worst margin.
+
+One step has two parts with one job each: :meth:`SafetyController.filter` assembles the
+constraints (eq. 45 plus the learned mean and covariance, eq. 51) of the barriers near an
+obstacle and solves the cone program (eq. 05); :meth:`SafetyController.observe` measures the
+step (eq. 48), feeds the residual observer with the prediction the filter used (a
+:class:`StepPrediction`) and updates the learners (Algorithm 1).
 """
 
 from __future__ import annotations
 
-import math
 import time
-from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 from scipy.linalg.lapack import dpotrf
 
+from afvsgp_gym.cbf._socp_adapter import VariableSOCP as SOCPFilter
+from afvsgp_gym.cbf.config import FilterConfig
+from afvsgp_gym.cbf.exploration import Exploration
 from afvsgp_gym.cbf.hocbf import HOCBF
-from afvsgp_gym.cbf.learners import LEARNING, check_learner_name, make_learner
-from afvsgp_gym.cbf.measurement import measure
-from afvsgp_gym.cbf.socp import SOCPFilter
-from afvsgp_gym.types import BarrierTerms
+from afvsgp_gym.cbf.learners import REGISTRY, check_learner_name, make_bank
+from afvsgp_gym.cbf.measurement import measure_all
+from afvsgp_gym.cbf.residuals import ResidualObserver
+from afvsgp_gym.types import BarrierSet
+from afvsgp_gym.validation import check_int
 
-#: Learner settings used unless ``learner_kwargs`` overrides them. AFVSGP: the paper's window
-#: P = 200 with phi = 0.99 remembers ~100 samples (0.4 s at the Franka's 250 Hz); with a
-#: "zero" nominal model the action gain L_g L_f h is only identifiable from the exploration
-#: of the warm-up, and forgetting it within a second of smooth tracking left the model with a
-#: wrong gain (and violations) on the dynamic scenario. window 1000, phi = 0.999 keeps it.
-DEFAULT_LEARNER_KWARGS: dict[str, dict] = {"afvsgp": {"window": 1000, "forgetting": 0.999}}
-
-#: Default confidence multiplier of the chance constraint. Eq. 49's bound (Castaneda et al.
-#: 2021, Thm. 2) is far too conservative to be feasible in practice (it grows with
-#: ln^3(P / delta)); like Castaneda et al. we use a constant. beta = 3 (one-sided 99.87 %
-#: Gaussian quantile per step) was the best of 2, 2.5, 3, 3.5 on the Franka sweeps with the
-#: "zero" nominal model (benchmarks/filter.md): with 2 the learned posterior, which is
-#: overconfident away from the data, let 1-6 of 20 Franka episodes violate.
-DEFAULT_BETA = 3.0
-
-#: Default weight of the residual correction (an exponential average over ~1/0.2 = 5 steps of
-#: the measured minus the predicted ``Delta B^(r)``). Without it a model that is confidently
-#: wrong (3-10 predicted standard deviations, same sign for tens of steps) let the arm creep
-#: into the obstacle while every SOCP was "Solved" (benchmarks/filter.md).
-DEFAULT_RESIDUAL_CORRECTION = 0.2
+__all__ = ["FilterResult", "SafetyController", "StepPrediction"]
 
 
 @dataclass(frozen=True)
@@ -64,21 +55,23 @@ class FilterResult:
     u : ndarray of shape (m,)
         Safe action, finite and inside the bounds.
     feasible : bool
-        False when the fallback (max worst margin) was used.
+        False when no action satisfied the constraints (backup or fallback applied).
     active : bool
         True when the filter changed the (clipped) proposed action, or fell back.
     status : str
         ``"inactive"``, the solver status, ``"backup:..."`` (infeasible: the backup action),
         ``"fallback:..."`` (infeasible: max worst margin) or ``"invalid_input"``.
     margins : ndarray of shape (K,)
-        Chance-constraint margins at ``u``.
+        Chance-constraint margins at ``u`` (NaN for barriers outside the program).
     delta_b_mean, delta_b_std : ndarray of shape (K,)
-        Learned mean and standard deviation of ``Delta B^(r)`` at ``u`` (eq. 51).
+        Learned mean and standard deviation of ``Delta B^(r)`` at ``u`` (eq. 51; NaN where
+        not predicted).
     solve_time_s : float
         Wall time of prediction and cone program.
     warmup : bool
-        True while Algorithm 1's warm-up collects its first samples (nominal-only filter plus
-        exploration noise).
+        True while Algorithm 1's warm-up collects its first samples.
+    n_active : int
+        Number of barriers in the cone program.
     """
 
     u: np.ndarray
@@ -90,13 +83,26 @@ class FilterResult:
     delta_b_std: np.ndarray
     solve_time_s: float
     warmup: bool = False
+    n_active: int = 0
 
 
-def _cone_matrix(sigma: np.ndarray, beta: float) -> np.ndarray:
+@dataclass(frozen=True)
+class StepPrediction:
+    """What the filter predicted for the step it just filtered (read by ``observe``).
+
+    ``rows`` the barriers predicted, ``mean`` (k, m+1) and ``cov`` (k, m+1, m+1) their
+    affine prediction, ``action`` the action returned."""
+
+    rows: np.ndarray
+    mean: np.ndarray
+    cov: np.ndarray
+    action: np.ndarray
+
+
+def cone_matrix(sigma: np.ndarray, beta: float) -> np.ndarray:
     """``G = beta L'`` with ``Sigma = L L'`` (eq. 05 with the standard deviation, eq. 51):
-    ``||G ubar|| = beta sqrt(ubar' Sigma ubar)``. The Cholesky factor (LAPACK ``potrf``,
-    ``L' = U`` upper) when Sigma is numerically positive definite, else the eigen-factor
-    ``diag(sqrt(max(w, 0))) V'`` (singular or rounding-level indefinite Sigma)."""
+    ``||G ubar|| = beta sqrt(ubar' Sigma ubar)``. The Cholesky factor (LAPACK ``potrf``) when
+    Sigma is numerically positive definite, else the eigen-factor ``diag(sqrt(max(w, 0))) V'``."""
     sym = 0.5 * (sigma + sigma.T)
     upper, info = dpotrf(sym, lower=0, clean=1)
     if info == 0:
@@ -107,186 +113,76 @@ def _cone_matrix(sigma: np.ndarray, beta: float) -> np.ndarray:
 
 
 class SafetyController:
-    """Learned HOCBF safety filter: chance-constrained SOCP + one learner per obstacle.
+    """Learned HOCBF safety filter: chance-constrained SOCP + one learner per barrier.
 
     Parameters
     ----------
     action_low, action_high : array_like of shape (m,)
         Action bounds (the filter never leaves them).
-    n_obstacles : int
-        Number of barriers; one learner and one cone each.
-    relative_degree : int
-        Relative degree ``r`` of every barrier (2 for the provided envs).
+    n_barriers : int
+        Number of barriers K (one learner each).
     learner : str
         One of :data:`afvsgp_gym.cbf.LEARNERS`.
-    alpha : float or sequence of float
-        Linear class-K gains ``a_1..a_r`` of the HOCBF chain (default 4.0).
-    beta : float
-        Chance-constraint multiplier on the predicted standard deviation (eq. 49; default
-        :data:`DEFAULT_BETA`). ``beta = 0`` gives the mean-only QP.
-    barrier_margin : float
-        Buffer subtracted from ``h`` in the constraint (units of ``h``; 1 mm for the provided
-        envs): the HOCBF condition holds in continuous time, and with a zero-order-hold action
-        over ``dt`` the sampled ``h`` can dip O(dt^2) below the boundary without it.
-    warmup_samples : int
-        ``P``: samples collected before the offline hyperparameter fit (Algorithm 1; 200).
-    exploration_noise : float
-        Std of the Gaussian noise added to the action during warm-up, as a fraction of the
-        half range of the bounds (default 0.3).
-    online_exploration : float
-        Std of the noise added to the proposed action after warm-up (same units as
-        ``exploration_noise``; default 0.05). Persistent excitation: with a "zero" nominal model
-        the action gain is only identifiable along directions the actions have explored. The
-        noisy proposal is then filtered, so the constraint still holds.
-    residual_correction : float
-        Weight ``w`` in [0, 1) of the residual correction, a disturbance observer on top of the
-        learner: after every step the measured ``z`` (eq. 48) is compared with the learned mean
-        the filter used, ``e = z - b' ubar``, and ``bias <- (1 - w) bias + w e`` (one per
-        obstacle, ``residual_bias``) is added to the mean in the next constraints (eq. 05).
-        A learner that is wrong in a persistent direction (the drift or the action gain changed
-        faster than the posterior adapts) is thereby corrected within ~1/w steps; zero-mean
-        errors average out. Default :data:`DEFAULT_RESIDUAL_CORRECTION`; 0 disables it. Only
-        for learning learners, after warm-up.
-    calibration_rate : float
-        Online variance calibration: every observed ``z`` is compared with the prediction the
-        filter used for that step, and an exponential average (rate ``calibration_rate``) of
-        ``(z - mean)^2 / (var + max(noise, 0.01 var(z_warmup)))`` scales the covariance in
-        the cone when it exceeds 1 (``variance_scale``, one per obstacle): an overconfident
-        model becomes more cautious within ~1/rate steps. Default 0 (off): at 0.02 it removed
-        the remaining Franka violations but made the filter so cautious that the arm stopped
-        tracking (mean error 0.35-0.47 m away from the obstacle on 3 of 4 episodes).
-    learner_kwargs : dict or None
-        Passed to the learner's constructor, on top of :data:`DEFAULT_LEARNER_KWARGS`.
-    learn_hyperparameters : bool
-        Maximise the bound at the end of warm-up (True) or keep the given kernel.
-    kernel_init : {"uniform", "data"} or float
-        Initial ADP kernel for the offline fit when ``learner_kwargs`` has no ``kernel``:
-        ``"data"`` is the learner's heuristic (per-feature ``sqrt(b) std``, which makes features
-        that barely move during warm-up extremely short-scaled, so the model cannot extrapolate
-        when they move later); ``"uniform"`` (default) uses the largest of those lengthscales for
-        every feature; a float sets every lengthscale. Variances follow ``ADPKernel.from_data``.
-    noise_floor : float
-        Lower bound on the learned noise variance, relative to ``var(z)`` of the warm-up data.
-        Eq. 48's samples are nearly noise-free, so maximising the bound drives the noise to
-        ~1e-6 var(z) and the posterior becomes overconfident away from the data (violations
-        with a "Solved" SOCP); below the floor the fitted kernel is kept and the posterior is
-        recomputed with the floor. 0 (default) disables it: a floor of 0.01 made the filter
-        fall back more often and violate more on the dynamic Franka scenario.
     dataset : tuple or list of tuples or None
-        ``(xi (N, b), u (N, m), z (N,))`` recorded beforehand (one tuple for every obstacle,
-        or one per obstacle): the learners are fitted at construction and warm-up is skipped.
-    online : bool
-        Update the learners with every observed sample after warm-up (``learning``).
-    qp_solver : str or None
-        qpsolvers backend for the plain-QP case (None: clarabel directly).
-    seed : int or None
-        Seed of the exploration noise.
+        ``(xi (N, b), u (N, m), z (N,))`` recorded beforehand (one tuple for every barrier,
+        or one per barrier): the learners are fitted at construction and warm-up is skipped.
+    **options
+        The fields of :class:`~afvsgp_gym.cbf.config.FilterConfig` (``alpha``, ``beta``,
+        ``activation_distance``, ``warmup_samples``, ``exploration_noise``,
+        ``online_exploration``, ``residual_correction``, ``learner_kwargs``, ``online``,
+        ``seed``, ...), or ``config=FilterConfig(...)``.
     """
 
-    def __init__(
-        self,
-        action_low,
-        action_high,
-        n_obstacles: int = 1,
-        relative_degree: int = 2,
-        learner: str = "afvsgp",
-        *,
-        alpha: float | Sequence[float] = 4.0,
-        beta: float = DEFAULT_BETA,
-        barrier_margin: float = 1e-3,
-        warmup_samples: int = 200,
-        exploration_noise: float = 0.3,
-        online_exploration: float = 0.05,
-        residual_correction: float = DEFAULT_RESIDUAL_CORRECTION,
-        calibration_rate: float = 0.0,
-        learner_kwargs: dict | None = None,
-        learn_hyperparameters: bool = True,
-        kernel_init: str | float = "uniform",
-        noise_floor: float = 0.0,
-        dataset=None,
-        online: bool = True,
-        qp_solver: str | None = None,
-        seed: int | None = None,
-    ):
+    def __init__(self, action_low, action_high, n_barriers: int = 1, learner: str = "afvsgp",
+                 *, dataset=None, config: FilterConfig | None = None, **options: Any):
         self.learner_name = check_learner_name(learner)
-        if not isinstance(n_obstacles, (int, np.integer)) or n_obstacles < 1:
-            raise ValueError(f"n_obstacles must be a positive integer. Got: {n_obstacles!r}")
-        if not (np.isfinite(barrier_margin) and barrier_margin >= 0):
-            raise ValueError(f"barrier_margin must be finite and >= 0. Got: {barrier_margin!r}")
-        if not (np.isfinite(beta) and beta >= 0):
-            raise ValueError(f"beta must be finite and >= 0. Got: {beta!r}")
-        if not isinstance(warmup_samples, (int, np.integer)) or warmup_samples < 2:
-            raise ValueError(f"warmup_samples must be an integer >= 2. Got: {warmup_samples!r}")
-        if not (
-            kernel_init in ("uniform", "data")
-            or (
-                isinstance(kernel_init, (int, float))
-                and np.isfinite(kernel_init)
-                and kernel_init > 0
-            )
-        ):
-            raise ValueError(
-                f"kernel_init must be 'uniform', 'data' or a positive float. Got: {kernel_init!r}"
-            )
-        if not (np.isfinite(noise_floor) and noise_floor >= 0):
-            raise ValueError(f"noise_floor must be finite and >= 0. Got: {noise_floor!r}")
-        if not (np.isfinite(exploration_noise) and exploration_noise >= 0):
-            raise ValueError(f"exploration_noise must be >= 0. Got: {exploration_noise!r}")
-        if not (np.isfinite(residual_correction) and 0 <= residual_correction < 1):
-            raise ValueError(
-                f"residual_correction must be in [0, 1). Got: {residual_correction!r}"
-            )
-        if not (np.isfinite(calibration_rate) and 0 <= calibration_rate <= 1):
-            raise ValueError(f"calibration_rate must be in [0, 1]. Got: {calibration_rate!r}")
-        if not (np.isfinite(online_exploration) and online_exploration >= 0):
-            raise ValueError(f"online_exploration must be >= 0. Got: {online_exploration!r}")
-        self.hocbf = HOCBF(relative_degree, alpha)
+        self.n_barriers = check_int("n_barriers", n_barriers, 1)
+        unknown = sorted(set(options) - set(FilterConfig.option_names()))
+        if unknown:
+            valid = list(FilterConfig.option_names())
+            raise ValueError(f"unknown option(s) {unknown}; valid: {valid}")
+        self.config = cfg = replace(config or FilterConfig(), **options)
+        self.hocbf = HOCBF(cfg.relative_degree, cfg.alpha)
         self._margin_gain = float(np.prod(self.hocbf.gains))  # d psi_r / d h
-        self.socp = SOCPFilter(action_low, action_high, n_obstacles, qp_solver=qp_solver)
+        self.socp = SOCPFilter(action_low, action_high, qp_solver=cfg.qp_solver)
         self.low, self.high = self.socp.low, self.socp.high
-        self._half_range = 0.5 * (self.high - self.low)
         self.action_dim = self.socp.m
-        self.n_obstacles = int(n_obstacles)
-        self.relative_degree = int(relative_degree)
-        self.beta = float(beta)
-        self.barrier_margin = float(barrier_margin)
-        self.warmup_samples = int(warmup_samples)
-        self.exploration_noise = float(exploration_noise)
-        self.online_exploration = float(online_exploration)
-        self.residual_correction = float(residual_correction)
-        self.residual_bias = np.zeros(int(n_obstacles))
-        self.calibration_rate = float(calibration_rate)
-        self.variance_scale = np.ones(int(n_obstacles))
-        self._last_pred: list | None = None
-        self._z_floor = np.zeros(int(n_obstacles))
-        self.learn_hyperparameters = bool(learn_hyperparameters)
-        self.kernel_init = kernel_init
-        self.noise_floor = float(noise_floor)
-        self.learning = bool(online)
-        self._learner_kwargs = {
-            **DEFAULT_LEARNER_KWARGS.get(self.learner_name, {}),
-            **(learner_kwargs or {}),
-        }
-        self.learners = [
-            make_learner(self.learner_name, self.action_dim, **self._learner_kwargs)
-            for _ in range(self.n_obstacles)
-        ]
-        self._rng = np.random.default_rng(seed)
-        self._buffer: list[list[tuple[np.ndarray, np.ndarray, float]]] = [
-            [] for _ in range(self.n_obstacles)
-        ]
-        self.fitted = self.learner_name not in LEARNING
+        entry = REGISTRY[self.learner_name]
+        self.uses_true_terms = entry.true_terms
+        self.bank = make_bank(self.learner_name, self.n_barriers, self.action_dim,
+                              cfg.learner_kwargs, cfg.shared_hyperparameters)
+        self.learns = self.bank.learns
+        self.exploration = Exploration(self.low, self.high, cfg.exploration_noise,
+                                       cfg.online_exploration, cfg.seed)
+        self.residuals = ResidualObserver(self.n_barriers, cfg.residual_correction)
+        self.learning = bool(cfg.online)
+        self.fitted = not self.learns
+        self._buffer: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self._pending: StepPrediction | None = None
         self.n_update_failures = 0
         self.n_skipped_samples = 0
         self.last_error: str | None = None
-        if dataset is not None and self.learner_name in LEARNING:
+        if dataset is not None and self.learns:
             self.fit(dataset)
 
     # ------------------------------------------------------------------ state
+    @property
+    def beta(self) -> float:
+        return self.config.beta
+
+    @property
+    def residual_bias(self) -> np.ndarray:
+        """(K,) current residual correction per barrier."""
+        return self.residuals.bias
+
     def reset_residuals(self) -> None:
         """Forget the residual correction (e.g. at an episode reset: the state jumps)."""
-        self.residual_bias[:] = 0.0
-        self._last_pred = None
+        self.residuals.reset()
+        self._pending = None
+
+    def reseed(self, seed: int) -> None:
+        """Reseed the exploration noise (the wrapper derives it from ``reset(seed=...)``)."""
+        self.exploration.reseed(seed)
 
     @property
     def warming_up(self) -> bool:
@@ -294,134 +190,57 @@ class SafetyController:
         return not self.fitted
 
     def dataset(self) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-        """Warm-up samples collected so far, one ``(xi, u, z)`` tuple per obstacle."""
+        """Warm-up samples collected so far, one ``(xi, u, z)`` tuple per barrier (rows with
+        non-finite values left out)."""
+        K, m = self.n_barriers, self.action_dim
+        if not self._buffer:
+            return [(np.zeros((0, 0)), np.zeros((0, m)), np.zeros(0)) for _ in range(K)]
+        xi = np.stack([b[0] for b in self._buffer], axis=1)  # (K, N, b)
+        u = np.array([b[1] for b in self._buffer])
+        z = np.stack([b[2] for b in self._buffer], axis=1)  # (K, N)
         out = []
-        for buf in self._buffer:
-            if buf:
-                xi, u, z = zip(*buf, strict=True)
-                out.append((np.array(xi), np.array(u), np.array(z)))
-            else:
-                out.append((np.zeros((0, 0)), np.zeros((0, self.action_dim)), np.zeros(0)))
+        for k in range(K):
+            ok = np.isfinite(z[k]) & np.all(np.isfinite(xi[k]), axis=1)
+            out.append((xi[k][ok], u[ok], z[k][ok]))
         return out
 
     def fit(self, dataset) -> SafetyController:
-        """Fit every learner offline on ``dataset`` (one tuple, or one per obstacle)."""
+        """Fit every learner offline on ``dataset`` (one tuple, or one per barrier)."""
         if isinstance(dataset, tuple):
-            dataset = [dataset] * self.n_obstacles
-        if len(dataset) != self.n_obstacles:
+            dataset = [dataset] * self.n_barriers
+        if len(dataset) != self.n_barriers:
             raise ValueError(
-                f"dataset must hold one (xi, u, z) tuple or {self.n_obstacles}. Got: {len(dataset)}"
+                f"dataset must hold one (xi, u, z) tuple or {self.n_barriers}. Got: {len(dataset)}"
             )
-        for k, (xi, u, z) in enumerate(dataset):
+        clean = []
+        for xi, u, z in dataset:
             xi = np.asarray(xi, np.float64)
             u = np.asarray(u, np.float64).reshape(len(xi), self.action_dim)
             z = np.asarray(z, np.float64).ravel()
-            ok = np.all(np.isfinite(xi), axis=1) & np.all(np.isfinite(u), axis=1)
-            ok &= np.isfinite(z)
-            xi, u, z = xi[ok], u[ok], z[ok]
-            self.learners[k] = self._fit_one(xi, u, z)
-            self._z_floor[k] = 0.01 * (float(np.var(z)) if len(z) > 1 else 1.0)
+            ok = np.all(np.isfinite(xi), axis=1) & np.all(np.isfinite(u), axis=1) & np.isfinite(z)
+            clean.append((xi[ok], u[ok], z[ok]))
+        self.bank.fit(clean, self.config.learn_hyperparameters)
         self.fitted = True
         return self
 
-    def _fit_one(self, xi, u, z):
-        learner = self._fit_restarts(xi, u, z)
-        floor = self.noise_floor * (float(np.var(z)) if len(z) > 1 else 1.0)
-        noise = getattr(learner, "noise_variance_", None)
-        kernel = getattr(learner, "kernel_", None)
-        if (
-            self.learn_hyperparameters
-            and kernel is not None
-            and noise is not None
-            and noise < floor
-        ):
-            kwargs = {**self._learner_kwargs, "kernel": kernel, "noise_variance": floor}
-            learner = make_learner(self.learner_name, self.action_dim, **kwargs)
-            learner.fit(xi, u, z, learn_hyperparameters=False)
-        return learner
-
-    def _fit_restarts(self, xi, u, z):
-        """Fit one learner; restart from other initial points if the optimiser did not move.
-
-        L-BFGS-B on the collapsed bound sometimes stops at its initial point (a failed line
-        search: the first step lands where the Cholesky fails); the restarts are a smaller
-        initial noise variance, doubled lengthscales and the learner's own data heuristic.
-        """
-        user_kernel = "kernel" in self._learner_kwargs
-        if not self.learn_hyperparameters or user_kernel or self.kernel_init == "data":
-            starts = [{}]
-        else:
-            k0 = self._initial_kernel(xi, u, z)
-            vz = float(np.var(z)) if len(z) > 1 else 1.0
-            starts = [
-                {"kernel": k0},
-                {"kernel": k0, "noise_variance": max(0.01 * vz, 1e-8)},
-                {"kernel": type(k0)(2.0 * k0.lengthscales, k0.variances)},
-                {"kernel": None},
-            ]
-        best, best_bound = None, -np.inf
-        for start in starts:
-            kwargs = {**self._learner_kwargs, **start}
-            learner = make_learner(self.learner_name, self.action_dim, **kwargs)
-            learner.fit(xi, u, z, learn_hyperparameters=self.learn_hyperparameters)
-            if len(starts) == 1:
-                return learner
-            k0 = start.get("kernel")
-            fitted_kernel = getattr(learner, "kernel_", None)
-            moved = (
-                k0 is None
-                or fitted_kernel is None
-                or not np.allclose(fitted_kernel.theta, k0.theta)
-            )
-            bound = float(getattr(learner, "bound_", None) or 0.0)
-            if moved:
-                return learner
-            if best is None or bound > best_bound:
-                best, best_bound = learner, bound
-        return best
-
-    def _initial_kernel(self, xi, u, z):
-        from afvsgp_gym.gp import ADPKernel
-
-        base = ADPKernel.from_data(xi, u, z)
-        m1, b = self.action_dim + 1, xi.shape[1]
-        if self.kernel_init == "uniform":
-            std = xi.std(axis=0) if len(xi) > 1 else np.ones(b)
-            ls = float(np.sqrt(b) * np.max(std)) if np.max(std) > 1e-12 else 1.0
-        else:
-            ls = float(self.kernel_init)
-        return ADPKernel(np.full((m1, b), ls), base.variances)
-
     # ------------------------------------------------------------------ filter
-    def _terms_ok(self, terms: Sequence[BarrierTerms]) -> np.ndarray:
-        ok = np.ones(self.n_obstacles, dtype=bool)
-        total = 0.0
-        try:  # one sum per term: finite unless a NaN/inf is present (or overflow)
-            for t in terms:
-                total += float(t.lf) + float(t.derivatives.sum() + t.lg.sum() + t.xi.sum())
-        except (AttributeError, TypeError):
-            total = np.nan
-        if math.isfinite(total):
-            return ok
-        for k, t in enumerate(terms):
-            ok[k] = bool(
-                np.all(np.isfinite(t.derivatives))
-                and np.isfinite(t.lf)
-                and np.all(np.isfinite(t.lg))
-                and np.all(np.isfinite(t.xi))
-            )
-        return ok
+    def _terms(self, terms, name: str) -> BarrierSet:
+        bset = BarrierSet.stack(terms)
+        if len(bset) != self.n_barriers:
+            raise ValueError(f"{name} must hold {self.n_barriers} BarrierTerms. Got: {len(bset)}")
+        return bset
 
-    def filter(
-        self,
-        u_nom,
-        terms: Sequence[BarrierTerms],
-        true_terms: Sequence[BarrierTerms] | None = None,
-        u_backup=None,
-    ) -> FilterResult:
+    def _active_rows(self, derivs: np.ndarray, ok: np.ndarray) -> np.ndarray:
+        """Barriers in the program: ``min(h, h + h'/a_1) < activation_distance`` (and every
+        barrier with non-finite terms, so that the program reports them)."""
+        h = derivs[:, 0]
+        near = np.minimum(h, h + derivs[:, 1] / self.hocbf.gains[0]) if derivs.shape[1] > 1 else h
+        return np.flatnonzero((near < self.config.activation_distance) | ~ok)
+
+    def filter(self, u_nom, terms, true_terms=None, u_backup=None) -> FilterResult:
         """Project ``u_nom`` onto the (chance-)constrained safe set (eq. 05).
 
-        ``terms`` are the nominal barrier terms (one per obstacle); the oracle learner uses
+        ``terms`` are the nominal barrier terms (one per barrier); the oracle learner uses
         ``true_terms`` instead. ``u_backup`` (array of shape (m,) or a zero-argument callable
         returning one, evaluated only when needed) is applied, clipped to the bounds, when
         the program is infeasible or fails (status ``"backup:..."``); without it, or if it is
@@ -429,186 +248,141 @@ class SafetyController:
         Never raises for NaN values: they give the flagged fallback.
         """
         t0 = time.perf_counter()
-        K, m = self.n_obstacles, self.action_dim
-        if len(terms) != K:
-            raise ValueError(f"terms must hold {K} BarrierTerms. Got: {len(terms)}")
-        if self.learner_name == "oracle":
+        K, m = self.n_barriers, self.action_dim
+        if self.uses_true_terms:
             if true_terms is None:
-                raise ValueError("learner 'oracle' needs true_terms")
-            if len(true_terms) != K:
-                raise ValueError(f"true_terms must hold {K} BarrierTerms. Got: {len(true_terms)}")
-            terms = true_terms
+                raise ValueError(f"learner {self.learner_name!r} needs true_terms")
+            bset = self._terms(true_terms, "true_terms")
+        else:
+            bset = self._terms(terms, "terms")
         u_nom = np.array(u_nom, dtype=np.float64).ravel()  # a copy
         if u_nom.shape != (m,):
             raise ValueError(f"u_nom must have shape ({m},). Got: {u_nom.shape}")
         warm = self.warming_up
-        noise = self.exploration_noise if warm else self.online_exploration
-        if self.learner_name not in LEARNING:
-            noise = 0.0
-        nom_finite = math.isfinite(float(u_nom.sum())) or bool(np.all(np.isfinite(u_nom)))
-        if noise > 0 and nom_finite:
-            u_nom = u_nom + noise * self._half_range * self._rng.standard_normal(m)
-        u_clip = np.clip(u_nom, self.low, self.high)  # what the SOCP clips to (identical)
-        if noise > 0 and nom_finite:
-            u_nom = u_clip
-
-        ok = self._terms_ok(terms)
-        a0 = np.full(K, np.nan)
-        a = np.full((K, m), np.nan)
-        bs = np.zeros((K, m + 1))
-        G = np.zeros((K, m + 1, m + 1))
-        sig = np.zeros((K, m + 1, m + 1))
-        betas = np.zeros(K)  # cone multiplier per obstacle (0: no cone)
-        use_cone = False
-        for k, t in enumerate(terms):
-            if not ok[k]:
-                continue
+        if self.learns:
+            u_nom = self.exploration.perturb(u_nom, warm)
+        c0, c = self.hocbf.constraints(bset)
+        c0 = c0 - self.config.barrier_margin * self._margin_gain
+        ok = np.isfinite(c0 + c.sum(axis=1) + bset.derivatives.sum(axis=1) + bset.xi.sum(axis=1))
+        rows = self._active_rows(bset.derivatives, ok)
+        a0, a = c0[rows], c[rows]
+        if not ok.all():  # any non-finite term makes its constraint invalid (flagged fallback)
+            a0 = np.where(ok[rows], a0, np.nan)
+        fill = np.nan if self.learns else 0.0  # nothing learned: Delta B = 0 exactly
+        mean = np.full(K, fill)
+        std = np.full(K, fill)
+        G = None
+        pred_rows = rows[ok[rows]] if (self.learns and not warm) else rows[:0]
+        bvec = sig = None
+        if len(pred_rows):
             try:
-                c0, c = self.hocbf.constraint(t)
-                c0 -= self.barrier_margin * self._margin_gain
-                a0[k], a[k] = c0, c
-                if not warm and self.learner_name in LEARNING:
-                    b, s = self.learners[k].predict_affine(np.asarray(t.xi, np.float64)[None])
-                    bs[k], sig[k] = b[0], s[0]
-                    a0[k] += b[0, 0] + self.residual_bias[k]
-                    a[k] += b[0, 1:]
-                    if self.beta > 0:
-                        scale = max(1.0, float(self.variance_scale[k]))
-                        betas[k] = self.beta * math.sqrt(scale)
-            except ValueError:
-                raise
+                bvec, sig = self.bank.predict_affine(bset.xi[pred_rows], pred_rows)
+                where = np.searchsorted(rows, pred_rows)
+                a0 = a0.copy()
+                a0[where] += bvec[:, 0] + self.residuals.bias[pred_rows]
+                a = a + 0.0
+                a[where] += bvec[:, 1:]
+                if self.config.beta > 0:
+                    G = np.zeros((len(rows), m + 1, m + 1))
+                    for j, s in zip(where, sig, strict=True):
+                        G[j] = cone_matrix(s, self.config.beta)
             except Exception as exc:  # a learner failure must not stop the loop
                 self.last_error = f"{type(exc).__name__}: {exc}"
-                a0[k] = np.nan
-        for k in np.flatnonzero(betas):  # factor the covariances
-            try:
-                G[k] = _cone_matrix(sig[k], betas[k])
-                use_cone = True
-            except Exception as exc:
-                self.last_error = f"{type(exc).__name__}: {exc}"
-                a0[k] = np.nan
-        Gc = G if use_cone else None
-        if nom_finite and math.isfinite(float(a0.sum() + a.sum() + G.sum())):
-            # Checked data: skip SOCPFilter.solve's validation. It returns the clipped
-            # proposal at once (status "inactive") when it satisfies every chance constraint:
-            # it is then the SOCP optimum itself, and no cone program is solved.
-            marg = self.socp.margins(u_clip, a0, a, Gc)
-            res = self.socp.solve_checked(u_nom, u_clip, a0, a, Gc, marg, t0, u_backup)
-        else:
-            res = self.socp.solve(u_nom, a0, a, Gc, u_backup)
+                a0 = np.full(len(rows), np.nan)
+                pred_rows, bvec, sig, G = rows[:0], None, None, None
+        res = self.socp.solve(u_nom, a0, a, G, u_backup)
         u = res.u
-        ubar = np.empty(m + 1)
-        ubar[0] = 1.0
-        ubar[1:] = u
-        self._last_pred = None if warm else (bs, sig, u.copy())
-        mean = bs @ ubar
-        std = np.sqrt(np.maximum(((sig @ ubar) * ubar).sum(axis=1), 0.0))
+        margins = np.full(K, np.nan)
+        margins[rows] = res.margins
+        if bvec is not None:
+            ubar = np.concatenate([[1.0], u])
+            mean[pred_rows] = bvec @ ubar
+            std[pred_rows] = np.sqrt(np.maximum(((sig @ ubar) * ubar).sum(axis=1), 0.0))
+            self._pending = StepPrediction(pred_rows, bvec, sig, u.copy())
+        else:
+            self._pending = None if warm else StepPrediction(rows[:0], bvec, sig, u.copy())
         return FilterResult(
             u=u,
             feasible=res.feasible,
             active=res.status != "inactive",
             status=res.status,
-            margins=res.margins,
+            margins=margins,
             delta_b_mean=mean,
             delta_b_std=std,
             solve_time_s=time.perf_counter() - t0,
             warmup=warm,
+            n_active=len(rows),
         )
 
     # ------------------------------------------------------------------ learning
-    def _update_residuals(self, samples, u) -> None:
-        """Residual correction (``residual_correction``) from the prediction used for the
-        step just taken, then the variance calibration (``calibration_rate``)."""
-        pred, self._last_pred = self._last_pred, None
-        if pred is None:
-            return
-        d = pred[2] - u  # the applied action may be a float32 copy of the filtered one
-        if not float(d @ d) <= 1e-12 * (1.0 + float(u @ u)):
-            return
-        w = self.residual_correction
-        if w > 0:
-            ubar = np.concatenate([[1.0], u])
-            for k, s in enumerate(samples):
-                if s is None:
-                    continue
-                e = s[2] - float(pred[0][k] @ ubar)
-                if math.isfinite(e):
-                    self.residual_bias[k] += w * (e - self.residual_bias[k])
-        if self.calibration_rate > 0:
-            self._calibrate(pred, samples, u)
-
-    def _calibrate(self, pred, samples, u) -> None:
-        """Update ``variance_scale`` from the prediction ``pred`` used for the step just taken."""
-        ubar = np.concatenate([[1.0], u])
-        for k, s in enumerate(samples):
-            if s is None:
-                continue
-            noise = float(getattr(self.learners[k], "noise_variance_", 0.0) or 0.0)
-            var = float(ubar @ pred[1][k] @ ubar) + max(noise, self._z_floor[k])
-            if not var > 0:
-                continue
-            r = (s[2] - float(pred[0][k] @ ubar)) ** 2 / var
-            if np.isfinite(r):
-                lam = self.calibration_rate
-                self.variance_scale[k] = (1 - lam) * self.variance_scale[k] + lam * min(r, 1e6)
-
-    def observe(
-        self,
-        terms_before: Sequence[BarrierTerms],
-        u_applied,
-        terms_after: Sequence[BarrierTerms],
-        dt: float,
-    ) -> np.ndarray:
+    def observe(self, terms_before, u_applied, terms_after, dt: float) -> np.ndarray:
         """Build the eq. 48 samples for the step just taken and update the learners.
 
         Returns the measurements ``z`` (K,) (NaN where skipped). Never raises for NaN data
         (such samples are skipped and counted in ``n_skipped_samples``).
         """
-        K = self.n_obstacles
-        z_all = np.full(K, np.nan)
-        if self.learner_name not in LEARNING:
-            return z_all
-        if len(terms_before) != K or len(terms_after) != K:
-            raise ValueError(f"terms_before and terms_after must hold {K} BarrierTerms")
+        K = self.n_barriers
+        if not self.learns:
+            return np.full(K, np.nan)
+        before = self._terms(terms_before, "terms_before")
+        after = self._terms(terms_after, "terms_after")
         u = np.asarray(u_applied, dtype=np.float64).ravel()
         if not (np.isfinite(dt) and dt > 0):
             raise ValueError(f"dt must be finite and positive. Got: {dt!r}")
-        samples = []
-        for k in range(K):
-            try:
-                xi, z = measure(terms_before[k], u, terms_after[k], dt)
-            except Exception:
-                xi, z = None, np.nan
-            if xi is None or not (np.isfinite(z) and np.all(np.isfinite(xi))):
-                self.n_skipped_samples += 1
-                samples.append(None)
-                continue
-            z_all[k] = z
-            samples.append((xi, u.copy(), float(z)))
+        if u.shape != (self.action_dim,):
+            raise ValueError(f"u_applied must have shape ({self.action_dim},). Got: {u.shape}")
+        with np.errstate(invalid="ignore", over="ignore"):
+            xi, z = measure_all(before, u, after, dt)
+        bad = ~(np.isfinite(z) & np.all(np.isfinite(xi), axis=1))
+        self.n_skipped_samples += int(bad.sum())
+        z = np.where(bad, np.nan, z)
         if not np.all(np.isfinite(u)):
-            return z_all
+            return z
         if self.warming_up:
-            for k, s in enumerate(samples):
-                if s is not None:
-                    self._buffer[k].append(s)
-            if min(len(b) for b in self._buffer) >= self.warmup_samples:
-                try:
-                    self.fit(self.dataset())
-                except Exception as exc:
-                    self.n_update_failures += 1
-                    self.last_error = f"{type(exc).__name__}: {exc}"
-                    for b in self._buffer:  # keep the newest half and retry later
-                        del b[: len(b) // 2]
-            return z_all
-        self._update_residuals(samples, u)
-        if not self.learning:
-            return z_all
-        for k, s in enumerate(samples):
-            if s is None:
-                continue
+            self._buffer.append((xi, u.copy(), z))
+            if len(self._buffer) >= self.config.warmup_samples:
+                self._fit_warmup()
+            return z
+        self._update_residuals(u, z)
+        if self.learning:
             try:
-                self.learners[k].update(s[0], s[1], s[2])
+                self.bank.update(xi, u, z)
             except Exception as exc:
                 self.n_update_failures += 1
                 self.last_error = f"{type(exc).__name__}: {exc}"
-        return z_all
+        return z
+
+    def _fit_warmup(self) -> None:
+        """Algorithm 1, line 3: fit on the warm-up samples; on failure keep the newest half."""
+        try:
+            self.fit(self.dataset())
+            self._buffer = []
+        except Exception as exc:
+            self.n_update_failures += 1
+            self.last_error = f"{type(exc).__name__}: {exc}"
+            del self._buffer[: len(self._buffer) // 2]
+
+    def _update_residuals(self, u: np.ndarray, z: np.ndarray) -> None:
+        """Residual observer with the prediction the filter used for this very action."""
+        pred, self._pending = self._pending, None
+        if pred is None or pred.mean is None:
+            self.residuals.update(np.zeros(0, dtype=int), np.zeros(0), np.zeros(0))
+            return
+        d = pred.action - u  # the applied action may be a float32 copy of the filtered one
+        if not float(d @ d) <= 1e-12 * (1.0 + float(u @ u)):
+            self.residuals.update(np.zeros(0, dtype=int), np.zeros(0), np.zeros(0))
+            return
+        ubar = np.concatenate([[1.0], u])
+        self.residuals.update(pred.rows, pred.mean @ ubar, z[pred.rows])
+
+    # ------------------------------------------------------------------ diagnostics
+    @property
+    def noise_variances(self) -> np.ndarray | None:
+        """(K,) learned noise variances after warm-up (None for non-learning learners)."""
+        bank = getattr(self.bank, "bank", None)
+        if bank is not None:
+            return bank.noise_variance.copy()
+        learners = getattr(self.bank, "learners", None)
+        if learners:
+            return np.array([lr.noise_variance_ for lr in learners])
+        return None

@@ -17,7 +17,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from afvsgp_gym.types import BarrierTerms
+from afvsgp_gym.types import BarrierSet, BarrierTerms
 
 
 def _as_gains(gains: float | Sequence[float], relative_degree: int) -> np.ndarray:
@@ -55,10 +55,6 @@ class HOCBF:
             coeffs.append(np.concatenate([a * c, [0.0]]) + np.concatenate([[0.0], c]))
         self._coeffs = coeffs
 
-    def psi_coefficients(self, k: int) -> np.ndarray:
-        """Coefficients ``c`` with ``psi_k = sum_j c_j h^(j)`` (shape (k+1,))."""
-        return self._coeffs[k].copy()
-
     def psi(self, derivatives: np.ndarray) -> np.ndarray:
         """``[psi_0, ..., psi_{r-1}]`` from ``[h, ..., h^(r-1)]``."""
         d = np.asarray(derivatives, dtype=np.float64)
@@ -86,3 +82,12 @@ class HOCBF:
         return float(terms.lf) + self.offset(terms.derivatives), np.asarray(
             terms.lg, dtype=np.float64
         )
+
+    def constraints(self, terms: BarrierSet) -> tuple[np.ndarray, np.ndarray]:
+        """Eq. 45 for K barriers at once: ``c0`` (K,) and ``c`` (K, m), ``c0 + c @ u >= 0``."""
+        if terms.relative_degree != self.relative_degree:
+            raise ValueError(
+                f"terms have relative degree {terms.relative_degree}, expected "
+                f"{self.relative_degree}"
+            )
+        return terms.lf + terms.derivatives @ self._coeffs[self.relative_degree][:-1], terms.lg

@@ -1,56 +1,194 @@
-"""Learners of the HOCBF model error ``Delta B^(r)``, pluggable by name.
+"""Learners of the HOCBF model error ``Delta B^(r)``: one per barrier, kept together in a bank.
 
-``LEARNERS`` lists the names accepted by :func:`make_learner` and the safety filter:
+The safety controller talks to a :class:`LearnerBank`: K learners (one per barrier) fitted
+together at the end of warm-up, asked for the affine prediction (eq. 20) of some barriers at
+their features, and updated together with one sample per barrier each step. ``REGISTRY``
+maps a learner name to how its bank is built; a new learner plugs in with one entry:
 
-- ``"none"``: nominal model only (``Delta B = 0``),
-- ``"oracle"``: the filter uses the true model terms (upper bound; nothing is learned),
-- ``"gp"``: exact GP (``afvsgp_gym.gp.ExactGP``),
-- ``"vsgp"``: variational sparse GP (Titsias 2009, ``VSGP``),
-- ``"sogp"``: streaming sparse GP (Bui 2017, ``SOGP``),
-- ``"afvsgp"``: adaptive forgetting VSGP (paper sec. III, ``AFVSGP``), the default.
+- ``"none"``: nominal model only (``Delta B = 0``);
+- ``"oracle"``: the filter uses the true model terms (upper bound; nothing is learned);
+- ``"gp"``, ``"vsgp"``, ``"sogp"``: exact GP, Titsias VSGP, Bui et al.'s streaming SGP
+  (``afvsgp_gym.gp``), one object per barrier;
+- ``"afvsgp"``: the paper's method, K learners in stacked arrays
+  (:class:`~afvsgp_gym.gp.afvsgp_bank.AFVSGPBank`), so a step costs one set of calls for all.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Protocol
+
 import numpy as np
 
-LEARNERS = ("none", "oracle", "gp", "vsgp", "sogp", "afvsgp")
-LEARNING = ("gp", "vsgp", "sogp", "afvsgp")
-_CLASSES = {"gp": "ExactGP", "vsgp": "VSGP", "sogp": "SOGP", "afvsgp": "AFVSGP"}
+__all__ = [
+    "LEARNERS",
+    "REGISTRY",
+    "LearnerBank",
+    "LearnerEntry",
+    "check_learner_name",
+    "make_bank",
+    "make_learner",
+]
+
+Dataset = tuple[np.ndarray, np.ndarray, np.ndarray]
+
+
+class LearnerBank(Protocol):
+    """K learners of ``Delta B^(r)``, one per barrier."""
+
+    learns: bool
+
+    def fit(self, datasets: Sequence[Dataset], learn_hyperparameters: bool = True) -> None:
+        """Fit learner ``k`` on ``datasets[k] = (xi (N, b), u (N, m), z (N,))``."""
+
+    def predict_affine(self, xi: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``b`` (k, m+1), ``Sigma`` (k, m+1, m+1) of learners ``rows`` at ``xi`` (k, b)."""
+
+    def update(self, xi: np.ndarray, u: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """One sample per learner (``xi`` (K, b), shared ``u``, ``z`` (K,)); NaN rows skipped.
+        Returns the (K,) mask of learners updated."""
+
+
+class ZeroBank:
+    """``Delta B = 0`` with zero covariance (learners ``"none"`` and ``"oracle"``)."""
+
+    learns = False
+
+    def __init__(self, n_barriers: int, action_dim: int, **kwargs):
+        if kwargs:
+            raise ValueError(f"this learner takes no learner_kwargs. Got: {sorted(kwargs)}")
+        self.n_learners, self.action_dim = int(n_barriers), int(action_dim)
+
+    def fit(self, datasets, learn_hyperparameters: bool = True) -> None:
+        return None
+
+    def predict_affine(self, xi, rows):
+        k, d = len(rows), self.action_dim + 1
+        return np.zeros((k, d)), np.zeros((k, d, d))
+
+    def update(self, xi, u, z) -> np.ndarray:
+        return np.zeros(self.n_learners, dtype=bool)
+
+
+class LoopBank:
+    """K learner objects of one ``afvsgp_gym.gp`` class, called one by one."""
+
+    learns = True
+
+    def __init__(self, n_barriers: int, action_dim: int, cls_name: str,
+                 shared_hyperparameters: bool = True, **kwargs):
+        from afvsgp_gym import gp
+
+        self.n_learners, self.action_dim = int(n_barriers), int(action_dim)
+        self._cls = getattr(gp, cls_name)
+        self._kwargs = kwargs
+        self._cls(**kwargs)  # constructor checks its arguments now
+        self.shared = bool(shared_hyperparameters)
+        self.learners: list = []
+
+    def _make(self, **override):
+        return self._cls(**{**self._kwargs, **override})
+
+    def fit(self, datasets, learn_hyperparameters: bool = True) -> None:
+        from afvsgp_gym.gp.warmup_fit import fit_shared, fit_with_restarts
+
+        user_kernel = self._kwargs.get("kernel") is not None
+        if self.shared:
+            self.learners = fit_shared(self._make, datasets, learn_hyperparameters, user_kernel)
+        else:
+            self.learners = [fit_with_restarts(self._make, *d, learn_hyperparameters,
+                                               user_kernel) for d in datasets]
+
+    def predict_affine(self, xi, rows):
+        out = [self.learners[k].predict_affine(xi[j][None]) for j, k in enumerate(rows)]
+        d = self.action_dim + 1
+        if not out:
+            return np.zeros((0, d)), np.zeros((0, d, d))
+        return np.concatenate([o[0] for o in out]), np.concatenate([o[1] for o in out])
+
+    def update(self, xi, u, z) -> np.ndarray:
+        ok = np.isfinite(z) & np.all(np.isfinite(xi), axis=1)
+        for k in np.flatnonzero(ok):
+            self.learners[k].update(xi[k], u, float(z[k]))
+        return ok
+
+
+class AFVSGPLearnerBank(LoopBank):
+    """AFVSGP learners fitted one by one (or shared), then run as one :class:`AFVSGPBank`."""
+
+    def __init__(self, n_barriers: int, action_dim: int, cls_name: str = "AFVSGP", **kwargs):
+        super().__init__(n_barriers, action_dim, cls_name, **kwargs)
+        self.bank = None
+
+    def fit(self, datasets, learn_hyperparameters: bool = True) -> None:
+        from afvsgp_gym.gp.afvsgp_bank import AFVSGPBank
+
+        super().fit(datasets, learn_hyperparameters)
+        self.bank = AFVSGPBank.from_learners(self.learners)
+        self.learners = []  # the bank holds the state from here on
+
+    def predict_affine(self, xi, rows):
+        return self.bank.predict_affine(xi, rows)
+
+    def update(self, xi, u, z) -> np.ndarray:
+        return self.bank.update(xi, u, z)
+
+
+@dataclass(frozen=True)
+class LearnerEntry:
+    """How the bank of one learner name is built: ``bank(n_barriers, action_dim, gp_class,
+    **kwargs)`` (None: :class:`ZeroBank`); ``gp_class`` names the ``afvsgp_gym.gp`` class;
+    ``default_kwargs`` are the settings used unless the user overrides them; ``true_terms``
+    marks the oracle (the filter then uses the true model's terms)."""
+
+    bank: type | None = None
+    gp_class: str | None = None
+    default_kwargs: dict = field(default_factory=dict)
+    true_terms: bool = False
+
+
+#: Learner name -> bank construction. AFVSGP inside the filter keeps a window of P = 1000
+#: samples with phi = 0.999 (the paper's 200 / 0.99 forgets the action gain, which the
+#: "zero" model only identifies from warm-up exploration, within a second of smooth tracking).
+REGISTRY: dict[str, LearnerEntry] = {
+    "none": LearnerEntry(),
+    "oracle": LearnerEntry(true_terms=True),
+    "gp": LearnerEntry(LoopBank, "ExactGP"),
+    "vsgp": LearnerEntry(LoopBank, "VSGP"),
+    "sogp": LearnerEntry(LoopBank, "SOGP"),
+    "afvsgp": LearnerEntry(AFVSGPLearnerBank, "AFVSGP", {"window": 1000, "forgetting": 0.999}),
+}
+
+#: Names accepted by the safety filter.
+LEARNERS: tuple[str, ...] = tuple(REGISTRY)
 
 
 def check_learner_name(name) -> str:
     """Return ``name`` if it is in :data:`LEARNERS`, else raise ``ValueError`` listing them."""
-    if not isinstance(name, str) or name not in LEARNERS:
+    if not isinstance(name, str) or name not in REGISTRY:
         raise ValueError(f"learner must be one of {list(LEARNERS)}. Got: {name!r}")
     return name
 
 
-class ZeroLearner:
-    """``Delta B = 0`` with zero covariance (learners ``"none"`` and ``"oracle"``)."""
-
-    def __init__(self, action_dim: int):
-        self.action_dim = int(action_dim)
-
-    def fit(self, xi, u, z, learn_hyperparameters: bool = True) -> ZeroLearner:
-        return self
-
-    def update(self, xi, u, z) -> ZeroLearner:
-        return self
-
-    def predict_affine(self, xi) -> tuple[np.ndarray, np.ndarray]:
-        n = np.atleast_2d(xi).shape[0]
-        d = self.action_dim + 1
-        return np.zeros((n, d)), np.zeros((n, d, d))
+def make_bank(name: str, n_barriers: int, action_dim: int, learner_kwargs: dict | None = None,
+              shared_hyperparameters: bool = True) -> LearnerBank:
+    """The bank of K = ``n_barriers`` learners called ``name`` (``learner_kwargs`` on top of
+    the registry's defaults go to each learner's constructor)."""
+    entry = REGISTRY[check_learner_name(name)]
+    if entry.bank is None:
+        return ZeroBank(n_barriers, action_dim, **(learner_kwargs or {}))
+    kwargs = {**entry.default_kwargs, **(learner_kwargs or {})}
+    return entry.bank(n_barriers, action_dim, entry.gp_class,
+                      shared_hyperparameters=shared_hyperparameters, **kwargs)
 
 
 def make_learner(name: str, action_dim: int, **kwargs):
-    """Construct the learner called ``name`` (kwargs go to the GP class constructor)."""
-    check_learner_name(name)
-    if name in ("none", "oracle"):
-        if kwargs:
-            raise ValueError(f"learner {name!r} takes no learner_kwargs. Got: {sorted(kwargs)}")
-        return ZeroLearner(action_dim)
+    """One unfitted ``afvsgp_gym.gp`` learner called ``name`` (the registry's filter
+    defaults are not applied: these are the GP classes' own, as in the paper's Table I)."""
+    entry = REGISTRY[check_learner_name(name)]
+    if entry.gp_class is None:
+        raise ValueError(f"learner {name!r} has no GP object")
     from afvsgp_gym import gp
 
-    return getattr(gp, _CLASSES[name])(**kwargs)
+    return getattr(gp, entry.gp_class)(**kwargs)

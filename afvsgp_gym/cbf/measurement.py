@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from afvsgp_gym.types import BarrierTerms
+from afvsgp_gym.types import BarrierSet, BarrierTerms
 
 
 def nominal_highest_derivative(terms: BarrierTerms, u: np.ndarray) -> float:
@@ -41,3 +41,19 @@ def measure(
     )
     xi = 0.5 * (np.asarray(terms_before.xi, np.float64) + np.asarray(terms_after.xi, np.float64))
     return xi, fd - nominal
+
+
+def measure_all(
+    before: BarrierSet, u: np.ndarray, after: BarrierSet, dt: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The eq. 48 samples of K barriers at once: ``xi_j`` (K, b) and ``z_j`` (K,).
+
+    NaN in ``z`` for barriers whose inputs are not finite (the learners skip them).
+    """
+    if not (np.isfinite(dt) and dt > 0):
+        raise ValueError(f"dt must be finite and positive. Got: {dt!r}")
+    u = np.asarray(u, dtype=np.float64)
+    r = before.relative_degree
+    fd = (after.derivatives[:, r - 1] - before.derivatives[:, r - 1]) / dt
+    nominal = 0.5 * ((before.lf + before.lg @ u) + (after.lf + after.lg @ u))
+    return 0.5 * (before.xi + after.xi), fd - nominal

@@ -12,23 +12,21 @@ from gymnasium import spaces
 from gymnasium.envs.mujoco import MujocoEnv
 
 from afvsgp_gym.envs import franka_model as fm
-from afvsgp_gym.envs.point_mass import (
-    BARRIER_MODELS,
-    NOMINAL_MODELS,
-    SCENARIOS,
-    UnknownArgumentError,
+from afvsgp_gym.envs.base import NOMINAL_MODELS, SCENARIOS, ObstacleTask, read_kwargs
+from afvsgp_gym.envs.safety_spheres import (
+    PANDA_ARM_SPHERES,
+    end_effector_sphere,
+    parse_spheres,
+    sphere_arrays,
 )
 from afvsgp_gym.envs.scenario import (
     CyclicReference,
     ObstacleSpec,
-    check_action,
-    check_choice,
-    check_number,
-    make_terms,
     parse_obstacles,
-    sphere_barrier,
+    sphere_barriers,
 )
-from afvsgp_gym.types import BarrierTerms
+from afvsgp_gym.types import BarrierSet
+from afvsgp_gym.validation import check_choice, check_number
 
 _BAD_WARNINGS = np.array(
     [
@@ -39,7 +37,7 @@ _BAD_WARNINGS = np.array(
 )
 
 
-class FrankaObstacleEnv(MujocoEnv):
+class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
     r"""Franka Panda (torque control) tracking a cyclic end-effector reference past spheres.
 
     ## Description
@@ -49,9 +47,8 @@ class FrankaObstacleEnv(MujocoEnv):
     flange (not compensated), link masses and inertias scaled by per-link factors drawn from
     ``mass_scale`` with ``plant_seed``, joint ``damping``, ``friction`` (frictionloss) and
     rotor ``armature``. The end-effector (site ``end_effector`` on the gripper axis between
-    the finger pads, 4-5 cm above the fingertips, which the 5 cm ``ee_radius`` sphere just
-    covers) tracks the reference of paper Fig. 3; the safety filter keeps it out of the
-    obstacles.
+    the finger pads, 4-5 cm above the fingertips) tracks the reference of paper Fig. 3; the
+    safety filter keeps the whole arm out of the obstacles.
 
     Gravity compensation, as with the real robot's torque interface: commanded torques act on
     top of the robot's compensation of its catalogue model. Each link of the true plant gets
@@ -62,20 +59,26 @@ class FrankaObstacleEnv(MujocoEnv):
     Physics: MuJoCo step ``physics_dt`` = 2 ms (Euler, implicit joint damping), ``frame_skip``
     = 2, so the control period ``dt`` = 4 ms (250 Hz); ``render_fps`` = 250.
 
-    ## Barrier (paper eqs. 44-46)
-    Per obstacle ``h = |p_ee - p_obs| - (r_obs + ee_radius)``, relative degree 2:
-    ``h'' = n.(J q'' + J' q' - a_obs) + (|v_rel|^2 - (n.v_rel)^2)/|d|``, ``n = d/|d|``.
-    With ``q'' = q''_0 + M^-1 diag(action_scale) u`` (``q''_0``: acceleration at u = 0 from passive,
-    bias, residual gravity and joint-limit forces), ``barrier_terms(model)`` gives
-    ``lf = n.(J q''_0 + J' q' - a_obs) + curvature`` and ``lg = n' J M^-1 diag(action_scale)``:
+    ## Barriers (paper eqs. 44-46)
+    ``safety_spheres`` fixes spheres to the arm's bodies: ``"arm"`` (default) the 21 spheres
+    of :data:`~afvsgp_gym.envs.safety_spheres.PANDA_ARM_SPHERES`, which cover links 1-7, the
+    hand and the fingers; ``"ee"`` the paper's single sphere of radius ``ee_radius`` around the
+    end-effector site; or a list of ``(body, offset, radius)``. Every (sphere ``s``, obstacle
+    ``o``) pair is a barrier (``n_barriers`` = spheres x obstacles, obstacle-major order,
+    names in ``barrier_names``), ``h = |p_s - p_o| - (r_s + r_o)``, relative degree 2:
+    ``h'' = n.(J_s q'' + J_s' q' - a_o) + (|v_rel|^2 - (n.v_rel)^2)/|d|``, ``n = d/|d|``,
+    with ``J_s`` the Jacobian of the sphere centre. With ``q'' = q''_0 + M^-1 diag(action_scale)
+    u`` (``q''_0``: acceleration at u = 0 from passive, bias, residual gravity and joint-limit
+    forces), ``barrier_terms(model)`` gives ``lf = n.(J_s q''_0 + J_s' q' - a_o) + curvature``
+    and ``lg = n' J_s M^-1 diag(action_scale)``:
 
     - ``"true"``: the true plant (for evaluation / oracle only).
     - ``"nominal"`` by ``nominal_model``: ``"zero"`` lf = lg = 0 (paper section VI; the
       derivatives [h, h'] are still measured); ``"kinematic"`` kinematics and obstacle motion
-      known: lf = n.(J' q' - a_obs) + curvature, lg = 0; ``"perturbed"`` a second model with
+      known: lf = n.(J_s' q' - a_o) + curvature, lg = 0; ``"perturbed"`` a second model with
       the catalogue parameters (no payload, scale 1, no damping/friction/armature, full
       gravity compensation); ``"exact"`` the true plant (delta_b_true = 0).
-    - features ``xi = [q (7), q' (7), p_ee - p_obs (3), v_ee - v_obs (3)]``, feature_dim 20
+    - features ``xi = [q (7), q' (7), p_s - p_o (3), v_s - v_o (3)]``, feature_dim 20
       (the paper's b = 20).
 
     Friction (frictionloss) and joint-limit forces come from MuJoCo's constraint solver and are
@@ -108,7 +111,10 @@ class FrankaObstacleEnv(MujocoEnv):
     ## Rewards
     ``reward = reward_tracking + reward_ctrl``, ``reward_tracking = -tracking_weight
     |p_ee - r|`` (m), ``reward_ctrl = -control_weight |u|^2``; terms in ``info``.
-    ``info["cost"] = 1.0`` if any h < 0 (Safety-Gymnasium convention).
+
+    ## Cost (Safety-Gymnasium convention)
+    ``info["cost"] = 1.0`` when some barrier has h < 0 or some arm collision geom (links 1-7,
+    hand, fingers) touches an obstacle (``mj_geomDistance`` < 0), even with every h >= 0.
 
     ## Starting State
     The ready pose ``q = (0, -0.785, 0, -2.356, 0, 0, 0.785)`` (end-effector at the reference
@@ -120,10 +126,12 @@ class FrankaObstacleEnv(MujocoEnv):
     warning; ``info["unstable"] = True``). Truncation by ``TimeLimit``: 4000 steps (16 s).
 
     ## Info
-    ``cost``, ``h`` (min over obstacles), ``h_per_obstacle``, ``collision`` (an arm collision
-    geom overlaps an obstacle, ``mj_geomDistance`` < 0), ``delta_b_true`` (true minus nominal
-    h'' for the applied action at the pre-step state), ``unstable``, ``time``,
-    ``reward_tracking``, ``reward_ctrl``.
+    ``cost``, ``h`` (min over barriers), ``h_per_barrier``, ``collision`` (contact),
+    ``delta_b_true`` (true minus nominal h'' per barrier for the applied action at the
+    pre-step state), ``tracking_error`` (|p_ee - r|, m), ``reference_h`` (clearance of an
+    ``ee_radius`` sphere at the reference point from every obstacle: the reference is "away
+    from the obstacle" when it is >= 0.05 m), ``unstable``, ``time``, ``reward_tracking``,
+    ``reward_ctrl``.
 
     ## Scenarios (c = reference centre, y = axis of the cyclic motion)
     Reference: ``c + a(t) sin(2 pi t / 4 s)`` along y, amplitude 0.04 m during the
@@ -131,30 +139,25 @@ class FrankaObstacleEnv(MujocoEnv):
     ``switch_time`` (10 s). Peak reference speed 0.44 m/s, acceleration 0.7 m/s^2.
 
     - ``"static"``: sphere r = 0.05 m at c + (0, 0.20, -0.07): the full y motion passes 7 cm
-      above its centre, 3 cm inside the safe-set boundary (R = r + ee_radius = 0.1 m; the
-      zero-model tracker, sagging under the residual gravity, goes about 6 cm in), so the
-      filter must act; the warm-up motion stays >= 6 cm outside the boundary.
+      above its centre, inside the safe set of the hand's spheres, so the filter must act; the
+      warm-up motion stays clear of it.
     - ``"dynamic"``: sphere r = 0.05 m rests at c + (0.5, 0.15, -0.07) during warm-up, then
       moves in -x onto the path, c + (0, 0.15, -0.07), with peak speed ``obstacle_speed``
-      (0.15 m/s; the arm retreats at > 0.5 m/s) and stays there. No switch unless set.
+      (0.15 m/s) and stays there. No switch unless set.
     - ``"random"``: static or dynamic with radius in [0.04, 0.07] m, position along y in
-      [R + 0.10, 0.24] m on either side (warm-up clearance >= 6 cm), offset in z in
-      [-0.09, -0.06] m and x in +-0.02 m, approach from +x or from outside along y at
-      0.3-0.5 m, peak speed in [0.05, 0.2] m/s and an optional switch, drawn per reset.
+      [r + 0.15, 0.24] m on either side, offset in z in [-0.09, -0.06] m and x in +-0.02 m,
+      approach from +x or from outside along y at 0.3-0.5 m, peak speed in [0.05, 0.2] m/s
+      and an optional switch, drawn per reset.
 
-    The obstacles sit 6-9 cm below the path, so the end-effector passes over them and the
-    hand (about 17 cm wide, 4-13 cm above the end-effector site) clears them whenever h >= 0:
-    the barrier protects the end-effector sphere only (as in the paper), and ``collision``
-    reports any arm geometry. With the exact model a CBF-filtered run keeps h >= 0 with no arm
-    collision in every scenario and seed tested (tests/envs/test_franka.py); a filter that
-    routes the end-effector under or beside an obstacle can keep h >= 0 and still touch it
-    with the hand (raise ``ee_radius`` for a more conservative envelope).
+    With the exact model a CBF-filtered run keeps every barrier h >= 0 with no arm contact in
+    every scenario and seed tested (tests/envs/test_franka.py, benchmarks/filter.md).
 
     ## Arguments
     | Parameter | Default | Description |
     |---|---|---|
     | scenario | "static" | "static", "dynamic", "random" |
     | nominal_model | "zero" | "zero", "kinematic", "perturbed", "exact" |
+    | safety_spheres | "arm" | "arm", "ee" or a list of (body, offset, radius) |
     | payload_mass | 1.0 | kg at the flange, not gravity compensated |
     | mass_scale | (0.9, 1.3) | per-link mass/inertia factor range (or one float) |
     | damping | 1.0 | joint damping, Nm s/rad (true plant) |
@@ -162,7 +165,7 @@ class FrankaObstacleEnv(MujocoEnv):
     | armature | 0.1 | rotor inertia, kg m^2 (true plant) |
     | plant_seed | 0 | seed of the per-link mass factors |
     | physics_dt, frame_skip | 0.002, 2 | MuJoCo step (s) and steps per action |
-    | ee_radius | 0.05 | m, sphere around the end-effector site |
+    | ee_radius | 0.05 | m, the "ee" sphere (and ``reference_h``) |
     | obstacles | None | list of dicts (position, radius[, start, start_time, speed]) |
     | obstacle_speed | 0.15 | m/s, dynamic scenario |
     | switch_time | None | s; None = 10 s static, none otherwise |
@@ -179,7 +182,8 @@ class FrankaObstacleEnv(MujocoEnv):
     (m/s, default 0.2). Keeping them clear of the warm-up motion is then up to the caller.
 
     ## Version History
-    - v0: initial version.
+    - v0: initial version; whole-arm safety spheres (``safety_spheres="arm"``) are the
+      default, contacts count as cost.
     """
 
     # "human" needs a display (GLFW window); headless machines render offscreen (MUJOCO_GL=egl)
@@ -191,6 +195,7 @@ class FrankaObstacleEnv(MujocoEnv):
 
     _DEFAULTS: dict[str, Any] = dict(
         nominal_model="zero",
+        safety_spheres="arm",
         payload_mass=1.0,
         mass_scale=(0.9, 1.3),
         damping=1.0,
@@ -213,16 +218,13 @@ class FrankaObstacleEnv(MujocoEnv):
         width=480,
         height=480,
     )
-    relative_degree = 2
     AMPLITUDE, WARMUP_AMPLITUDE, PERIOD = 0.28, 0.04, 4.0
+    #: Suggested activation distance of the safety filter (m): barriers farther than this
+    #: (and not approaching faster than a_1 times it) stay out of the cone program.
+    activation_distance = 0.15
 
     def __init__(self, scenario: str = "static", **kwargs: Any) -> None:
-        unknown = sorted(set(kwargs) - set(self._DEFAULTS))
-        if unknown:
-            raise UnknownArgumentError(
-                f"unknown argument(s) {unknown}; valid: {['scenario', *self._DEFAULTS]}"
-            )
-        cfg = {**self._DEFAULTS, **kwargs}
+        cfg = read_kwargs(self._DEFAULTS, kwargs)
         self.scenario = check_choice("scenario", scenario, SCENARIOS)
         self.nominal_model = check_choice("nominal_model", cfg["nominal_model"], NOMINAL_MODELS)
         for name in ("payload_mass", "damping", "friction", "armature", "reset_noise"):
@@ -239,7 +241,7 @@ class FrankaObstacleEnv(MujocoEnv):
         if st is not None and not (float(st) > 0):
             raise ValueError(f"switch_time must be > 0 or None, got {st}")
         self._switch_time_arg = None if st is None else float(st)
-        self.ee_radius = float(cfg["ee_radius"])
+        self.ee_radius = self.tracking_radius = float(cfg["ee_radius"])
         self.obstacle_speed = float(cfg["obstacle_speed"])
         self.tracking_weight = float(cfg["tracking_weight"])
         self.control_weight = float(cfg["control_weight"])
@@ -292,7 +294,6 @@ class FrankaObstacleEnv(MujocoEnv):
         )
         m = self.model
         self._site = m.site(fm.EE_SITE).id
-        self._ee_body = m.body(fm.EE_BODY).id
         self._gear = m.actuator_gear[:, 0].copy()
         if self.normalize_action:
             self.action_scale = self._gear.copy()  # Nm per action unit
@@ -302,6 +303,7 @@ class FrankaObstacleEnv(MujocoEnv):
                 -self._gear.astype(np.float32), self._gear.astype(np.float32), dtype=np.float32
             )
         self._ctrl_per_action = self.action_scale / self._gear
+        self._setup_spheres(cfg["safety_spheres"])
         self._arm_geoms = fm.arm_collision_geoms(m)
         self._arm_rbound = m.geom_rbound[self._arm_geoms].copy()
         self._obstacle_geoms = np.array([m.geom(f"obstacle{i}").id for i in range(n_obs)])
@@ -322,12 +324,39 @@ class FrankaObstacleEnv(MujocoEnv):
             self.nominal_mj_data = None
         self._build_scenario(None)
         self._steps = 0
-        self._terms_cache: dict[str, list[BarrierTerms]] = {}
-        self._jac = np.zeros((3, m.nv))
-        self._jacdot = np.zeros((3, m.nv))
-        self._jminv = np.zeros((3, m.nv))
+        self._invalidate_barriers()
 
     # ------------------------------------------------------------------ construction
+    def _setup_spheres(self, spec) -> None:
+        """Resolve ``safety_spheres`` and the per-body buffers of the sphere kinematics."""
+        m = self.model
+        names = [m.body(i).name for i in range(m.nbody)]
+        arm = [n for n in names if n.startswith("panda0_") and n != "panda0_link0"]
+        if isinstance(spec, str):
+            check_choice("safety_spheres", spec, ("arm", "ee"))
+            spheres = PANDA_ARM_SPHERES if spec == "arm" else (end_effector_sphere(self.ee_radius),)
+        else:
+            spheres = parse_spheres(spec, arm)
+        self.safety_spheres = spheres
+        bodies, offsets, radii = sphere_arrays(spheres)
+        ids = np.array([m.body(b).id for b in bodies])
+        self._sphere_bodies, self._sphere_slot = np.unique(ids, return_inverse=True)
+        self._sphere_offsets = offsets
+        self._sphere_radii = radii
+        nb, nv = len(self._sphere_bodies), m.nv
+        self._jacp = np.zeros((nb, 3, nv))
+        self._jacr = np.zeros((nb, 3, nv))
+        self._jdotp = np.zeros((nb, 3, nv))
+        self._jdotr = np.zeros((nb, 3, nv))
+        self._ee_jac = np.zeros((3, nv))
+        n_s = len(spheres)
+        self.n_barriers = n_s * self.n_obstacles
+        self.barrier_names = tuple(
+            f"{s.body.removeprefix('panda0_')}[{i}]/obstacle{o}"
+            for o in range(self.n_obstacles)
+            for i, s in enumerate(spheres)
+        )
+
     def _plant_parameters(self, cfg: dict[str, Any]) -> fm.PlantParameters:
         scale = cfg["mass_scale"]
         if np.ndim(scale) == 0:
@@ -373,8 +402,7 @@ class FrankaObstacleEnv(MujocoEnv):
         if kind == "random" and rng is not None:
             kind = "static" if rng.random() < 0.5 else "dynamic"
             radius = float(rng.uniform(0.04, 0.07))
-            big_r = radius + self.ee_radius
-            along = float(rng.uniform(big_r + 0.10, max(big_r + 0.10, 0.24)))
+            along = float(rng.uniform(radius + 0.15, max(radius + 0.15, 0.24)))
             along *= 1.0 if rng.random() < 0.5 else -1.0
             dz = float(rng.uniform(-0.09, -0.06))
             dx = float(rng.uniform(-0.02, 0.02))
@@ -412,6 +440,7 @@ class FrankaObstacleEnv(MujocoEnv):
             ramp_duration=1.0,
             switch_time=switch,
         )
+        self._obstacle_radii = np.array([ob.radius for ob in self.obstacles])
 
     # ------------------------------------------------------------------ state
     @property
@@ -438,108 +467,122 @@ class FrankaObstacleEnv(MujocoEnv):
         d.ctrl[:] = 0.0
         self._place_markers()
         mujoco.mj_forward(self.model, d)
-        self._kin = self._kinematics(self.model, d)
-        # per obstacle: (h, h', n, curvature, xi), shared by every model's terms and the info
-        p, v = self._kin[0], self._kin[1]
-        qq = np.concatenate([d.qpos, d.qvel])
-        self._geo = []
-        for ob, (po, vo, _) in zip(self.obstacles, self._obs_states, strict=True):
-            h, hd, n, curv = sphere_barrier(p, v, po, vo, ob.radius + self.ee_radius)
-            xi = np.concatenate([qq, p - po, v - vo])
-            xi.flags.writeable = False
-            self._geo.append((h, hd, n, curv, xi))
-        self._terms_cache = {}
+        self._spheres = self._sphere_kinematics()
+        mujoco.mj_jacSite(self.model, d, self._ee_jac, None, self._site)
+        self._ee = (d.site_xpos[self._site].copy(), self._ee_jac @ d.qvel)
+        self._geometry = self._pair_geometry()
+        self._invalidate_barriers()
 
     def _place_markers(self) -> None:
         t = self.time
-        self._obs_states = [ob.state(t) for ob in self.obstacles]
-        for k, (p, _, _) in zip(self._obstacle_mocap, self._obs_states, strict=True):
+        self._obstacle_states = [ob.state(t) for ob in self.obstacles]
+        for k, (p, _, _) in zip(self._obstacle_mocap, self._obstacle_states, strict=True):
             self.data.mocap_pos[k] = p
         self._ref_state = self.reference.state(t)
         self.data.mocap_pos[self._ref_mocap] = self._ref_state[0]
 
-    # ------------------------------------------------------------------ barrier
-    def _kinematics(self, model, data):
-        """EE position, velocity, J (3, nv) and J' q' for a forwarded (model, data)."""
-        jac, jacdot = self._jac, self._jacdot
-        mujoco.mj_jacSite(model, data, jac, None, self._site)
-        p = data.site_xpos[self._site].copy()
-        mujoco.mj_jacDot(model, data, jacdot, None, p, self._ee_body)
-        qd = data.qvel
-        return p, jac @ qd, jac.copy(), jacdot @ qd
-
-    def _compute_terms(self, kind: str) -> list[BarrierTerms]:
+    # ------------------------------------------------------------------ barriers
+    def _sphere_kinematics(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Sphere centres p (S, 3), velocities v (S, 3), Jacobians J (S, 3, nv) and the
+        velocity-product accelerations J' q' (S, 3) (rigid-body transport from each body's
+        origin: a = a_b + alpha x r + w x (w x r) at q'' = 0)."""
         m, d = self.model, self.data
-        jac, jdqd = self._kin[2], self._kin[3]
-        if kind == "exact" or (kind == "perturbed" and self.nominal_mj_data is None):
-            mujoco.mj_solveM(m, d, self._jminv, jac)
-            a_free = jac @ d.qacc + jdqd
-            gain = self._jminv * self.action_scale
-        elif kind == "perturbed":
-            mn, dn = self.nominal_mj_model, self.nominal_mj_data
-            dn.qpos[:] = d.qpos
-            dn.qvel[:] = d.qvel
-            dn.ctrl[:] = 0.0
-            mujoco.mj_forward(mn, dn)
-            mujoco.mj_solveM(mn, dn, self._jminv, jac)
-            a_free = jac @ dn.qacc + jdqd
-            gain = self._jminv * self.action_scale
-        out = []
-        for (h, hd, n, curv, xi), (_, _, ao) in zip(self._geo, self._obs_states, strict=True):
-            if kind == "zero":
-                lf, lg = 0.0, np.zeros(7)
-            elif kind == "kinematic":
-                lf, lg = float(n @ (jdqd - ao)) + curv, np.zeros(7)
-            else:
-                lf, lg = float(n @ (a_free - ao)) + curv, n @ gain
-            out.append(make_terms(h, hd, lf, lg, xi))
-        return out
+        for i, b in enumerate(self._sphere_bodies):
+            mujoco.mj_jacBody(m, d, self._jacp[i], self._jacr[i], b)
+            mujoco.mj_jacDot(m, d, self._jdotp[i], self._jdotr[i], d.xpos[b], b)
+        slot = self._sphere_slot
+        body = self._sphere_bodies[slot]
+        rot = d.xmat[body].reshape(-1, 3, 3)
+        r = np.einsum("sij,sj->si", rot, self._sphere_offsets)  # offset in world axes
+        p = d.xpos[body] + r
+        qd = d.qvel
+        jr = self._jacr[slot]
+        jac = self._jacp[slot] - np.cross(r[:, :, None], jr, axis=1)  # J_t - [r]x J_r
+        w = jr @ qd
+        alpha = self._jdotr[slot] @ qd
+        bias = self._jdotp[slot] @ qd + np.cross(alpha, r) + np.cross(w, np.cross(w, r))
+        return p, jac @ qd, jac, bias
 
-    def barrier_terms(self, model: str = "nominal") -> list[BarrierTerms]:
-        """One BarrierTerms per obstacle at the current state (see class docstring)."""
-        check_choice("model", model, BARRIER_MODELS)
-        kind = "exact" if model == "true" else self.nominal_model
-        if kind not in self._terms_cache:
-            self._terms_cache[kind] = self._compute_terms(kind)
-        return self._terms_cache[kind]
+    def _pair_geometry(self):
+        """Kinematic part of every (sphere, obstacle) barrier, shared by all models."""
+        p, v, _, _ = self._spheres
+        po = np.array([s[0] for s in self._obstacle_states])
+        vo = np.array([s[1] for s in self._obstacle_states])
+        ao = np.array([s[2] for s in self._obstacle_states])
+        n_s = p.shape[0]
+        radius = (self._obstacle_radii[:, None] + self._sphere_radii[None, :]).ravel()
+        d = (p[None, :, :] - po[:, None, :]).reshape(-1, 3)
+        vr = (v[None, :, :] - vo[:, None, :]).reshape(-1, 3)
+        h, hd, n, curv = sphere_barriers(d, vr, radius)
+        q = np.broadcast_to(np.concatenate([self.data.qpos, self.data.qvel]), (len(h), 14))
+        xi = np.concatenate([q, d, vr], axis=1)
+        a_obs = np.repeat(ao, n_s, axis=0)
+        return h, hd, n, curv, xi, a_obs
+
+    def _compute_barriers(self, kind: str) -> BarrierSet:
+        h, hd, n, curv, xi, a_obs = self._geometry
+        k = len(h)
+        if kind == "zero":
+            lf, lg = np.zeros(k), np.zeros((k, 7))
+        else:
+            _, _, jac, bias = self._spheres
+            n_s = jac.shape[0]
+            ns = n.reshape(-1, n_s, 3)  # (obstacles, spheres, 3)
+            if kind == "kinematic":
+                acc, lg = bias, np.zeros((k, 7))
+            else:
+                m, d = self.model, self.data
+                if kind == "perturbed" and self.nominal_mj_data is not None:
+                    m, d = self.nominal_mj_model, self.nominal_mj_data
+                    d.qpos[:] = self.data.qpos
+                    d.qvel[:] = self.data.qvel
+                    d.ctrl[:] = 0.0
+                    mujoco.mj_forward(m, d)
+                flat = jac.reshape(3 * n_s, -1)
+                jminv = np.empty_like(flat)
+                mujoco.mj_solveM(m, d, jminv, flat)  # rows J M^-1 (M symmetric)
+                acc = jac @ d.qacc + bias
+                gain = jminv.reshape(n_s, 3, -1) * self.action_scale
+                lg = np.einsum("osi,sij->osj", ns, gain).reshape(k, -1)
+            lf = np.einsum("osi,si->os", ns, acc).ravel() - np.einsum("ki,ki->k", n, a_obs) + curv
+        derivs = np.stack([h, hd], axis=1)
+        terms = BarrierSet(derivs, lf, lg, xi)
+        for arr in (derivs, lf, lg, xi):
+            arr.flags.writeable = False
+        return terms
 
     def backup_action(self) -> np.ndarray:
         """Model-free brake for the safety filter's backup: joint damping torque
         ``tau = -brake_gain tau_max q'`` saturated at the torque limits, as an action.
 
         It opposes every joint velocity, so it removes kinetic energy whatever the plant's
-        inertia, payload or friction (no model needed); ``SafetyFilter`` applies it when the
-        chance-constrained program is infeasible. It does not hold position: the arm sinks
-        under the uncompensated weight at ~0.1 rad/s. Gains above ~1.5 make the base joint
-        chatter at the 4 ms control period (discrete-time damping limit).
+        inertia, payload or friction (no model needed). It does not hold position: the arm
+        sinks under its uncompensated weight at ~0.1 rad/s.
         """
         u = -self.brake_gain * np.asarray(self.data.qvel[:7], dtype=np.float64)
         np.clip(u, -1.0, 1.0, out=u)
         return u * (1.0 if self.normalize_action else self._gear)
 
     # ------------------------------------------------------------------ gym API
-    def _ee(self) -> tuple[np.ndarray, np.ndarray]:
-        return self._kin[0], self._kin[1]
+    def _tracked_point(self) -> np.ndarray:
+        return self._ee[0]
 
     def _get_obs(self) -> np.ndarray:
-        p, v = self._ee()
+        p, v = self._ee
         r, rd, rdd = self._ref_state
         obs = np.concatenate(
             [self.data.qpos, self.data.qvel, p, v]
-            + [s[0] for s in self._obs_states]
-            + [s[1] for s in self._obs_states]
+            + [s[0] for s in self._obstacle_states]
+            + [s[1] for s in self._obstacle_states]
             + [r, rd, rdd]
         )
         np.clip(obs, -self._obs_high, self._obs_high, out=obs)
         return obs.astype(np.float32)
 
-    def _h_values(self) -> np.ndarray:
-        return np.array([g[0] for g in self._geo])
-
-    def _collision(self) -> bool:
+    def _contact(self) -> bool:
         m, d = self.model, self.data
         for k, g_obs in enumerate(self._obstacle_geoms):
-            po = self._obs_states[k][0]
+            po = self._obstacle_states[k][0]
             diff = d.geom_xpos[self._arm_geoms] - po
             reach = self._arm_rbound + self.obstacles[k].radius
             near = np.einsum("ij,ij->i", diff, diff) < reach * reach
@@ -549,22 +592,6 @@ class FrankaObstacleEnv(MujocoEnv):
                 if mujoco.mj_geomDistance(m, d, int(g), int(g_obs), 0.01, None) < 0:
                     return True
         return False
-
-    def _safety_info(self) -> dict[str, Any]:
-        hs = self._h_values()
-        unsafe = bool(np.any(hs < 0))
-        return {
-            "cost": 1.0 if unsafe else 0.0,
-            "h": float(np.min(hs)),
-            "h_per_obstacle": hs,
-            "collision": self._collision(),
-        }
-
-    def _get_rew(self, u: np.ndarray) -> tuple[float, dict[str, float]]:
-        p = self.data.site_xpos[self._site]
-        track = -self.tracking_weight * float(np.linalg.norm(p - self._ref_state[0]))
-        ctrl = -self.control_weight * float(u @ u)
-        return track + ctrl, {"reward_tracking": track, "reward_ctrl": ctrl}
 
     def reset_model(self) -> np.ndarray:
         self._steps = 0
@@ -578,21 +605,9 @@ class FrankaObstacleEnv(MujocoEnv):
         return self._get_obs()
 
     def _get_reset_info(self) -> dict[str, Any]:
-        info = self._safety_info()
-        info.update(delta_b_true=np.zeros(self.n_obstacles), unstable=False, time=0.0)
-        return info
+        return self._reset_info()
 
-    def step(self, action):
-        a = check_action(action, self.action_space.shape)
-        u = np.clip(a, self.action_space.low, self.action_space.high)
-        true_terms = self.barrier_terms("true")
-        nom_terms = self.barrier_terms("nominal")
-        delta = np.array(
-            [
-                (tt.lf + tt.lg @ u) - (tn.lf + tn.lg @ u)
-                for tt, tn in zip(true_terms, nom_terms, strict=True)
-            ]
-        )
+    def _advance(self, u: np.ndarray) -> bool:
         m, d = self.model, self.data
         warn_before = int(d.warning.number[_BAD_WARNINGS].sum())
         d.ctrl[:] = u * self._ctrl_per_action
@@ -604,10 +619,4 @@ class FrankaObstacleEnv(MujocoEnv):
             d.qpos[:] = np.nan_to_num(d.qpos)
             d.qvel[:] = 0.0
         self._after_state_change()
-        reward, reward_info = self._get_rew(u)
-        info = self._safety_info()
-        info.update(reward_info)
-        info.update(delta_b_true=delta, unstable=unstable, time=self.time)
-        if self.render_mode == "human":
-            self.render()
-        return self._get_obs(), reward, unstable, False, info
+        return unstable

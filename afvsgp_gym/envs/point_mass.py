@@ -9,28 +9,24 @@ import numpy as np
 from gymnasium import spaces
 
 from afvsgp_gym.envs._render2d import Canvas
+from afvsgp_gym.envs.base import (
+    BARRIER_MODELS,
+    NOMINAL_MODELS,
+    SCENARIOS,
+    ObstacleTask,
+    read_kwargs,
+)
 from afvsgp_gym.envs.scenario import (
     CyclicReference,
     ObstacleSpec,
-    check_action,
-    check_choice,
-    check_number,
-    make_terms,
     parse_obstacles,
-    sphere_barrier,
+    sphere_barriers,
 )
-from afvsgp_gym.types import BarrierTerms
-
-SCENARIOS = ("static", "dynamic", "random")
-NOMINAL_MODELS = ("zero", "kinematic", "perturbed", "exact")
-BARRIER_MODELS = ("nominal", "true")
+from afvsgp_gym.types import BarrierSet
+from afvsgp_gym.validation import check_choice, check_number
 
 
-class UnknownArgumentError(TypeError, ValueError):
-    """An unknown keyword argument (a TypeError, and a ValueError per the package rules)."""
-
-
-class PointMassObstacleEnv(gym.Env):
+class PointMassObstacleEnv(ObstacleTask, gym.Env):
     r"""Point mass tracking a cyclic reference past spherical obstacles (analytic, fast).
 
     ## Description
@@ -46,7 +42,8 @@ class PointMassObstacleEnv(gym.Env):
     drag dynamics), so ``dt`` is both the control period and the integration step.
 
     ## Barrier (paper eqs. 44-46)
-    Per obstacle ``h = |p - p_obs| - (r_obs + agent_radius)``, relative degree 2:
+    One barrier per obstacle (``n_barriers = n_obstacles``),
+    ``h = |p - p_obs| - (r_obs + agent_radius)``, relative degree 2:
     ``h'' = n.(p'' - a_obs) + (|v_rel|^2 - (n.v_rel)^2)/|d|`` with ``n = d/|d|``,
     ``d = p - p_obs``, ``v_rel = p' - v_obs``. ``barrier_terms(model)`` returns
     ``BarrierTerms(derivatives=[h, h'], lf, lg, xi)``:
@@ -89,9 +86,11 @@ class PointMassObstacleEnv(gym.Env):
     ``|p|_inf <= 5`` m. Truncation by ``TimeLimit`` (1500 steps = 15 s when registered).
 
     ## Info
-    ``cost``, ``h`` (min over obstacles), ``h_per_obstacle``, ``collision`` (any h < 0),
+    ``cost``, ``h`` (min over barriers), ``h_per_barrier``, ``collision`` (any h < 0),
     ``delta_b_true`` (true minus nominal h'' for the applied action at the pre-step state, per
-    obstacle), ``unstable``, ``time``, ``reward_tracking``, ``reward_ctrl``.
+    barrier), ``tracking_error`` (|p - r|), ``reference_h`` (clearance of an ``agent_radius``
+    sphere at the reference point from every obstacle), ``unstable``, ``time``,
+    ``reward_tracking``, ``reward_ctrl``.
 
     ## Scenarios and geometry (defaults, dim = 2; third axis z in 3D)
     - ``"static"``: reference centre 0, amplitude 0.5 m (0.1 m during warm-up), period 3 s,
@@ -157,16 +156,10 @@ class PointMassObstacleEnv(gym.Env):
         brake_gain=2.0,
         render_mode=None,
     )
-    relative_degree = 2
     workspace_limit = 5.0
 
     def __init__(self, scenario: str = "static", **kwargs: Any) -> None:
-        unknown = sorted(set(kwargs) - set(self._DEFAULTS))
-        if unknown:
-            raise UnknownArgumentError(
-                f"unknown argument(s) {unknown}; valid: {['scenario', *self._DEFAULTS]}"
-            )
-        cfg = {**self._DEFAULTS, **kwargs}
+        cfg = read_kwargs(self._DEFAULTS, kwargs)
         self.scenario = check_choice("scenario", scenario, SCENARIOS)
         self.nominal_model = check_choice("nominal_model", cfg["nominal_model"], NOMINAL_MODELS)
         self.dim = int(cfg["dim"])
@@ -184,7 +177,7 @@ class PointMassObstacleEnv(gym.Env):
         )
         self.max_force = float(cfg["max_force"])
         self.brake_gain = check_number("brake_gain", cfg["brake_gain"], strictly_positive=False)
-        self.agent_radius = float(cfg["agent_radius"])
+        self.agent_radius = self.tracking_radius = float(cfg["agent_radius"])
         self.obstacle_speed = float(cfg["obstacle_speed"])
         self.warmup_steps = int(cfg["warmup_steps"])
         if self.warmup_steps < 0:
@@ -209,7 +202,8 @@ class PointMassObstacleEnv(gym.Env):
 
         self.axes = np.eye(self.dim)
         self._build_scenario(None)
-        self.n_obstacles = len(self.obstacles)
+        self.n_obstacles = self.n_barriers = len(self.obstacles)
+        self.barrier_names = tuple(f"agent/obstacle{i}" for i in range(self.n_obstacles))
         self.feature_dim = 4 * self.dim
         d, n = self.dim, self.n_obstacles
         lim = np.concatenate(
@@ -222,6 +216,7 @@ class PointMassObstacleEnv(gym.Env):
         self._p = np.zeros(d)
         self._v = np.zeros(d)
         self._steps = 0
+        self._after_state_change()
 
     # ------------------------------------------------------------------ scenario
     def _build_scenario(self, rng: np.random.Generator | None) -> None:
@@ -293,31 +288,46 @@ class PointMassObstacleEnv(gym.Env):
         self._p = self._p + self._v * phi1 + b * phi2
         self._v = self._v * e + b * phi1
 
-    def _obstacle_states(self, t: float) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-        return [ob.state(t) for ob in self.obstacles]
+    def set_state(self, position, velocity) -> None:
+        """Set the point's position and velocity (copies) and recompute everything derived."""
+        self._p = np.array(position, dtype=np.float64).reshape(self.dim)
+        self._v = np.array(velocity, dtype=np.float64).reshape(self.dim)
+        self._after_state_change()
 
-    def barrier_terms(self, model: str = "nominal") -> list[BarrierTerms]:
-        """One BarrierTerms per obstacle at the current state (see class docstring)."""
-        check_choice("model", model, BARRIER_MODELS)
-        kind = "exact" if model == "true" else self.nominal_model
-        if kind in ("exact", "perturbed"):
-            params = self.model_parameters("true" if kind == "exact" else "nominal")
-            inv_m = 1.0 / params["mass"]
-            drift = -params["drag"] * inv_m * self._v
-        out = []
+    def set_time_step(self, steps: int) -> None:
+        """Jump the scenario clock to ``steps`` control periods (tests, plotting)."""
+        self._steps = int(steps)
+        self._after_state_change()
+
+    def _after_state_change(self) -> None:
         t = self.time
-        for ob, (po, vo, ao) in zip(self.obstacles, self._obstacle_states(t), strict=True):
-            h, hd, n, curv = sphere_barrier(self._p, self._v, po, vo, ob.radius + self.agent_radius)
-            if kind == "zero":
-                lf, lg = 0.0, np.zeros(self.dim)
-            elif kind == "kinematic":
-                lf, lg = curv - float(n @ ao), np.zeros(self.dim)
-            else:
-                lf = float(n @ (drift - ao)) + curv
-                lg = n * (self.max_force * inv_m)
-            xi = np.concatenate([self._p, self._v, self._p - po, self._v - vo])
-            out.append(make_terms(h, hd, lf, lg, xi))
-        return out
+        self._obstacle_states = [ob.state(t) for ob in self.obstacles]
+        self._ref_state = self.reference.state(t)
+        self._invalidate_barriers()
+
+    def _compute_barriers(self, kind: str) -> BarrierSet:
+        po = np.array([s[0] for s in self._obstacle_states])
+        vo = np.array([s[1] for s in self._obstacle_states])
+        ao = np.array([s[2] for s in self._obstacle_states])
+        radius = np.array([ob.radius for ob in self.obstacles]) + self.agent_radius
+        d, vr = self._p - po, self._v - vo
+        h, hd, n, curv = sphere_barriers(d, vr, radius)
+        k = len(h)
+        if kind == "zero":
+            lf, lg = np.zeros(k), np.zeros((k, self.dim))
+        elif kind == "kinematic":
+            lf, lg = curv - np.einsum("ki,ki->k", n, ao), np.zeros((k, self.dim))
+        else:
+            params = self.model_parameters("true" if kind == "exact" else "nominal")
+            drift = -params["drag"] / params["mass"] * self._v
+            lf = n @ drift - np.einsum("ki,ki->k", n, ao) + curv
+            lg = n * (self.max_force / params["mass"])
+        q = np.broadcast_to(np.concatenate([self._p, self._v]), (k, 2 * self.dim))
+        xi = np.concatenate([q, d, vr], axis=1)
+        derivs = np.stack([h, hd], axis=1)
+        for arr in (derivs, lf, lg, xi):
+            arr.flags.writeable = False
+        return BarrierSet(derivs, lf, lg, xi)
 
     def backup_action(self) -> np.ndarray:
         """Model-free brake for the safety filter's backup: ``u = -brake_gain p'`` (per m/s)
@@ -325,39 +335,19 @@ class PointMassObstacleEnv(gym.Env):
         return np.clip(-self.brake_gain * np.asarray(self._v, dtype=np.float64), -1.0, 1.0)
 
     # ------------------------------------------------------------------ gym API
+    def _tracked_point(self) -> np.ndarray:
+        return self._p
+
+    def _contact(self) -> bool:
+        return bool(self.barrier_values().min() < 0.0)
+
     def _get_obs(self) -> np.ndarray:
-        t = self.time
-        states = self._obstacle_states(t)
-        r, rd, rdd = self.reference.state(t)
+        states = self._obstacle_states
+        r, rd, rdd = self._ref_state
         obs = np.concatenate(
             [self._p, self._v] + [s[0] for s in states] + [s[1] for s in states] + [r, rd, rdd]
         )
         return np.clip(obs, -self._obs_high, self._obs_high).astype(np.float32)
-
-    def _h_values(self) -> np.ndarray:
-        return np.array(
-            [
-                np.linalg.norm(self._p - po) - ob.radius - self.agent_radius
-                for ob, (po, _, _) in zip(
-                    self.obstacles, self._obstacle_states(self.time), strict=True
-                )
-            ]
-        )
-
-    def _get_rew(self, u: np.ndarray) -> tuple[float, dict[str, float]]:
-        r, _, _ = self.reference.state(self.time)
-        track = -self.tracking_weight * float(np.linalg.norm(self._p - r))
-        ctrl = -self.control_weight * float(u @ u)
-        return track + ctrl, {"reward_tracking": track, "reward_ctrl": ctrl}
-
-    def _safety_info(self, hs: np.ndarray) -> dict[str, Any]:
-        unsafe = bool(np.any(hs < 0))
-        return {
-            "cost": 1.0 if unsafe else 0.0,
-            "h": float(np.min(hs)),
-            "h_per_obstacle": hs,
-            "collision": unsafe,
-        }
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
@@ -368,48 +358,29 @@ class PointMassObstacleEnv(gym.Env):
         noise = self.np_random.uniform(-self.reset_noise, self.reset_noise, self.dim)
         self._p = r + noise
         self._v = np.zeros(self.dim)
-        info = self._safety_info(self._h_values())
-        info.update(
-            delta_b_true=np.zeros(self.n_obstacles),
-            unstable=False,
-            time=0.0,
-        )
-        return self._get_obs(), info
+        self._after_state_change()
+        return self._get_obs(), self._reset_info()
 
-    def step(self, action):
-        a = check_action(action, self.action_space.shape)
-        u = np.clip(a, -1.0, 1.0)
-        true_terms = self.barrier_terms("true")
-        nom_terms = self.barrier_terms("nominal")
-        delta = np.array(
-            [
-                (tt.lf + tt.lg @ u) - (tn.lf + tn.lg @ u)
-                for tt, tn in zip(true_terms, nom_terms, strict=True)
-            ]
-        )
+    def _advance(self, u: np.ndarray) -> bool:
         self._integrate(u)
         self._steps += 1
         unstable = not (np.all(np.isfinite(self._p)) and np.all(np.isfinite(self._v)))
         if unstable:
             self._p = np.nan_to_num(self._p, nan=0.0, posinf=10.0, neginf=-10.0)
             self._v = np.zeros(self.dim)
-        hs = self._h_values()
-        reward, reward_info = self._get_rew(u)
-        info = self._safety_info(hs)
-        info.update(reward_info)
-        info.update(delta_b_true=delta, unstable=unstable, time=self.time)
-        out = bool(np.max(np.abs(self._p)) > self.workspace_limit)
-        if self.render_mode == "human":  # pragma: no cover - no human mode here
-            self.render()
-        return self._get_obs(), reward, unstable or out, False, info
+        self._after_state_change()
+        return unstable
+
+    def _out_of_workspace(self) -> bool:
+        return bool(np.max(np.abs(self._p)) > self.workspace_limit)
 
     def render(self):
         if self.render_mode != "rgb_array":
             return None
         c = Canvas(256, 1.0)
-        for ob, (po, _, _) in zip(self.obstacles, self._obstacle_states(self.time), strict=True):
+        for ob, (po, _, _) in zip(self.obstacles, self._obstacle_states, strict=True):
             c.disc(po, ob.radius, (220, 60, 60))
-        r, _, _ = self.reference.state(self.time)
+        r = self._ref_state[0]
         c.disc(r, 0.02, (40, 170, 40))
         c.disc(self._p, self.agent_radius, (40, 80, 220))
         return c.img.copy()

@@ -14,8 +14,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from afvsgp_gym.types import BarrierTerms
-
 
 def quintic(tau: float) -> tuple[float, float, float]:
     """Minimum-jerk blend S(tau) = 10 tau^3 - 15 tau^4 + 6 tau^5 clamped to [0, 1].
@@ -174,32 +172,21 @@ class CyclicReference:
         return pos, vel, acc
 
 
-def sphere_barrier(
-    p: np.ndarray, v: np.ndarray, p_obs: np.ndarray, v_obs: np.ndarray, radius: float
-) -> tuple[float, float, np.ndarray, float]:
-    """Kinematic part of h = |p - p_obs| - radius.
+def sphere_barriers(
+    d: np.ndarray, v_rel: np.ndarray, radius: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Kinematic part of ``h = |d| - radius`` for K sphere pairs at once.
 
-    Returns ``(h, hdot, n, curvature)`` with n = d/|d| and
-    ``h'' = n . (a - a_obs) + curvature``, curvature = (|v_rel|^2 - (n . v_rel)^2) / |d|.
+    ``d`` (K, n) = centre minus obstacle centre, ``v_rel`` (K, n) its time derivative,
+    ``radius`` (K,) the sum of the two radii. Returns ``(h, h', n, curvature)`` with
+    ``n = d/|d|`` and ``h'' = n . (a - a_obs) + curvature``,
+    ``curvature = (|v_rel|^2 - (n . v_rel)^2) / |d|``.
     """
-    d = p - p_obs
-    vr = v - v_obs
-    dist = max(math.sqrt(float(d @ d)), 1e-9)
-    n = d / dist
-    ndv = float(n @ vr)
-    curv = (float(vr @ vr) - ndv * ndv) / dist
+    dist = np.maximum(np.sqrt(np.einsum("ki,ki->k", d, d)), 1e-9)
+    n = d / dist[:, None]
+    ndv = np.einsum("ki,ki->k", n, v_rel)
+    curv = (np.einsum("ki,ki->k", v_rel, v_rel) - ndv * ndv) / dist
     return dist - radius, ndv, n, curv
-
-
-def make_terms(h: float, hdot: float, lf: float, lg: np.ndarray, xi: np.ndarray) -> BarrierTerms:
-    """BarrierTerms with read-only float64 arrays (cached results cannot be corrupted)."""
-    derivs = np.array([h, hdot], dtype=np.float64)
-    lg = np.asarray(lg, dtype=np.float64)
-    xi = np.asarray(xi, dtype=np.float64)
-    for arr in (derivs, lg, xi):
-        if arr.flags.writeable:
-            arr.flags.writeable = False
-    return BarrierTerms(derivs, float(lf), lg, xi)
 
 
 def check_action(action, shape: tuple[int, ...]) -> np.ndarray:
@@ -213,21 +200,3 @@ def check_action(action, shape: tuple[int, ...]) -> np.ndarray:
     if not np.all(np.isfinite(a)):
         raise ValueError(f"action must be finite (no NaN/inf), got {a}")
     return a
-
-
-def check_choice(name: str, value, valid: Sequence[str]) -> str:
-    if value not in valid:
-        raise ValueError(f"{name}={value!r} is not valid; choose one of {list(valid)}")
-    return value
-
-
-def check_number(name: str, value, strictly_positive: bool) -> float:
-    """``float(value)``; ValueError naming ``name`` unless finite and > 0 (or >= 0)."""
-    try:
-        x = float(value)
-    except (TypeError, ValueError):
-        x = math.nan
-    if not math.isfinite(x) or x < 0 or (strictly_positive and x == 0):
-        bound = "> 0" if strictly_positive else ">= 0"
-        raise ValueError(f"{name} must be a finite number {bound}, got {value!r}")
-    return x

@@ -12,27 +12,16 @@ from afvsgp_gym.cbf.learners import check_learner_name
 
 __all__ = ["SafetyFilter"]
 
-_INFO_KEYS = (
-    "action_proposed",
-    "action_applied",
-    "filter_active",
-    "filter_feasible",
-    "filter_status",
-    "delta_b_mean",
-    "delta_b_std",
-    "filter_time_s",
-    "warmup",
-)
-
-
 class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
     """Filter the agent's actions with a chance-constrained HOCBF SOCP learned online.
 
     A thin layer over :class:`afvsgp_gym.cbf.SafetyController` (paper Algorithm 1): at each
     step it reads ``env.unwrapped.barrier_terms("nominal")`` (and ``"true"`` for the oracle),
-    solves the SOCP of eq. 05 around a copy of the proposed action (the caller's array is never
-    written), steps the env with the safe action and feeds the eq. 48 measurement to the
-    learners. The controller, and what it learned, persist across episodes.
+    one term per barrier, solves the SOCP of eq. 05 around a copy of the proposed action (the
+    caller's array is never written), steps the env with the safe action and feeds the eq. 48
+    measurement to the learners, one per barrier. The controller, and what it learned, persist
+    across episodes; ``reset(seed=s)`` also reseeds its exploration noise from ``s``, so a
+    seeded episode is reproducible.
 
     With a learning learner the applied action carries exploration noise: during warm-up
     (``exploration_noise``, the nominal-only filter) and, by default, a small persistent
@@ -42,7 +31,7 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
     provided scenarios do, for a tracking agent), or pass a recorded ``dataset``.
 
     The wrapped env must provide ``barrier_terms(model)``, ``dt``, ``relative_degree`` and
-    ``n_obstacles`` on ``env.unwrapped`` and a finite ``Box`` action space. Its
+    ``n_barriers`` on ``env.unwrapped`` and a finite ``Box`` action space. Its
     ``warmup_steps`` (steps after reset with the obstacles kept away) bounds the default
     number of warm-up samples: ``min(200, warmup_steps - 1)``.
 
@@ -58,14 +47,15 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
         backup: ``"env"`` (default: ``env.unwrapped.backup_action()`` if the env has one),
             a callable ``obs -> action`` evaluated on the last observation, or None (the
             max-worst-margin fallback only).
-        **options: keyword options of :class:`~afvsgp_gym.cbf.SafetyController` (``alpha``,
-            ``beta``, ``warmup_samples``, ``exploration_noise``, ``learner_kwargs``,
-            ``dataset``, ``online``, ``qp_solver``, ``seed``, ...).
+        **options: ``dataset`` and the options of :class:`~afvsgp_gym.cbf.FilterConfig`
+            (``alpha``, ``beta``, ``activation_distance``, ``warmup_samples``,
+            ``exploration_noise``, ``learner_kwargs``, ``online``, ``qp_solver``, ``seed``, ...).
 
     info keys added at every step: ``"action_proposed"``, ``"action_applied"``,
     ``"filter_active"``, ``"filter_feasible"``, ``"filter_status"``, ``"delta_b_mean"``,
-    ``"delta_b_std"`` (per obstacle), ``"filter_time_s"``, ``"warmup"``; ``"delta_b_true"``
-    comes from the env. ``filter_fallbacks`` counts infeasible steps since the last reset.
+    ``"delta_b_std"`` (per barrier, NaN where not predicted), ``"filter_n_active"`` (barriers
+    in the cone program), ``"filter_time_s"``, ``"warmup"``; ``"delta_b_true"`` comes from the
+    env. ``filter_fallbacks`` counts infeasible steps since the last reset.
 
     Example:
         >>> import gymnasium as gym
@@ -91,7 +81,7 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
         gym.Wrapper.__init__(self, env)
         check_learner_name(learner)
         base = env.unwrapped
-        for attr in ("barrier_terms", "dt", "relative_degree", "n_obstacles"):
+        for attr in ("barrier_terms", "dt", "relative_degree", "n_barriers"):
             if not hasattr(base, attr):
                 raise TypeError(f"SafetyFilter needs env.unwrapped.{attr}; {base} has none")
         space = env.action_space
@@ -102,13 +92,15 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
         if not (np.all(np.isfinite(low)) and np.all(np.isfinite(high))):
             raise ValueError(f"SafetyFilter needs finite action bounds. Got: {space}")
         options = dict(options)
+        if getattr(base, "activation_distance", None) is not None:
+            options.setdefault("activation_distance", float(base.activation_distance))
         warmup_steps = getattr(base, "warmup_steps", None)
         if "warmup_samples" not in options and warmup_steps is not None:
             options["warmup_samples"] = int(max(2, min(200, warmup_steps - 1)))
         self.controller = SafetyController(
             low,
             high,
-            n_obstacles=int(base.n_obstacles),
+            n_barriers=int(base.n_barriers),
             relative_degree=int(base.relative_degree),
             learner=learner,
             **options,
@@ -140,6 +132,8 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         self.filter_fallbacks = 0
         self.controller.reset_residuals()
+        if seed is not None:
+            self.controller.reseed(seed)
         obs, info = self.env.reset(seed=seed, options=options)
         self._last_obs = obs
         return obs, info
@@ -149,7 +143,7 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
         proposed = np.array(action, dtype=np.float64).reshape(self.action_space.shape)  # copy
         terms = base.barrier_terms("nominal")
         true_terms = (
-            base.barrier_terms("true") if self.controller.learner_name == "oracle" else None
+            base.barrier_terms("true") if self.controller.uses_true_terms else None
         )
         res = self.controller.filter(proposed, terms, true_terms, self._backup)
         applied = res.u.astype(self._dtype)
@@ -169,6 +163,7 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
             filter_status=res.status,
             delta_b_mean=res.delta_b_mean,
             delta_b_std=res.delta_b_std,
+            filter_n_active=int(res.n_active),
             filter_time_s=float(res.solve_time_s),
             warmup=bool(res.warmup),
         )

@@ -51,7 +51,7 @@ def test_nan_terms_with_backup_apply_the_backup():
     np.testing.assert_array_equal(res.u, [0.2, 0.2])
 
 
-def _fitted_controller(w, rng):
+def _fitted_controller(w, rng, **options):
     """AFVSGP fitted offline on z = 1 + u . (2, -1) with frozen online learning."""
     xi = rng.normal(size=(120, 3))
     u = rng.uniform(-1, 1, size=(120, 2))
@@ -59,28 +59,36 @@ def _fitted_controller(w, rng):
     return SafetyController(
         -np.ones(2), np.ones(2), learner="afvsgp", alpha=2.0, residual_correction=w,
         dataset=(xi, u, z), online=False, online_exploration=0.0, seed=0,
-        learner_kwargs={"num_inducing": 10},
+        learner_kwargs={"num_inducing": 10}, **options,
     )
 
 
 def test_residual_bias_is_the_exponential_average_of_the_residuals():
     rng = np.random.default_rng(0)
     w = 0.2
-    ctrl = _fitted_controller(w, rng)
-    terms = [BarrierTerms(np.array([0.5, 0.0]), 0.0, np.zeros(2), np.array([0.1, 0.2, 0.3]))]
+    ctrl = _fitted_controller(w, rng, activation_distance=0.5)
+    terms = [BarrierTerms(np.array([0.1, 0.0]), 0.0, np.zeros(2), np.array([0.1, 0.2, 0.3]))]
     expected = 0.0
     offsets = [-3.0, -3.0, -1.0, 2.0, -3.0]
     for off in offsets:
         res = ctrl.filter(np.array([0.2, -0.1]), terms)
         ubar = np.concatenate([[1.0], res.u])
-        b, _ = ctrl.learners[0].predict_affine(terms[0].xi[None])
+        b, _ = ctrl.bank.predict_affine(terms[0].xi[None], np.array([0]))
         z = float(b[0] @ ubar) + off  # measured = learned mean + offset
         # eq. 48 with r = 2, zero nominal: z = (h'_after - h'_before) / dt
-        after = [BarrierTerms(np.array([0.5, z * 0.01]), 0.0, np.zeros(2), terms[0].xi)]
+        after = [BarrierTerms(np.array([0.1, z * 0.01]), 0.0, np.zeros(2), terms[0].xi)]
         ctrl.observe(terms, res.u, after, 0.01)
         expected = (1 - w) * expected + w * off
     assert ctrl.residual_bias[0] == pytest.approx(expected, abs=1e-6)
     ctrl.reset_residuals()
+    assert ctrl.residual_bias[0] == 0.0
+    # a barrier outside the cone program (h above the activation distance) is not predicted:
+    # its observer restarts from zero
+    ctrl.residual_bias[:] = 1.0
+    far = [BarrierTerms(np.array([1.0, 0.0]), 0.0, np.zeros(2), terms[0].xi)]
+    res = ctrl.filter(np.array([0.2, -0.1]), far)
+    assert res.n_active == 0 and np.isnan(res.delta_b_mean[0])
+    ctrl.observe(far, res.u, far, 0.01)
     assert ctrl.residual_bias[0] == 0.0
 
 
@@ -92,9 +100,9 @@ def test_residual_bias_shifts_the_constraint_mean():
     terms = [BarrierTerms(np.array([0.05, -0.3]), 0.0, np.zeros(2), np.array([0.1, 0.2, 0.3]))]
     u_nom = np.array([-0.5, 0.5])
     res = ctrl.filter(u_nom, terms)
-    b, sig = ctrl.learners[0].predict_affine(terms[0].xi[None])
+    b, sig = ctrl.bank.predict_affine(terms[0].xi[None], np.array([0]))
     c0, c = ctrl.hocbf.constraint(terms[0])
-    a0 = c0 - ctrl.barrier_margin * float(np.prod(ctrl.hocbf.gains)) + b[0, 0] - 4.0
+    a0 = c0 - ctrl.config.barrier_margin * float(np.prod(ctrl.hocbf.gains)) + b[0, 0] - 4.0
     w, v = np.linalg.eigh(0.5 * (sig[0] + sig[0].T))
     G = (ctrl.beta * np.sqrt(np.maximum(w, 0)))[:, None] * v.T
     ref = SOCPFilter(-np.ones(2), np.ones(2)).solve(u_nom, [a0], (c + b[0, 1:])[None], G[None])

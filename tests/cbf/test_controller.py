@@ -82,16 +82,18 @@ def test_nan_action_gives_flagged_fallback():
 @pytest.mark.parametrize(
     ("kwargs", "match"),
     [
-        ({"n_obstacles": 0}, "n_obstacles"),
+        ({"n_barriers": 0}, "n_barriers"),
+        ({"activation_distance": np.nan}, "activation_distance"),
+        ({"residual_correction": 1.0}, "residual_correction"),
         ({"beta": -1.0}, "beta"),
         ({"warmup_samples": 1}, "warmup_samples"),
         ({"exploration_noise": -0.1}, "exploration_noise"),
         ({"alpha": 0.0}, "alpha"),
         ({"learner": "none", "learner_kwargs": {"x": 1}}, "learner_kwargs"),
         ({"online_exploration": -1.0}, "online_exploration"),
-        ({"noise_floor": np.nan}, "noise_floor"),
+        ({"noise_floor": 0.1}, "unknown option.*noise_floor"),
         ({"barrier_margin": -1.0}, "barrier_margin"),
-        ({"kernel_init": "magic"}, "kernel_init"),
+        ({"kernel_init": "magic"}, "unknown option.*kernel_init"),
     ],
 )
 def test_bad_options(kwargs, match):

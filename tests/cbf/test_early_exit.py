@@ -67,7 +67,9 @@ def test_controller_matches_plain_solve(seed):
     with ``active`` False exactly when the proposal is returned unchanged."""
     rng = np.random.default_rng(200 + seed)
     m = 3
-    ctrl = SafetyController(-np.ones(m), np.ones(m), 2, learner="none", alpha=2.0)
+    ctrl = SafetyController(
+        -np.ones(m), np.ones(m), 2, learner="none", alpha=2.0, activation_distance=np.inf
+    )
     ref = SOCPFilter(-np.ones(m), np.ones(m), 2)
     for _ in range(20):
         terms = [
@@ -85,7 +87,7 @@ def test_controller_matches_plain_solve(seed):
         a = np.empty((2, m))
         for k, t in enumerate(terms):
             c0, c = ctrl.hocbf.constraint(t)
-            a0[k], a[k] = c0 - ctrl.barrier_margin * ctrl._margin_gain, c
+            a0[k], a[k] = c0 - ctrl.config.barrier_margin * ctrl._margin_gain, c
         r = ref.solve(u_nom, a0, a)
         assert res.status == r.status
         np.testing.assert_array_equal(res.u, r.u)
@@ -98,7 +100,7 @@ def test_controller_matches_plain_solve(seed):
 def test_cone_matrix_factors_the_covariance(seed):
     """``||G ubar|| = beta sqrt(ubar' Sigma ubar)`` for positive definite (Cholesky), singular
     and rounding-level indefinite (eigen-factor) Sigma, against the quadratic form."""
-    from afvsgp_gym.cbf.controller import _cone_matrix
+    from afvsgp_gym.cbf.controller import cone_matrix
 
     rng = np.random.default_rng(300 + seed)
     m = 7
@@ -109,7 +111,7 @@ def test_cone_matrix_factors_the_covariance(seed):
         if trial % 4 == 0:  # rounding-level indefiniteness
             sig = sig - 1e-14 * np.trace(sig) * np.eye(m + 1)
         beta = rng.uniform(0.5, 4.0)
-        G = _cone_matrix(sig, beta)
+        G = cone_matrix(sig, beta)
         assert G.shape == (m + 1, m + 1) and np.all(np.isfinite(G))
         np.testing.assert_allclose(G.T @ G, beta**2 * sig, atol=1e-9 * beta**2 * np.abs(sig).max())
         for ubar in rng.normal(size=(5, m + 1)):

@@ -29,7 +29,7 @@ def test_plots_from_arrays_are_valid_pngs(tmp_path):
 
 
 def test_reproduce_tiny_then_plot(tmp_path, capsys):
-    cfg = ReproduceConfig(static_env=PM, dynamic_env=PM,
+    cfg = ReproduceConfig(static_env=PM, dynamic_env=PM, env_kwargs={},
                           dynamic_env_kwargs={"scenario": "dynamic"}, n_prelim=30,
                           n_offline=80, stream_start=860, stream_end=960,
                           dynamic_learners=("none", "afvsgp", "oracle"), dynamic_episodes=1,

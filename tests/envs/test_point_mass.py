@@ -19,11 +19,10 @@ def _env_near_moving_obstacle(dim=2, dt=1e-5, **kw):
     env = PointMassObstacleEnv("dynamic", dim=dim, dt=dt, warmup_steps=0, **kw)
     env.reset(seed=0)
     ob = env.obstacles[0]
-    env._steps = int(round(0.5 * ob.duration / dt))  # peak speed, nonzero acceleration nearby
+    env.set_time_step(int(round(0.5 * ob.duration / dt)))  # peak speed, acceleration nearby
     po, _, _ = ob.state(env.time)
     rng = np.random.default_rng(3)
-    env._p = po + np.r_[0.2, -0.1, 0.05][:dim]
-    env._v = rng.normal(size=dim)
+    env.set_state(po + np.r_[0.2, -0.1, 0.05][:dim], rng.normal(size=dim))
     return env
 
 
@@ -156,11 +155,14 @@ def test_reward_is_sum_of_terms_and_info_keys():
     env.reset(seed=0)
     _, r, _, _, info = env.step(env.action_space.sample())
     assert r == info["reward_tracking"] + info["reward_ctrl"]
-    for key in ("cost", "h", "h_per_obstacle", "collision", "delta_b_true", "unstable"):
+    keys = ("cost", "h", "h_per_barrier", "collision", "tracking_error", "reference_h",
+            "delta_b_true", "unstable")
+    for key in keys:
         assert key in info
     assert info["delta_b_true"].shape == (1,) and isinstance(info["h"], float)
     base = env.unwrapped
-    assert base.relative_degree == 2 and base.n_obstacles == 1 and base.dt == 0.01
+    assert base.relative_degree == 2 and base.n_obstacles == base.n_barriers == 1
+    assert base.dt == 0.01
     assert base.metadata["render_fps"] == 100
 
 
@@ -201,9 +203,9 @@ def test_multiple_obstacles_and_render():
     ]
     env = gym.make(ENV_ID, obstacles=obstacles, render_mode="rgb_array")
     obs, info = env.reset(seed=0)
-    assert env.unwrapped.n_obstacles == 2 and obs.shape == env.observation_space.shape
+    assert env.unwrapped.n_barriers == 2 and obs.shape == env.observation_space.shape
     _, _, _, _, info = env.step(np.zeros(2))
-    assert info["h_per_obstacle"].shape == (2,) and info["delta_b_true"].shape == (2,)
+    assert info["h_per_barrier"].shape == (2,) and info["delta_b_true"].shape == (2,)
     assert len(env.unwrapped.barrier_terms()) == 2
     img = env.render()
     assert img.shape == (256, 256, 3) and img.dtype == np.uint8
@@ -230,7 +232,7 @@ def test_perturbed_model_with_true_parameters_is_exact():
 def test_backup_action_brakes_the_point():
     env = gym.make("afvsgp_gym/PointMassObstacle-v0", nominal_model="zero").unwrapped
     env.reset(seed=0)
-    env._v = np.array([0.4, -0.3])
+    env.set_state(env._p, [0.4, -0.3])
     u = env.backup_action()
     np.testing.assert_allclose(u, [-0.8, 0.6])
     speeds = []

@@ -1,39 +1,74 @@
-"""Issue 4 acceptance with the nominal "zero" model (real simulators, seeded episodes).
+"""Acceptance with the nominal "zero" model on the real simulators, seeded episodes.
 
-The point mass runs all 20 seeds; the Franka runs seed 0 per learner and scenario here (the
-10-seed sweeps are in ``afvsgp_gym.benchmarks.filter``; measured results and the seeds that
-fail are reported in benchmarks/filter.md). Tracking "away from the obstacle" is |p - r| (m)
-after warm-up at the steps where the reference keeps >= 5 cm outside every obstacle's safe set
-(``run_episode``); "bounded" is asserted as fixed limits (the unfiltered tracker's own error
-is 3-5 cm; the filtered arm may detour or stop behind the obstacle for a while).
+Cost is Safety-Gymnasium's: a step costs when some barrier has h < 0 or some arm geometry
+touches an obstacle. The point mass runs 20 seeds; the Franka (whole-arm spheres, the default)
+runs two seeds per scenario here, the 50-seed sweeps and their confidence bounds are in
+benchmarks/filter.md. Tracking "away from the obstacle" is ``info["tracking_error"]`` at the
+steps where ``info["reference_h"] >= 0.05`` (the reference keeps 5 cm clear of every
+obstacle), after warm-up; its limits here are loose sanity bounds (the sweeps compare it
+with the oracle's).
 """
 
+import gymnasium as gym
+import numpy as np
 import pytest
 
-from afvsgp_gym.benchmarks.filter import run_episode
+import afvsgp_gym  # noqa: F401
+from afvsgp_gym.agents import NominalController
+from afvsgp_gym.wrappers import SafetyFilter
+
+IDS = {
+    "pointmass": "afvsgp_gym/PointMassObstacle-v0",
+    "static": "afvsgp_gym/FrankaObstacleStatic-v0",
+    "dynamic": "afvsgp_gym/FrankaObstacleDynamic-v0",
+}
+
+
+def episode(scenario, learner, seed, **filter_options):
+    """Cost steps, min h, contacts and the tracking error away from the obstacle."""
+    env = gym.make(IDS[scenario])
+    if learner is not None:
+        env = SafetyFilter(env, learner=learner, **filter_options)
+    policy = NominalController(env)
+    obs, _ = env.reset(seed=seed)
+    warm = env.unwrapped.warmup_steps
+    cost = contacts = 0
+    min_h, track = np.inf, []
+    for step in range(10**6):
+        obs, _, terminated, truncated, info = env.step(policy(obs))
+        cost += info["cost"] > 0
+        contacts += info["collision"]
+        min_h = min(min_h, info["h"])
+        if step >= warm and info["reference_h"] >= 0.05:
+            track.append(info["tracking_error"])
+        if terminated or truncated:
+            break
+    env.close()
+    return {"cost": cost, "contacts": contacts, "min_h": min_h, "steps": step + 1,
+            "track_mean": float(np.mean(track)), "track_max": float(np.max(track))}
 
 
 def test_pointmass_none_violates():
     # without the brake backup: on the point mass the env's brake alone keeps "none" safe
     # (benchmarks/filter.md), so the nominal-only HOCBF is judged on its own here
-    assert run_episode("pointmass", "none", seed=0, backup=None)["violations"] > 0
+    assert episode("pointmass", "none", 0, backup=None)["cost"] > 0
 
 
-def test_pointmass_afvsgp_zero_violations_20_seeds():
-    rows = [run_episode("pointmass", "afvsgp", seed=s) for s in range(20)]
-    assert [r["violations"] for r in rows] == [0.0] * 20
-    assert min(r["min_h"] for r in rows) >= 0.0
+def test_pointmass_afvsgp_no_cost_in_20_seeds():
+    rows = [episode("pointmass", "afvsgp", s) for s in range(20)]
+    assert [r["cost"] for r in rows] == [0] * 20
     assert max(r["track_max"] for r in rows) < 0.3
 
 
-@pytest.mark.parametrize("scenario", ["franka_static", "franka_dynamic"])
-def test_franka_none_violates(scenario):
-    assert run_episode(scenario, "none", seed=0)["violations"] > 0
+@pytest.mark.parametrize("scenario", ["static", "dynamic"])
+def test_franka_none_has_cost(scenario):
+    assert episode(scenario, "none", 0)["cost"] > 0
 
 
-@pytest.mark.parametrize("scenario", ["franka_static", "franka_dynamic"])
+@pytest.mark.parametrize("scenario", ["static", "dynamic"])
 @pytest.mark.parametrize("learner", ["oracle", "afvsgp"])
-def test_franka_zero_violations_and_bounded_tracking(scenario, learner):
-    r = run_episode(scenario, learner, seed=0)
-    assert r["violations"] == 0 and r["min_h"] >= 0.0
-    assert r["track_mean"] < 0.15 and r["track_max"] < 0.75
+def test_franka_whole_arm_no_cost_and_bounded_tracking(scenario, learner):
+    rows = [episode(scenario, learner, s) for s in (0, 1)]
+    assert all(r["steps"] == 4000 and r["cost"] == 0 and r["min_h"] >= 0.0 for r in rows)
+    assert np.mean([r["track_mean"] for r in rows]) < 0.2
+    assert max(r["track_max"] for r in rows) < 0.8

@@ -77,8 +77,7 @@ class NaNTermsEnv(PointMassObstacleEnv):
     def barrier_terms(self, model="nominal"):
         terms = super().barrier_terms(model)
         if self._steps >= self.nan_after:
-            t = terms[0]
-            terms[0] = type(t)(t.derivatives * np.nan, t.lf, t.lg, t.xi * np.nan)
+            terms = type(terms)(terms.derivatives * np.nan, terms.lf, terms.lg, terms.xi * np.nan)
         return terms
 
 
@@ -119,7 +118,7 @@ def test_learning_property_and_constructor_args():
     env.learning = False
     assert not env.controller.learning
     assert env._saved_kwargs == {"learner": "none", "backup": "env", "alpha": 2.0}
-    assert env.controller.warmup_samples == 200
+    assert env.controller.config.warmup_samples == 200
 
 
 def test_make_vec_sync():

@@ -1,0 +1,111 @@
+"""Settings of the safety controller, validated once (a frozen dataclass)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field, fields
+
+from afvsgp_gym.validation import check_int, check_number
+
+__all__ = ["DEFAULT_BETA", "DEFAULT_RESIDUAL_CORRECTION", "FilterConfig"]
+
+#: Confidence multiplier of the chance constraint (eq. 49 replaced by a constant, as in
+#: Castaneda et al. 2021; the choice is measured in benchmarks/filter.md).
+DEFAULT_BETA = 3.0
+
+#: Weight of the residual correction (an exponential average over ~1/0.2 = 5 steps).
+DEFAULT_RESIDUAL_CORRECTION = 0.2
+
+
+@dataclass(frozen=True)
+class FilterConfig:
+    """Everything the :class:`~afvsgp_gym.cbf.SafetyController` can be told, checked once.
+
+    Attributes
+    ----------
+    relative_degree : int
+        ``r`` of every barrier (2 for the provided envs).
+    alpha : float or tuple of float
+        Linear class-K gains ``a_1..a_r`` of the HOCBF chain.
+    beta : float
+        Chance-constraint multiplier on the predicted standard deviation (eq. 49);
+        0 gives the mean-only QP.
+    barrier_margin : float
+        Buffer subtracted from ``h`` in the constraint (units of ``h``): the HOCBF condition
+        holds in continuous time; with a zero-order-hold action the sampled ``h`` can dip
+        O(dt^2) below the boundary without it.
+    activation_distance : float
+        A barrier enters the cone program when ``min(h, h + h'/a_1) < activation_distance``
+        (units of ``h``); the others are still learned. Outside, ``h >= d`` and
+        ``psi_1 = h' + a_1 h >= a_1 d > 0``, so a barrier enters with the HOCBF conditions
+        holding; whether ``psi_2 >= 0`` is then feasible within the action bounds depends on
+        the system's authority at that distance, hence no finite default: ``inf`` (every
+        barrier in the program) unless the env suggests one (``SafetyFilter`` reads
+        ``env.unwrapped.activation_distance``; 0.15 m for the Franka, measured in
+        benchmarks/filter.md).
+    warmup_samples : int
+        ``P``: samples collected before the offline hyperparameter fit (Algorithm 1).
+    exploration_noise : float
+        Std of the Gaussian noise added to the proposal during warm-up, as a fraction of the
+        half range of the action bounds.
+    online_exploration : float
+        Std of the noise added after warm-up (same units), for persistent excitation.
+    residual_correction : float
+        Weight ``w`` in [0, 1) of the residual observer (see
+        :class:`~afvsgp_gym.cbf.residuals.ResidualObserver`); 0 disables it.
+    learner_kwargs : dict
+        Passed to the learner's constructor, on top of the registry's defaults.
+    learn_hyperparameters : bool
+        Maximise the bound at the end of warm-up (True) or keep the given kernel.
+    shared_hyperparameters : bool
+        One hyperparameter fit for all barriers on their pooled, per-barrier normalised
+        warm-up data, each barrier keeping its own output scale (True), or one fit per barrier.
+    online : bool
+        Update the learners with every observed sample after warm-up.
+    qp_solver : str or None
+        qpsolvers backend for the known-model QP (None: clarabel directly).
+    seed : int or None
+        Seed of the exploration noise.
+    """
+
+    relative_degree: int = 2
+    alpha: float | tuple[float, ...] = 4.0
+    beta: float = DEFAULT_BETA
+    barrier_margin: float = 1e-3
+    activation_distance: float = float("inf")
+    warmup_samples: int = 200
+    exploration_noise: float = 0.3
+    online_exploration: float = 0.05
+    residual_correction: float = DEFAULT_RESIDUAL_CORRECTION
+    learner_kwargs: dict = field(default_factory=dict)
+    learn_hyperparameters: bool = True
+    shared_hyperparameters: bool = False
+    online: bool = True
+    qp_solver: str | None = None
+    seed: int | None = None
+
+    def __post_init__(self) -> None:
+        check_int("relative_degree", self.relative_degree, 1)
+        if not isinstance(self.alpha, (int, float)):
+            if not isinstance(self.alpha, Sequence):
+                raise ValueError(f"alpha must be a float or a sequence of floats, got {self.alpha}")
+            object.__setattr__(self, "alpha", tuple(float(a) for a in self.alpha))
+        check_number("beta", self.beta)
+        check_number("barrier_margin", self.barrier_margin)
+        if self.activation_distance != float("inf"):
+            check_number("activation_distance", self.activation_distance, low=None)
+        check_int("warmup_samples", self.warmup_samples, 2)
+        check_number("exploration_noise", self.exploration_noise)
+        check_number("online_exploration", self.online_exploration)
+        check_number("residual_correction", self.residual_correction, high=1.0, high_open=True)
+        if self.learner_kwargs is None:
+            object.__setattr__(self, "learner_kwargs", {})
+        if not isinstance(self.learner_kwargs, dict):
+            raise ValueError(f"learner_kwargs must be a dict, got {self.learner_kwargs!r}")
+        if self.seed is not None:
+            check_int("seed", self.seed, 0)
+
+    @classmethod
+    def option_names(cls) -> tuple[str, ...]:
+        """The keyword options accepted by the controller and the wrapper."""
+        return tuple(f.name for f in fields(cls))

@@ -1,0 +1,39 @@
+"""Residual observer: a disturbance observer on top of the learned model error.
+
+After each step the eq. 48 measurement ``z_k`` is compared with the learned mean the filter
+used for barrier ``k``, ``e_k = z_k - b_k' ubar``, and ``bias_k <- (1 - w) bias_k + w e_k``
+is added to that barrier's mean in the next constraints (eq. 05). A learner that is wrong in a
+persistent direction (the drift or the action gain changed faster than the posterior adapts)
+is corrected within ~1/w steps; zero-mean errors average out. A barrier that was not predicted
+in a step (outside the cone program) restarts from zero bias.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["ResidualObserver"]
+
+
+class ResidualObserver:
+    """Exponential average of the measured minus the predicted ``Delta B^(r)`` per barrier."""
+
+    def __init__(self, n_barriers: int, weight: float):
+        self.weight = float(weight)
+        self.bias = np.zeros(int(n_barriers))
+
+    def reset(self) -> None:
+        """Forget the bias (e.g. at an episode reset: the state jumps)."""
+        self.bias[:] = 0.0
+
+    def update(self, rows: np.ndarray, predicted: np.ndarray, measured: np.ndarray) -> None:
+        """``predicted`` and ``measured`` (len(rows),) for the barriers ``rows`` of the step
+        just taken; every other barrier's bias returns to 0. NaN measurements leave the bias."""
+        keep = np.zeros(self.bias.shape, dtype=bool)
+        if self.weight > 0 and len(rows):
+            e = measured - predicted
+            ok = np.isfinite(e)
+            r = rows[ok]
+            self.bias[r] += self.weight * (e[ok] - self.bias[r])
+        keep[rows] = True
+        self.bias[~keep] = 0.0

@@ -1,0 +1,135 @@
+"""What every obstacle environment shares: argument parsing, barrier caching, the step.
+
+An obstacle env (``FrankaObstacleEnv``, ``PointMassObstacleEnv``) mixes :class:`ObstacleTask`
+into its Gymnasium base class and provides the physics and geometry:
+
+- ``_compute_barriers(kind) -> BarrierSet`` for ``kind`` in ``{"zero", "kinematic",
+  "perturbed", "exact"}`` at the current state (``"exact"`` is the true plant);
+- ``_advance(u) -> bool`` one control period with action ``u``; True when it went unstable;
+- ``_contact() -> bool`` any robot geometry touches an obstacle;
+- ``_tracked_point() -> ndarray`` the point that tracks the reference (end-effector);
+- ``_get_obs()``, ``time``, ``reference``, ``obstacles``, ``_obstacle_states``,
+  ``tracking_radius`` (radius of the tracked point's sphere, for ``reference_h``).
+
+The step and the info keys are then the same for every env (see :meth:`ObstacleTask.step`).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from afvsgp_gym.envs.scenario import check_action
+from afvsgp_gym.types import BarrierSet
+from afvsgp_gym.validation import check_choice
+
+__all__ = [
+    "BARRIER_MODELS",
+    "NOMINAL_MODELS",
+    "SCENARIOS",
+    "ObstacleTask",
+    "UnknownArgumentError",
+]
+
+SCENARIOS = ("static", "dynamic", "random")
+NOMINAL_MODELS = ("zero", "kinematic", "perturbed", "exact")
+BARRIER_MODELS = ("nominal", "true")
+
+
+class UnknownArgumentError(TypeError, ValueError):
+    """An unknown keyword argument (a TypeError, and a ValueError per the package rules)."""
+
+
+def read_kwargs(defaults: dict[str, Any], kwargs: dict[str, Any]) -> dict[str, Any]:
+    """``defaults`` updated with ``kwargs``; :class:`UnknownArgumentError` names unknown keys."""
+    unknown = sorted(set(kwargs) - set(defaults))
+    if unknown:
+        raise UnknownArgumentError(
+            f"unknown argument(s) {unknown}; valid: {['scenario', *defaults]}"
+        )
+    return {**defaults, **kwargs}
+
+
+class ObstacleTask:
+    """Mixin: barrier terms (cached per state), the safety info and the Gymnasium step."""
+
+    relative_degree = 2
+    nominal_model: str
+    n_barriers: int
+    barrier_names: tuple[str, ...]
+
+    def _invalidate_barriers(self) -> None:
+        """Call after every change of the state (the cached terms are stale)."""
+        self._barrier_cache: dict[str, BarrierSet] = {}
+
+    def barrier_terms(self, model: str = "nominal") -> BarrierSet:
+        """The ``n_barriers`` barriers' terms at the current state (one ``BarrierTerms`` per
+        barrier when indexed): ``"true"`` plant or the ``"nominal"`` model."""
+        check_choice("model", model, BARRIER_MODELS)
+        kind = "exact" if model == "true" else self.nominal_model
+        cache = self._barrier_cache
+        terms = cache.get(kind)
+        if terms is None:
+            terms = cache[kind] = self._compute_barriers(kind)
+        return terms
+
+    def barrier_values(self) -> np.ndarray:
+        """``(n_barriers,)`` values of h at the current state."""
+        return self.barrier_terms("true").h
+
+    def _reference_h(self) -> float:
+        """Clearance of the reference point's sphere (``tracking_radius``) from every obstacle."""
+        r = self._ref_state[0]
+        out = math.inf
+        for ob, (po, _, _) in zip(self.obstacles, self._obstacle_states, strict=True):
+            d = r - po
+            out = min(out, math.sqrt(float(d @ d)) - ob.radius - self.tracking_radius)
+        return out
+
+    def _safety_info(self) -> dict[str, Any]:
+        hs = self.barrier_values()
+        contact = self._contact()
+        h_min = float(hs.min())
+        err = self._tracked_point() - self._ref_state[0]
+        return {
+            "cost": 1.0 if (h_min < 0.0 or contact) else 0.0,
+            "h": h_min,
+            "h_per_barrier": hs.copy(),
+            "collision": bool(contact),
+            "tracking_error": math.sqrt(float(err @ err)),
+            "reference_h": self._reference_h(),
+        }
+
+    def _get_rew(self, u: np.ndarray) -> tuple[float, dict[str, float]]:
+        err = self._tracked_point() - self._ref_state[0]
+        track = -self.tracking_weight * math.sqrt(float(err @ err))
+        ctrl = -self.control_weight * float(u @ u)
+        return track + ctrl, {"reward_tracking": track, "reward_ctrl": ctrl}
+
+    def _reset_info(self) -> dict[str, Any]:
+        info = self._safety_info()
+        info.update(delta_b_true=np.zeros(self.n_barriers), unstable=False, time=0.0)
+        return info
+
+    def step(self, action):
+        """Apply ``action`` (clipped to the bounds; NaN, inf or a wrong shape raise
+        ``ValueError`` before anything is simulated) for one control period."""
+        space = self.action_space
+        u = np.clip(check_action(action, space.shape), space.low, space.high)
+        true = self.barrier_terms("true")
+        nom = self.barrier_terms("nominal")
+        delta = (true.lf - nom.lf) + (true.lg - nom.lg) @ u
+        unstable = self._advance(u)
+        reward, reward_info = self._get_rew(u)
+        info = self._safety_info()
+        info.update(reward_info)
+        info.update(delta_b_true=delta, unstable=unstable, time=self.time)
+        terminated = unstable or self._out_of_workspace()
+        if self.render_mode == "human":  # pragma: no cover - needs a display
+            self.render()
+        return self._get_obs(), reward, terminated, False, info
+
+    def _out_of_workspace(self) -> bool:
+        return False

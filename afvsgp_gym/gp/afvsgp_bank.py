@@ -1,0 +1,391 @@
+"""A bank of K independent AFVSGP learners updated together (one per barrier).
+
+Each learner ``k`` is exactly an :class:`~afvsgp_gym.gp.AFVSGP` (own kernel, noise, inducing
+set, window of the last ``P`` samples with forgetting ``phi``; paper eqs. 20-32), but the
+state of all K lives in stacked arrays so a control step costs one set of numpy/LAPACK calls
+for all learners, not K:
+
+    S_k <- phi S_k + k k' - phi^P k_old k_old',   r_k <- phi r_k + z k - phi^P z_old k_old
+    b_k(xi) = Kt B_k r_k / s2_k,   Sigma_k(xi) = diag(s_k) - Kt (K_oo^-1 - B_k) Kt'     (eq. 20)
+
+with ``B_k = (K_oo,k + S_k / s2_k)^-1``. Inducing sets have up to ``num_inducing`` points;
+a learner with fewer is padded with inert slots (identity block in ``K_oo``, zero kernel
+columns), which leaves every posterior quantity unchanged. The rare inducing-set changes
+(eqs. 27-30: add, and replace by the eq. 28 score) run per learner.
+
+Build it from fitted learners (:meth:`AFVSGPBank.from_learners`), then call
+:meth:`update` with the K samples of a step and :meth:`predict_affine` for the learners whose
+prediction is needed (e.g. the barriers near an obstacle).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+from scipy.linalg import solve_triangular
+from scipy.linalg.blas import dtrsm
+from scipy.linalg.lapack import dpotrf, dtrtri
+
+from afvsgp_gym.gp._linalg import jittered_cholesky
+from afvsgp_gym.gp.afvsgp import AFVSGP, _chol_delete
+
+__all__ = ["AFVSGPBank"]
+
+
+class AFVSGPBank:
+    """K AFVSGP learners in stacked arrays (see the module docstring).
+
+    Attributes
+    ----------
+    n_learners : int
+    n_inducing_ : ndarray of int, shape (K,)
+        Current inducing-set sizes.
+    n_seen_, n_added_, n_removed_ : ndarray of int, shape (K,)
+    """
+
+    def __init__(self, learners: Sequence[AFVSGP]):
+        if not learners:
+            raise ValueError("learners must hold at least one fitted AFVSGP")
+        first = learners[0]
+        for k, lr in enumerate(learners):
+            if not isinstance(lr, AFVSGP) or not hasattr(lr, "kernel_"):
+                raise ValueError(f"learners[{k}] must be a fitted AFVSGP")
+            for attr in ("window", "forgetting", "num_inducing", "add_threshold",
+                         "swap_margin", "refresh_every", "adapt_inducing"):
+                if getattr(lr, attr) != getattr(first, attr):
+                    raise ValueError(f"learners[{k}].{attr} differs from learners[0]'s")
+            if (lr.kernel_.input_dim, lr.kernel_.action_dim) != (
+                    first.kernel_.input_dim, first.kernel_.action_dim):
+                raise ValueError(f"learners[{k}] has other input/action dimensions")
+        self.n_learners = K = len(learners)
+        self.window = P = int(first.window)
+        self.forgetting = phi = float(first.forgetting)
+        self.num_inducing = int(first.num_inducing)
+        self.add_threshold = float(first.add_threshold)
+        self.swap_margin = float(first.swap_margin)
+        self.adapt_inducing = bool(first.adapt_inducing)
+        self._refresh_every = P if first.refresh_every is None else int(first.refresh_every)
+        self.input_dim = b = first.kernel_.input_dim
+        self.action_dim = first.kernel_.action_dim
+        c = self.action_dim + 1
+        self._c = c
+        mp = max(self.num_inducing, max(len(lr.inducing_xi_) for lr in learners))
+        self._mp = mp
+        self._phi, self._phi_p, self._inv_phi = phi, phi ** P, 1.0 / phi
+        self._pow = phi ** np.arange(P, dtype=float)
+        # hyperparameters
+        self.inv_ls2 = np.array([lr.kernel_._inv_ls ** 2 for lr in learners])  # (K, c, b)
+        self.var = np.array([lr.kernel_._var for lr in learners])  # (K, c)
+        self.log_var = np.log(self.var)
+        self.noise_variance = np.array([lr.noise_variance_ for lr in learners])
+        self.jitter = np.array([lr.jitter_ for lr in learners])
+        self.kernels = [lr.kernel_.clone() for lr in learners]
+        # inducing sets (padded)
+        self.n_inducing_ = np.zeros(K, dtype=int)
+        self._ind_xi = np.zeros((K, mp, b))
+        self._ind_ub = np.zeros((K, mp, c))
+        self._amat = np.zeros((K, c * mp, 2 * b + 1))  # exponent rows, see _set_inducing
+        self._ubt = np.zeros((K, c, mp))
+        self._koo = np.zeros((K, mp, mp))
+        self._l_oo = np.zeros((K, mp, mp))
+        self._koo_inv = np.zeros((K, mp, mp))
+        self._l_oo_invt = np.zeros((K, mp, mp))
+        # statistics [r, S] with a per-learner scale (forgetting folded in), the window ring
+        self._stats = np.zeros((K, mp, mp + 1))
+        self._scale = np.ones(K)
+        self._wz = np.zeros((K, P))
+        self._wk = np.zeros((K, P, mp))
+        self._wx = np.zeros((K, P, 2 * b))  # [xi, xi^2]
+        self._wub = np.zeros((K, P, c))
+        self._head = np.full(K, -1)
+        self._count = np.zeros(K, dtype=int)
+        # posterior factor cache: chol(K_oo + S/s2) and r/s2
+        self._sig_chol = np.zeros((K, mp, mp))
+        self._rs2 = np.zeros((K, mp))
+        self._fresh = np.zeros(K, dtype=bool)
+        self.n_seen_ = np.zeros(K, dtype=int)
+        self.n_added_ = np.zeros(K, dtype=int)
+        self.n_removed_ = np.zeros(K, dtype=int)
+        for k, lr in enumerate(learners):
+            xi, u, z, _ = lr.window_samples()
+            n = len(z)
+            ub = np.concatenate([np.ones((n, 1)), u], axis=1)
+            self._wz[k, :n] = z
+            self._wx[k, :n, :b] = xi
+            self._wx[k, :n, b:] = xi * xi
+            self._wub[k, :n] = ub
+            self._count[k], self._head[k] = n, n - 1
+            self.n_seen_[k] = lr.n_seen_
+            xo, uo = lr.inducing_xi_, lr.inducing_u_
+            ubo = np.concatenate([np.ones((len(xo), 1)), uo], axis=1)
+            koo = lr.kernel_._gram(xo, ubo)
+            koo[np.diag_indices_from(koo)] += self.jitter[k]
+            self._set_inducing(k, xo, ubo, koo, jittered_cholesky(koo, name="K_oo"))
+            self._wk[k, :n, : len(xo)] = lr.kernel_._gram(xi, ub, xo, ubo)
+            self._rebuild_stats(k)
+        # stagger the periodic rebuilds so that at most a few learners rebuild in one step
+        self._since_refresh = (np.arange(K) * self._refresh_every) // K
+
+    @classmethod
+    def from_learners(cls, learners: Sequence[AFVSGP]) -> AFVSGPBank:
+        """Bank holding copies of the state of fitted AFVSGP ``learners`` (same settings)."""
+        return cls(learners)
+
+    # ------------------------------------------------------------------ per-learner state
+    def _set_inducing(self, k: int, xo: np.ndarray, ubo: np.ndarray, koo: np.ndarray,
+                      low: np.ndarray) -> None:
+        """Install inducing set ``(xo, ubo)`` with ``K_oo`` (jitter included) and its factor."""
+        m, mp, b = len(xo), self._mp, self.input_dim
+        il2 = self.inv_ls2[k]  # (c, b)
+        self.n_inducing_[k] = m
+        self._ind_xi[k] = 0.0
+        self._ind_ub[k] = 0.0
+        self._ind_xi[k, :m] = xo
+        self._ind_ub[k, :m] = ubo
+        # exponent of k_i(x, o_j) = log s_i - |o_j/l_i|^2/2 + (o_j/l_i^2).x - (1/(2 l_i^2)).x^2
+        a = self._amat[k].reshape(self._c, mp, 2 * b + 1)
+        a[:] = 0.0
+        s = xo[None, :, :] * il2[:, None, :]  # (c, m, b)
+        a[:, :m, :b] = s
+        a[:, :m, b:2 * b] = -0.5 * il2[:, None, :]
+        a[:, :m, 2 * b] = self.log_var[k][:, None] - 0.5 * np.einsum("imd,md->im", s, xo)
+        self._ubt[k] = 0.0
+        self._ubt[k, :, :m] = ubo.T
+        eye = np.eye(mp)
+        self._koo[k] = eye
+        self._koo[k, :m, :m] = koo
+        self._l_oo[k] = eye
+        self._l_oo[k, :m, :m] = low
+        linv, info = dtrtri(low, lower=1)
+        if info != 0:
+            linv = np.linalg.inv(low)
+        self._l_oo_invt[k] = eye
+        self._l_oo_invt[k, :m, :m] = linv.T
+        self._koo_inv[k] = eye
+        self._koo_inv[k, :m, :m] = linv.T @ linv
+        self._fresh[k] = False
+
+    def _weights(self, k: int) -> np.ndarray:
+        """``phi**age`` of window slots ``[0, count)`` of learner ``k``."""
+        ages = (self._head[k] - np.arange(self._count[k])) % self.window
+        return self._pow[ages]
+
+    def _rebuild_stats(self, k: int) -> None:
+        """``[r, S]`` of learner ``k`` from its stored window (the periodic drift refresh)."""
+        cnt = self._count[k]
+        rows = self._wk[k, :cnt]
+        wk = rows * self._weights(k)[:, None]
+        self._stats[k, :, 0] = wk.T @ self._wz[k, :cnt]
+        self._stats[k, :, 1:] = wk.T @ rows
+        self._scale[k] = 1.0
+        self._fresh[k] = False
+
+    def _renormalise(self, k: int) -> None:
+        if self._scale[k] != 1.0:
+            self._stats[k] *= 1.0 / self._scale[k]
+            self._scale[k] = 1.0
+
+    # ------------------------------------------------------------------ kernel rows
+    def _kt(self, rows, xi: np.ndarray) -> np.ndarray:
+        """``Kt`` (k, m+1, Mp) of learners ``rows`` at their points ``xi`` (k, b) (eq. 21)."""
+        n, b = xi.shape
+        feat = np.empty((n, 2 * b + 1, 1))
+        feat[:, :b, 0] = xi
+        feat[:, b:2 * b, 0] = xi * xi
+        feat[:, 2 * b, 0] = 1.0
+        amat = self._amat if rows is None else self._amat[rows]
+        e = np.matmul(amat, feat).reshape(n, self._c, self._mp)
+        np.exp(e, out=e)
+        e *= self._ubt if rows is None else self._ubt[rows]
+        return e
+
+    # ------------------------------------------------------------------ prediction
+    def _refresh(self, rows: np.ndarray) -> None:
+        """Factor ``K_oo + S/s2`` and ``r/s2`` of the learners ``rows``."""
+        inv = 1.0 / (self.noise_variance[rows] * self._scale[rows])
+        st = self._stats[rows]
+        sig = self._koo[rows] + st[:, :, 1:] * inv[:, None, None]
+        for j, k in enumerate(rows):
+            low, info = dpotrf(sig[j], lower=1, clean=1, overwrite_a=1)
+            if info != 0:
+                low = jittered_cholesky(sig[j], name="K_oo + S/s2")
+            self._sig_chol[k] = low
+        self._rs2[rows] = st[:, :, 0] * inv[:, None]
+        self._fresh[rows] = True
+
+    def predict_affine(self, xi: np.ndarray, rows: np.ndarray | None = None):
+        """``b`` (k, m+1) and ``Sigma`` (k, m+1, m+1) of the learners ``rows`` (default all)
+        at their points ``xi`` (k, b): mean ``b . ubar`` and variance ``ubar' Sigma ubar``
+        of ``Delta B^(r)`` (eq. 20). ``xi`` must be finite (the caller checks)."""
+        idx = np.arange(self.n_learners) if rows is None else np.asarray(rows, dtype=int)
+        xi = np.asarray(xi, dtype=np.float64).reshape(len(idx), self.input_dim)
+        c = self._c
+        kt = self._kt(rows, xi)
+        stale = idx[~self._fresh[idx]]
+        if stale.size:
+            self._refresh(stale)
+        n = len(idx)
+        ff = np.empty((n, c + 1, c + 1))
+        rhs = np.empty((self._mp, c + 1), order="F")
+        for j, k in enumerate(idx):  # L^-1 [Kt', r/s2] (triangular solves), F'F
+            rhs[:, :c] = kt[j].T
+            rhs[:, c] = self._rs2[k]
+            f = dtrsm(1.0, self._sig_chol[k], rhs, 0, 1, 0, 0, 0)
+            ff[j] = f.T.dot(f)
+        g = np.matmul(kt, self._l_oo_invt[idx])
+        sig = ff[:, :c, :c] - np.matmul(g, g.transpose(0, 2, 1))
+        sig += sig.transpose(0, 2, 1)
+        sig *= 0.5
+        i = np.arange(c)
+        sig[:, i, i] += self.var[idx]
+        return ff[:, :c, c].copy(), sig
+
+    # ------------------------------------------------------------------ update
+    def update(self, xi: np.ndarray, u: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """Stream one sample into every learner: ``(xi[k], u, z[k])`` for learner ``k``
+        (eqs. 24-28). Learners whose ``xi[k]`` or ``z[k]`` is not finite are left unchanged.
+        Returns the (K,) mask of learners updated. ``ValueError`` (nothing changed) on wrong
+        shapes or a non-finite ``u``."""
+        K, b = self.n_learners, self.input_dim
+        xi = np.asarray(xi, dtype=np.float64)
+        u = np.asarray(u, dtype=np.float64).ravel()
+        z = np.asarray(z, dtype=np.float64).ravel()
+        if xi.shape != (K, b) or z.shape != (K,) or u.shape != (self.action_dim,):
+            raise ValueError(
+                f"update needs xi ({K}, {b}), u ({self.action_dim},), z ({K},). Got: "
+                f"{xi.shape}, {u.shape}, {z.shape}")
+        if not np.all(np.isfinite(u)):
+            raise ValueError("u contains NaN or inf")
+        ok = np.isfinite(z + xi.sum(axis=1))
+        if not ok.any():
+            return ok
+        if ok.all():  # the common case: basic slicing, no fancy-index copies of the state
+            rows, idx, sel = None, np.arange(K), slice(None)
+        else:
+            rows = idx = sel = np.flatnonzero(ok)
+            xi, z = xi[rows], z[rows]
+        ub = np.concatenate([[1.0], u])
+        kt = self._kt(rows, xi)  # (k, c, Mp)
+        k_new = np.matmul(ub, kt)  # (k, Mp)
+        kss = self.var[sel] @ (ub * ub)
+        # sliding window with forgetting (DESIGN eqs. 25-26); phi S is folded into the scale
+        scale = self._scale[sel] * self._inv_phi
+        self._scale[sel] = scale
+        cnt = self._count[sel]
+        full = cnt == self.window
+        slot = np.where(full, self._head[sel] + 1, cnt)
+        slot[slot == self.window] = 0
+        stats = self._stats[sel] if rows is not None else self._stats
+        if full.any():
+            fi, fs = idx[full], slot[full]
+            k_old = self._wk[fi, fs]
+            y_old = np.concatenate([self._wz[fi, fs][:, None], k_old], axis=1)
+            y_old *= (-self._phi_p * scale[full])[:, None]
+            if full.all():
+                stats += k_old[:, :, None] * y_old[:, None, :]
+            else:
+                stats[full] += k_old[:, :, None] * y_old[:, None, :]
+        y = np.concatenate([z[:, None], k_new], axis=1)
+        y *= scale[:, None]
+        stats += k_new[:, :, None] * y[:, None, :]
+        if rows is not None:
+            self._stats[rows] = stats
+        self._wk[idx, slot] = k_new
+        self._wz[idx, slot] = z
+        self._wx[idx, slot, :b] = xi
+        self._wx[idx, slot, b:] = xi * xi
+        self._wub[idx, slot] = ub
+        self._head[sel] = slot
+        self._count[sel] = np.where(full, cnt, cnt + 1)
+        self.n_seen_[sel] += 1
+        self._fresh[sel] = False
+        since = self._since_refresh[sel] + 1
+        self._since_refresh[sel] = since
+        if since.max() >= self._refresh_every:
+            for k in idx[since >= self._refresh_every]:
+                self._rebuild_stats(k)
+                self._since_refresh[k] = 0
+        if scale.max() > 1e100:
+            for k in idx[scale > 1e100]:
+                self._renormalise(k)
+        if self.adapt_inducing:
+            quad = (k_new * np.matmul(self._koo_inv[sel], k_new[:, :, None])[:, :, 0]).sum(1)
+            d = kss - quad  # eq. 27 residual, weight 1
+            cand = (d > self.add_threshold * kss) & (d > self.noise_variance[sel]) & (
+                d > 1e-6 * kss)
+            if cand.any():
+                for j in np.flatnonzero(cand):
+                    self._consider_add(int(idx[j]), xi[j], ub, float(kss[j]), k_new[j])
+        return ok
+
+    # ------------------------------------------------------------------ inducing set
+    def _window_column(self, k: int, xi: np.ndarray, ub: np.ndarray) -> np.ndarray:
+        """``k(x_t, (xi, ub))`` for learner ``k``'s window samples, from the stored
+        ``[x, x^2]`` rows (slot order)."""
+        cnt, b = self._count[k], self.input_dim
+        il2 = self.inv_ls2[k]  # (c, b)
+        wx = self._wx[k, :cnt]
+        e = wx[:, :b] @ (il2 * xi).T - 0.5 * (wx[:, b:] @ il2.T)
+        e += self.log_var[k] - 0.5 * (il2 @ (xi * xi))
+        np.minimum(e, self.log_var[k], out=e)
+        np.exp(e, out=e)
+        e *= self._wub[k, :cnt]
+        return e @ ub
+
+    def _consider_add(self, k: int, xi: np.ndarray, ub: np.ndarray, kss: float,
+                      k_new: np.ndarray) -> None:
+        """Add the newest sample of learner ``k`` as an inducing point (eqs. 29-30),
+        replacing the least informative one (eq. 28) when the set is full."""
+        m = int(self.n_inducing_[k])
+        low = self._l_oo[k, :m, :m]
+        kn = k_new[:m]
+        lvec = solve_triangular(low, kn, lower=True, check_finite=False)
+        d = kss - float(lvec @ lvec)  # the same residual, from the factor (stable)
+        if not d > 1e-6 * kss:
+            return
+        self._renormalise(k)
+        cnt = self._count[k]
+        col = self._window_column(k, xi, ub)
+        lc = self._weights(k) * col
+        wk = self._wk[k, :cnt, :m]
+        stats = np.empty((m + 1, m + 2))
+        stats[:m, : m + 1] = self._stats[k, :m, : m + 1]
+        stats[m, 1 : m + 1] = stats[:m, m + 1] = lc @ wk
+        stats[m, 0] = lc @ self._wz[k, :cnt]
+        stats[m, m + 1] = lc @ col
+        jit = self.jitter[k]
+        low_e = np.zeros((m + 1, m + 1))
+        low_e[:m, :m] = low
+        low_e[m, :m] = lvec
+        low_e[m, m] = math.sqrt(d + jit)
+        koo = np.empty((m + 1, m + 1))
+        koo[:m, :m] = self._koo[k, :m, :m]
+        koo[m, :m] = koo[:m, m] = kn
+        koo[m, m] = kss + jit
+        xo = np.concatenate([self._ind_xi[k, :m], xi[None]])
+        ubo = np.concatenate([self._ind_ub[k, :m], ub[None]])
+        wcols = np.concatenate([wk, col[:, None]], axis=1)
+        drop = None
+        if m + 1 > self.num_inducing:
+            linv = dtrtri(low_e, lower=1)[0]
+            kinv = linv.T @ linv
+            score = np.einsum("ij,jk,ki->i", kinv, stats[:, 1:], kinv) / np.diag(kinv)
+            j = int(np.argmin(score[:m]))  # eq. 28: least informative old point
+            if score[m] - score[j] <= self.swap_margin * kss:
+                return  # not informative enough: state unchanged
+            drop = j
+        self.n_added_[k] += 1
+        if drop is not None:
+            keep = np.r_[0:drop, drop + 1 : m + 1]
+            xo, ubo, koo, wcols = xo[keep], ubo[keep], koo[np.ix_(keep, keep)], wcols[:, keep]
+            stats = stats[np.ix_(keep, np.r_[0, keep + 1])]
+            low_e = _chol_delete(low_e, drop)
+            self.n_removed_[k] += 1
+        self._set_inducing(k, xo, ubo, koo, low_e)
+        mm = len(xo)
+        self._wk[k, :, :] = 0.0
+        self._wk[k, :cnt, :mm] = wcols
+        self._stats[k] = 0.0
+        self._stats[k, :mm, : mm + 1] = stats

@@ -1,0 +1,129 @@
+"""AFVSGPBank: K learners in stacked arrays equal K independent AFVSGP learners and the batch
+weighted Titsias posterior, through inducing-set changes; bad input changes nothing."""
+
+import copy
+import pickle
+
+import numpy as np
+import pytest
+from gp_batch_formulas import synthetic, weighted_titsias_affine
+
+from afvsgp_gym.gp import AFVSGP, ADPKernel
+from afvsgp_gym.gp.afvsgp_bank import AFVSGPBank
+
+K, P = 4, 40
+
+
+def _streams(n):
+    return [synthetic(np.random.default_rng(10 + k), n, noise_std=0.05) for k in range(K)]
+
+
+def _learners(streams, u, **kw):
+    opts = dict(num_inducing=8, window=P, forgetting=0.95, add_threshold=0.05, swap_margin=0.0)
+    opts.update(kw)
+    out = []
+    for k, (xi, _, z, _) in enumerate(streams):
+        ker = ADPKernel(np.full((3, 3), 1.0 + 0.2 * k), np.array([1.0, 0.6, 0.4]))
+        out.append(AFVSGP(ker, 0.0025 * (k + 1), **opts).fit(xi[:P], u[:P], z[:P], False))
+    return out
+
+
+def _rel(a, b):
+    return np.max(np.abs(a - b)) / np.max(np.abs(b))
+
+
+def _rows(streams, i):
+    return (np.array([s[0][i] for s in streams]), np.array([s[2][i] for s in streams]))
+
+
+def test_bank_equals_independent_learners_through_inducing_events():
+    n = P + 10 * P
+    streams = _streams(n)
+    u = streams[0][1]  # one action for every barrier, as in the filter
+    learners = _learners(streams, u)
+    bank = AFVSGPBank.from_learners(learners)
+    rng = np.random.default_rng(3)
+    worst = 0.0
+    for i in range(P, n):
+        xi, z = _rows(streams, i)
+        for k in range(K):
+            learners[k].update(xi[k], u[i], z[k])
+        bank.update(xi, u[i], z)
+        if i % 7 == 0:
+            xs = rng.normal(size=(K, 3))
+            b, s = bank.predict_affine(xs)
+            for k in range(K):
+                b1, s1 = learners[k].predict_affine(xs[k : k + 1])
+                worst = max(worst, _rel(b[k], b1[0]), _rel(s[k], s1[0]))
+    # the same arithmetic in another order: rounding-level differences (M = 8, cond(K_oo +
+    # S/s2) < 1e8 here), far below any modelling difference
+    assert worst < 1e-8
+    np.testing.assert_array_equal(bank.n_added_, [lr.n_added_ for lr in learners])
+    np.testing.assert_array_equal(bank.n_removed_, [lr.n_removed_ for lr in learners])
+    assert bank.n_added_.min() > 50 and bank.n_removed_.min() > 50
+
+
+def test_bank_equals_the_batch_weighted_posterior():
+    """Against the independent batch formula over each learner's last P samples."""
+    n = P + 6 * P
+    streams = _streams(n)
+    u = streams[0][1]
+    bank = AFVSGPBank.from_learners(_learners(streams, u))
+    for i in range(P, n):
+        xi, z = _rows(streams, i)
+        bank.update(xi, u[i], z)
+    xs = np.random.default_rng(5).normal(size=(K, 3))
+    b, s = bank.predict_affine(xs)
+    w = 0.95 ** np.arange(P - 1, -1, -1, dtype=float)
+    for k, (xi, _, z, _) in enumerate(streams):
+        m = bank.n_inducing_[k]
+        kern = bank.kernels[k]
+        bref, sref = weighted_titsias_affine(
+            kern.lengthscales, kern.variances, bank.noise_variance[k], xi[n - P : n],
+            u[n - P : n], z[n - P : n], w, bank._ind_xi[k, :m], bank._ind_ub[k, :m, 1:],
+            xs[k : k + 1], jitter=bank.jitter[k])
+        assert _rel(b[k], bref[0]) < 1e-7 and _rel(s[k], sref[0]) < 1e-7
+
+
+def test_subset_prediction_equals_full_prediction():
+    streams = _streams(2 * P)
+    u = streams[0][1]
+    bank = AFVSGPBank.from_learners(_learners(streams, u))
+    xs = np.random.default_rng(1).normal(size=(K, 3))
+    b, s = bank.predict_affine(xs)
+    rows = np.array([3, 1])
+    b2, s2 = bank.predict_affine(xs[rows], rows)
+    np.testing.assert_allclose(b2, b[rows], rtol=1e-13, atol=1e-15)
+    np.testing.assert_allclose(s2, s[rows], rtol=1e-13, atol=1e-15)
+
+
+def test_non_finite_rows_are_skipped_and_bad_input_changes_nothing():
+    streams = _streams(3 * P)
+    u = streams[0][1]
+    bank = AFVSGPBank.from_learners(_learners(streams, u))
+    xi, z = _rows(streams, P)
+    z[1] = np.nan
+    xi[2, 0] = np.inf
+    before = copy.deepcopy(bank)
+    ok = bank.update(xi, u[P], z)
+    np.testing.assert_array_equal(ok, [True, False, False, True])
+    for k in (1, 2):  # untouched learners: identical state
+        np.testing.assert_array_equal(bank._stats[k], before._stats[k])
+        assert bank._count[k] == before._count[k] and bank.n_seen_[k] == before.n_seen_[k]
+    snap = pickle.dumps(bank)
+    for args, match in (((xi[:2], u[P], z[:2]), "xi"), ((xi, u[P][:1], z), "u"),
+                        ((xi, np.array([np.nan, 0.0]), z), "u")):
+        with pytest.raises(ValueError, match=match):
+            bank.update(*args)
+    assert pickle.dumps(bank) == snap
+
+
+def test_learners_with_different_settings_are_refused():
+    streams = _streams(2 * P)
+    u = streams[0][1]
+    a = _learners(streams[:1], u)
+    b = _learners(streams[1:2], u, window=P // 2)
+    with pytest.raises(ValueError, match="window"):
+        AFVSGPBank.from_learners(a + b)
+    with pytest.raises(ValueError, match="fitted AFVSGP"):
+        AFVSGPBank.from_learners([AFVSGP()])
