@@ -11,7 +11,7 @@ __all__ = ["DEFAULT_BETA", "DEFAULT_RESIDUAL_CORRECTION", "FilterConfig"]
 
 #: Confidence multiplier of the chance constraint (eq. 49 replaced by a constant, as in
 #: Castaneda et al. 2021; the choice is measured in benchmarks/filter.md).
-DEFAULT_BETA = 3.0
+DEFAULT_BETA = 2.5
 
 #: Weight of the residual correction (an exponential average over ~1/0.2 = 5 steps).
 DEFAULT_RESIDUAL_CORRECTION = 0.2
@@ -49,10 +49,20 @@ class FilterConfig:
         Std of the Gaussian noise added to the proposal during warm-up, as a fraction of the
         half range of the action bounds.
     online_exploration : float
-        Std of the noise added after warm-up (same units), for persistent excitation.
+        Std of the noise added after warm-up (same units), for persistent excitation, at the
+        steps where it is needed (see ``exploration_threshold``).
+    exploration_threshold : float
+        After warm-up the proposal is excited only when some barrier in the program has a
+        predicted standard deviation of ``Delta B`` at the proposal above this many of its
+        learner's noise standard deviations (the model is uncertain there); otherwise a safe
+        proposal passes unchanged. 0 excites every step.
     residual_correction : float
         Weight ``w`` in [0, 1) of the residual observer (see
         :class:`~afvsgp_gym.cbf.residuals.ResidualObserver`); 0 disables it.
+    relax_to_mean : bool
+        When no action satisfies the chance constraints, apply the solution of the mean-only
+        constraints (``beta = 0``) if it exists (status ``"relaxed:..."``, flagged
+        infeasible) instead of the backup action; False goes to the backup at once.
     learner_kwargs : dict
         Passed to the learner's constructor, on top of the registry's defaults.
     learn_hyperparameters : bool
@@ -76,7 +86,9 @@ class FilterConfig:
     warmup_samples: int = 200
     exploration_noise: float = 0.3
     online_exploration: float = 0.05
+    exploration_threshold: float = 1.0
     residual_correction: float = DEFAULT_RESIDUAL_CORRECTION
+    relax_to_mean: bool = True
     learner_kwargs: dict = field(default_factory=dict)
     learn_hyperparameters: bool = True
     shared_hyperparameters: bool = False
@@ -97,6 +109,7 @@ class FilterConfig:
         check_int("warmup_samples", self.warmup_samples, 2)
         check_number("exploration_noise", self.exploration_noise)
         check_number("online_exploration", self.online_exploration)
+        check_number("exploration_threshold", self.exploration_threshold)
         check_number("residual_correction", self.residual_correction, high=1.0, high_open=True)
         if self.learner_kwargs is None:
             object.__setattr__(self, "learner_kwargs", {})

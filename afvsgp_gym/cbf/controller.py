@@ -112,6 +112,12 @@ def cone_matrix(sigma: np.ndarray, beta: float) -> np.ndarray:
     return (beta * np.sqrt(np.maximum(w, 0.0)))[:, None] * v.T
 
 
+def chance_margins(u: np.ndarray, a0: np.ndarray, a: np.ndarray, G: np.ndarray) -> np.ndarray:
+    """``a0 + a @ u - ||G ubar||`` per constraint (eq. 05)."""
+    gu = G[:, :, 0] + G[:, :, 1:] @ u
+    return a0 + a @ u - np.sqrt(np.einsum("ki,ki->k", gu, gu))
+
+
 class SafetyController:
     """Learned HOCBF safety filter: chance-constrained SOCP + one learner per barrier.
 
@@ -259,8 +265,8 @@ class SafetyController:
         if u_nom.shape != (m,):
             raise ValueError(f"u_nom must have shape ({m},). Got: {u_nom.shape}")
         warm = self.warming_up
-        if self.learns:
-            u_nom = self.exploration.perturb(u_nom, warm)
+        if self.learns and warm:
+            u_nom = self.exploration.perturb(u_nom, warm=True)
         c0, c = self.hocbf.constraints(bset)
         c0 = c0 - self.config.barrier_margin * self._margin_gain
         ok = np.isfinite(c0 + c.sum(axis=1) + bset.derivatives.sum(axis=1) + bset.xi.sum(axis=1))
@@ -277,6 +283,7 @@ class SafetyController:
         if len(pred_rows):
             try:
                 bvec, sig = self.bank.predict_affine(bset.xi[pred_rows], pred_rows)
+                u_nom = self._excite(u_nom, pred_rows, sig)
                 where = np.searchsorted(rows, pred_rows)
                 a0 = a0.copy()
                 a0[where] += bvec[:, 0] + self.residuals.bias[pred_rows]
@@ -291,6 +298,12 @@ class SafetyController:
                 a0 = np.full(len(rows), np.nan)
                 pred_rows, bvec, sig, G = rows[:0], None, None, None
         res = self.socp.solve(u_nom, a0, a, G, u_backup)
+        if not res.feasible and G is not None and self.config.relax_to_mean:
+            # graceful degradation: the mean-only constraints (beta = 0) before the backup
+            mean_res = self.socp.solve(u_nom, a0, a, None, None)
+            if mean_res.feasible:
+                res = replace(mean_res, feasible=False, status=f"relaxed:{res.status}",
+                              margins=chance_margins(mean_res.u, a0, a, G))
         u = res.u
         margins = np.full(K, np.nan)
         margins[rows] = res.margins
@@ -313,6 +326,19 @@ class SafetyController:
             warmup=warm,
             n_active=len(rows),
         )
+
+    def _excite(self, u_nom: np.ndarray, rows: np.ndarray, sig: np.ndarray) -> np.ndarray:
+        """Online exploration only where it is needed (identifiability): when the predicted
+        standard deviation of ``Delta B`` at the proposal exceeds ``exploration_threshold``
+        noise standard deviations for some barrier in the program."""
+        if self.exploration.online_noise <= 0 or not np.all(np.isfinite(u_nom)):
+            return u_nom
+        ubar = np.concatenate([[1.0], np.clip(u_nom, self.low, self.high)])
+        var = ((sig @ ubar) * ubar).sum(axis=1)
+        noise = self.bank.noise_variance(rows)
+        if np.any(var > self.config.exploration_threshold**2 * noise):
+            return self.exploration.perturb(u_nom, warm=False)
+        return u_nom
 
     # ------------------------------------------------------------------ learning
     def observe(self, terms_before, u_applied, terms_after, dt: float) -> np.ndarray:
@@ -378,11 +404,7 @@ class SafetyController:
     # ------------------------------------------------------------------ diagnostics
     @property
     def noise_variances(self) -> np.ndarray | None:
-        """(K,) learned noise variances after warm-up (None for non-learning learners)."""
-        bank = getattr(self.bank, "bank", None)
-        if bank is not None:
-            return bank.noise_variance.copy()
-        learners = getattr(self.bank, "learners", None)
-        if learners:
-            return np.array([lr.noise_variance_ for lr in learners])
-        return None
+        """(K,) learned noise variances after warm-up (None before, or without learning)."""
+        if not self.learns or self.warming_up:
+            return None
+        return self.bank.noise_variance(np.arange(self.n_barriers))

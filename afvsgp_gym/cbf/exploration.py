@@ -1,9 +1,11 @@
 """Exploration noise added to the proposal of a learning filter (Algorithm 1).
 
 During warm-up the proposal gets Gaussian noise of std ``warmup_noise`` (a fraction of the
-half range of the action bounds) so the action gain becomes identifiable; after warm-up a
-smaller ``online_noise`` keeps the excitation persistent. The noisy proposal is then filtered,
-so the constraints still hold.
+half range of the action bounds) so the action gain becomes identifiable. After warm-up a
+smaller ``online_noise`` is added only where it is needed (the controller decides: a barrier
+in the program whose learned model is uncertain at the proposal); a safe proposal with a
+confident model passes unchanged. The noisy proposal is then filtered, so the constraints
+still hold.
 """
 
 from __future__ import annotations
@@ -30,9 +32,9 @@ class Exploration:
         """A fresh stream derived from ``seed`` (reproducible episodes)."""
         self._rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x5AFE]))
 
-    def perturb(self, u: np.ndarray, warmup: bool) -> np.ndarray:
+    def perturb(self, u: np.ndarray, warm: bool) -> np.ndarray:
         """``clip(u + noise)``; ``u`` unchanged when the noise is 0 or ``u`` is not finite."""
-        std = self.warmup_noise if warmup else self.online_noise
+        std = self.warmup_noise if warm else self.online_noise
         if std <= 0 or not math.isfinite(float(u.sum())):
             return u
         noisy = u + std * self._half_range * self._rng.standard_normal(u.shape[0])

@@ -28,6 +28,12 @@ from afvsgp_gym.envs.scenario import (
 from afvsgp_gym.types import BarrierSet
 from afvsgp_gym.validation import check_choice, check_number
 
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise cross product of (n, 3) arrays (np.cross is slow on small arrays)."""
+    return a[:, [1, 2, 0]] * b[:, [2, 0, 1]] - a[:, [2, 0, 1]] * b[:, [1, 2, 0]]
+
+
 _BAD_WARNINGS = np.array(
     [
         int(mujoco.mjtWarning.mjWARN_BADQACC),
@@ -76,8 +82,10 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
     - ``"nominal"`` by ``nominal_model``: ``"zero"`` lf = lg = 0 (paper section VI; the
       derivatives [h, h'] are still measured); ``"kinematic"`` kinematics and obstacle motion
       known: lf = n.(J_s' q' - a_o) + curvature, lg = 0; ``"perturbed"`` a second model with
-      the catalogue parameters (no payload, scale 1, no damping/friction/armature, full
-      gravity compensation); ``"exact"`` the true plant (delta_b_true = 0).
+      the catalogue parameters (no payload, link masses and inertias unscaled, no damping or
+      friction, full gravity compensation; the rotor armature, a datasheet value that
+      dominates the wrist joints' inertia, is the plant's); ``"exact"`` the true plant
+      (delta_b_true = 0).
     - features ``xi = [q (7), q' (7), p_s - p_o (3), v_s - v_o (3)]``, feature_dim 20
       (the paper's b = 20).
 
@@ -317,7 +325,8 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         mujoco.mj_kinematics(m, d)
         self.reference_center = d.site_xpos[self._site].copy()
         if self.nominal_model == "perturbed":
-            self.nominal_mj_model = fm.build_model(fm.PlantParameters(), self._scene)
+            catalogue = fm.PlantParameters(armature=self.plant.armature)
+            self.nominal_mj_model = fm.build_model(catalogue, self._scene)
             self.nominal_mj_data = mujoco.MjData(self.nominal_mj_model)
         else:
             self.nominal_mj_model = self.model if self.nominal_model == "exact" else None
@@ -349,6 +358,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         self._jdotp = np.zeros((nb, 3, nv))
         self._jdotr = np.zeros((nb, 3, nv))
         self._ee_jac = np.zeros((3, nv))
+        self._skew = np.zeros((len(spheres), 3, 3))
         n_s = len(spheres)
         self.n_barriers = n_s * self.n_obstacles
         self.barrier_names = tuple(
@@ -493,14 +503,19 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         slot = self._sphere_slot
         body = self._sphere_bodies[slot]
         rot = d.xmat[body].reshape(-1, 3, 3)
-        r = np.einsum("sij,sj->si", rot, self._sphere_offsets)  # offset in world axes
+        r = np.matmul(rot, self._sphere_offsets[:, :, None])[:, :, 0]  # offset, world axes
         p = d.xpos[body] + r
         qd = d.qvel
         jr = self._jacr[slot]
-        jac = self._jacp[slot] - np.cross(r[:, :, None], jr, axis=1)  # J_t - [r]x J_r
-        w = jr @ qd
+        skew = self._skew
+        skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -r[:, 2], r[:, 1], -r[:, 0]
+        skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = r[:, 2], -r[:, 1], r[:, 0]
+        jac = self._jacp[slot] - np.matmul(skew, jr)  # J_t - [r]x J_r
+        w = jr @ qd  # angular velocity of each sphere's body
         alpha = self._jdotr[slot] @ qd
-        bias = self._jdotp[slot] @ qd + np.cross(alpha, r) + np.cross(w, np.cross(w, r))
+        w_x_r = -np.matmul(skew, w[:, :, None])[:, :, 0]  # w x r = -[r]x w
+        alpha_x_r = -np.matmul(skew, alpha[:, :, None])[:, :, 0]
+        bias = self._jdotp[slot] @ qd + alpha_x_r + _cross(w, w_x_r)
         return p, jac @ qd, jac, bias
 
     def _pair_geometry(self):

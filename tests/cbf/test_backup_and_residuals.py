@@ -134,3 +134,25 @@ def test_controller_deepcopies_and_pickles_with_its_state():
             a, b = ctrl.filter(u_nom, terms), clone.filter(u_nom, terms)
             assert a.status == b.status
             np.testing.assert_allclose(a.u, b.u, atol=1e-7)
+
+
+@pytest.mark.parametrize("relax", [True, False])
+def test_infeasible_chance_constraint_relaxes_to_the_mean(relax):
+    """beta so large that no action meets the chance constraint, while the mean constraint
+    (beta = 0) is satisfiable: the mean-only solution is applied (flagged), else the backup."""
+    rng = np.random.default_rng(4)
+    ctrl = _fitted_controller(0.0, rng, beta=200.0, relax_to_mean=relax)
+    far = np.array([4.0, -4.0, 4.0])  # away from the data: the posterior std is large
+    terms = [BarrierTerms(np.array([0.05, 0.0]), 0.0, np.zeros(2), far)]
+    res = ctrl.filter(np.array([-1.0, 1.0]), terms, u_backup=np.array([0.5, 0.5]))
+    assert not res.feasible
+    if relax:
+        assert res.status.startswith("relaxed:")
+        b, _ = ctrl.bank.predict_affine(terms[0].xi[None], np.array([0]))
+        c0, c = ctrl.hocbf.constraint(terms[0])
+        a0 = c0 - ctrl.config.barrier_margin * float(np.prod(ctrl.hocbf.gains)) + b[0, 0]
+        assert a0 + (c + b[0, 1:]) @ res.u >= -1e-6  # the mean constraint holds
+        assert res.margins[0] < 0  # the chance constraint does not
+    else:
+        assert res.status.startswith("backup:")
+        np.testing.assert_array_equal(res.u, [0.5, 0.5])
