@@ -3,6 +3,7 @@
 - ``point_mass``: ``PointMassObstacleEnv`` (analytic double integrator, closed-form terms).
 - ``franka``: ``FrankaObstacleEnv`` (MuJoCo Panda, torque control, hidden model mismatch).
 - ``franka_model``: assembling the Panda MJCF from gymnasium_robotics with MjSpec.
+- ``mjspec_compat``: MjSpec setters that work on every supported MuJoCo release.
 - ``scenario``: reference motions, obstacle trajectories, the sphere barrier's kinematics.
 - ``registration``: the Gymnasium ids (string entry points: importing this package does
   not import MuJoCo).

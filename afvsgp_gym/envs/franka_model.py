@@ -33,6 +33,8 @@ from dataclasses import dataclass, field
 import mujoco
 import numpy as np
 
+from afvsgp_gym.envs.mjspec_compat import set_linear_coefficient
+
 ARM_BODIES = tuple(f"panda0_link{i}" for i in range(1, 8))
 HAND_BODIES = ("panda0_leftfinger", "panda0_rightfinger")
 JOINTS = tuple(f"robot:panda0_joint{i}" for i in range(1, 8))
@@ -148,9 +150,9 @@ def build_model(params: PlantParameters, scene: SceneOptions) -> mujoco.MjModel:
         geom.density = 0.0
     for i, name in enumerate(JOINTS):
         joint = spec.joint(name)
-        joint.damping = float(params.damping[i])
-        joint.frictionloss = float(params.frictionloss[i])
-        joint.armature = float(params.armature[i])
+        set_linear_coefficient(joint, "damping", params.damping[i])
+        set_linear_coefficient(joint, "frictionloss", params.frictionloss[i])
+        set_linear_coefficient(joint, "armature", params.armature[i])
         act = spec.add_actuator()
         act.name = f"tau{i + 1}"
         act.target = name

@@ -10,6 +10,8 @@ import afvsgp_gym  # noqa: F401
 from afvsgp_gym.agents.sb3 import load_policy, train
 from afvsgp_gym.cli import main
 
+pytest.importorskip("stable_baselines3", reason="needs the rl extra: pip install -e '.[rl]'")
+
 PM = "afvsgp_gym/PointMassObstacle-v0"
 
 

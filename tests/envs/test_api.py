@@ -19,10 +19,11 @@ def test_gymnasium_check_env(env_id):
 
 @pytest.mark.parametrize("env_id", IDS)
 def test_sb3_check_env(env_id):
-    from stable_baselines3.common.env_checker import check_env
-
+    checker = pytest.importorskip(
+        "stable_baselines3.common.env_checker", reason="needs the rl extra: pip install -e '.[rl]'"
+    )
     env = gym.make(env_id)
-    check_env(env.unwrapped, warn=True)
+    checker.check_env(env.unwrapped, warn=True)
     env.close()
 
 

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-sb3 = pytest.importorskip("stable_baselines3")
+sb3 = pytest.importorskip("stable_baselines3", reason="needs the rl extra: pip install -e '.[rl]'")
 
 import afvsgp_gym  # noqa: E402,F401
 from afvsgp_gym.wrappers import SafetyFilter  # noqa: E402
