@@ -30,7 +30,9 @@ def test_sb3_check_env(env_id):
 @pytest.mark.parametrize("env_id", IDS)
 @pytest.mark.parametrize("mode", ["sync", "async"])
 def test_make_vec(env_id, mode):
-    envs = gym.make_vec(env_id, num_envs=2, vectorization_mode=mode)
+    # forkserver: the EGL rendering of earlier tests leaves threads that fork() must not copy
+    kwargs = {"context": "forkserver"} if mode == "async" else {}
+    envs = gym.make_vec(env_id, num_envs=2, vectorization_mode=mode, vector_kwargs=kwargs)
     obs, _ = envs.reset(seed=0)
     assert obs.shape == (2, *envs.single_observation_space.shape)
     obs, r, term, trunc, info = envs.step(envs.action_space.sample())

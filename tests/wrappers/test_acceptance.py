@@ -54,6 +54,7 @@ def test_pointmass_none_violates():
     assert episode("pointmass", "none", 0, backup=None)["cost"] > 0
 
 
+@pytest.mark.slow
 def test_pointmass_afvsgp_no_cost_in_20_seeds():
     rows = [episode("pointmass", "afvsgp", s) for s in range(20)]
     assert [r["cost"] for r in rows] == [0] * 20
@@ -65,6 +66,7 @@ def test_franka_none_has_cost(scenario):
     assert episode(scenario, "none", 0)["cost"] > 0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("scenario", ["static", "dynamic"])
 @pytest.mark.parametrize("learner", ["oracle", "afvsgp"])
 def test_franka_whole_arm_no_cost_and_bounded_tracking(scenario, learner):
