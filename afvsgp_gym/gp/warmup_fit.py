@@ -86,14 +86,22 @@ def _pool(datasets: Sequence[tuple], max_points: int):
 
 def fit_shared(make: LearnerFactory, datasets: Sequence[tuple],
                learn_hyperparameters: bool = True, user_kernel: bool = False,
-               max_points: int = 400) -> list:
-    """One learner per dataset ``(xi, u, z)`` with hyperparameters learned once on the
-    pooled data (see the module docstring). Datasets with fewer than 2 samples fail."""
+               max_points: int = 400, pooled: bool = False) -> list:
+    """One learner per dataset ``(xi, u, z)`` with hyperparameters learned once (see the
+    module docstring): on the dataset with the largest mean square (``pooled=False``) or on
+    the pooled data. Datasets with fewer than 2 samples fail."""
     if len(datasets) == 1 or not learn_hyperparameters or user_kernel:
         return [fit_with_restarts(make, *d, learn_hyperparameters, user_kernel) for d in datasets]
     xp, up, zp, rms = _pool(datasets, max_points)
-    ref = fit_with_restarts(make, xp, up, zp, True)
-    kernel, noise = ref.kernel_, float(ref.noise_variance_)
+    if pooled:
+        ref = fit_with_restarts(make, xp, up, zp, True)
+        kernel, noise = ref.kernel_, float(ref.noise_variance_)
+    else:
+        k_ref = int(np.argmax(rms))
+        ref = fit_with_restarts(make, *datasets[k_ref], True)
+        s = 1.0 / rms[k_ref] ** 2  # to the pool's unit-rms scale
+        kernel = ADPKernel(ref.kernel_.lengthscales, ref.kernel_.variances * s)
+        noise = float(ref.noise_variance_) * s
     out = []
     for (xi, u, z), s in zip(datasets, rms, strict=True):
         k = ADPKernel(kernel.lengthscales, kernel.variances * s * s)

@@ -127,3 +127,31 @@ def test_learners_with_different_settings_are_refused():
         AFVSGPBank.from_learners(a + b)
     with pytest.raises(ValueError, match="fitted AFVSGP"):
         AFVSGPBank.from_learners([AFVSGP()])
+
+
+def test_at_most_one_inducing_change_per_step_keeps_the_posterior_exact():
+    """With ``max_inducing_changes=1`` at most one learner changes its inducing set in a step,
+    and each learner still equals the batch weighted posterior on its own inducing set."""
+    n = P + 6 * P
+    streams = _streams(n)
+    u = streams[0][1]
+    bank = AFVSGPBank.from_learners(_learners(streams, u), max_inducing_changes=1)
+    for i in range(P, n):
+        before = bank.n_added_.copy()
+        xi, z = _rows(streams, i)
+        bank.update(xi, u[i], z)
+        assert (bank.n_added_ - before).sum() <= 1
+    assert bank.n_added_.sum() > 20
+    xs = np.random.default_rng(6).normal(size=(K, 3))
+    b, s = bank.predict_affine(xs)
+    w = 0.95 ** np.arange(P - 1, -1, -1, dtype=float)
+    for k, (xi, _, z, _) in enumerate(streams):
+        m = bank.n_inducing_[k]
+        kern = bank.kernels[k]
+        bref, sref = weighted_titsias_affine(
+            kern.lengthscales, kern.variances, bank.noise_variance[k], xi[n - P : n],
+            u[n - P : n], z[n - P : n], w, bank._ind_xi[k, :m], bank._ind_ub[k, :m, 1:],
+            xs[k : k + 1], jitter=bank.jitter[k])
+        assert _rel(b[k], bref[0]) < 1e-7 and _rel(s[k], sref[0]) < 1e-7
+    with pytest.raises(ValueError, match="max_inducing_changes"):
+        AFVSGPBank.from_learners(_learners(streams[:1], u), max_inducing_changes=0)

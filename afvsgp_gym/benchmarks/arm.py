@@ -1,0 +1,166 @@
+"""Whole-arm filter timing: the filtered step against the number of barriers.
+
+``python -m afvsgp_gym.benchmarks.arm [--quick] [--steps N]`` runs the nominal tracker behind
+``SafetyFilter(learner)`` on the static Franka scenario (nominal "zero") with 1, 7, 21 and 42
+barriers (the end-effector sphere; the 7 hand spheres; the 21 arm spheres; the arm with a
+second obstacle) and times, per control step after the warm-up, with ``perf_counter``:
+
+- ``step``: the filter's own work, ``SafetyController.filter`` (constraints, the learners'
+  predictions for the barriers in the program, the cone program) plus
+  ``SafetyController.observe`` (eq. 48 and every learner's update): the path a robot loop runs;
+- ``learners``: the part of it spent in the learner bank (``predict_affine`` + ``update``);
+- ``fit``: the end-of-warm-up hyperparameter fit of all K learners (CPU seconds).
+
+Everything runs in one process, configurations interleaved over ``rounds`` so that machine
+load drifts hit all of them alike. Pin the process to one core (``taskset -c 0``) with
+``OPENBLAS_NUM_THREADS=1``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from typing import Any
+
+import numpy as np
+
+from afvsgp_gym.benchmarks._machine import machine
+
+#: name -> (env kwargs, learner)
+CONFIGS: dict[str, dict[str, Any]] = {
+    "1 (ee)": {"safety_spheres": "ee"},
+    "7 (hand)": {"safety_spheres": "hand"},
+    "21 (arm)": {},
+    "42 (arm, 2 obstacles)": {"obstacles": "two"},
+}
+
+
+def _env_kwargs(spec: dict[str, Any]) -> dict[str, Any]:
+    from afvsgp_gym.envs.safety_spheres import PANDA_ARM_SPHERES
+
+    kw = dict(spec)
+    if kw.get("safety_spheres") == "hand":
+        kw["safety_spheres"] = list(PANDA_ARM_SPHERES[14:])
+    if kw.pop("obstacles", None) == "two":
+        # the static scenario's sphere and a second one below the other side of the path
+        kw["obstacles"] = [
+            {"position": [0.307, 0.20, 0.417], "radius": 0.05},
+            {"position": [0.307, -0.20, 0.417], "radius": 0.05},
+        ]
+    return kw
+
+
+def time_config(spec: dict[str, Any], learner: str = "afvsgp", steps: int = 1500,
+                seed: int = 0) -> dict[str, np.ndarray]:
+    """Per-step times (s) of one filtered episode prefix (see the module docstring)."""
+    import gymnasium as gym
+
+    import afvsgp_gym  # noqa: F401
+    from afvsgp_gym.agents import NominalController
+    from afvsgp_gym.wrappers import SafetyFilter
+
+    env = SafetyFilter(gym.make("afvsgp_gym/FrankaObstacleStatic-v0", **_env_kwargs(spec)),
+                       learner=learner, seed=seed)
+    ctrl, bank = env.controller, env.controller.bank
+    clock = {"learners": 0.0}
+
+    def timed(fn):
+        def wrapper(*a, **k):
+            t0 = time.perf_counter()
+            out = fn(*a, **k)
+            clock["learners"] += time.perf_counter() - t0
+            return out
+        return wrapper
+
+    bank.predict_affine, bank.update = timed(bank.predict_affine), timed(bank.update)
+    fit_cpu = [np.nan]
+    fit = ctrl.fit
+
+    def timed_fit(*a, **k):
+        t0 = time.process_time()
+        out = fit(*a, **k)
+        fit_cpu[0] = time.process_time() - t0
+        return out
+
+    ctrl.fit = timed_fit
+    filt, observe = ctrl.filter, ctrl.observe
+    out: dict[str, list] = {"step": [], "learners": [], "n_active": []}
+    current = {"t": 0.0}
+
+    def timed_filter(*a, **k):
+        t0 = time.perf_counter()
+        res = filt(*a, **k)
+        current["t"] = time.perf_counter() - t0
+        current["n"] = res.n_active
+        return res
+
+    def timed_observe(*a, **k):
+        clock["learners"] = 0.0 if ctrl.warming_up else clock["learners"]
+        t0 = time.perf_counter()
+        z = observe(*a, **k)
+        if not ctrl.warming_up and current.get("post", False):
+            out["step"].append(current["t"] + time.perf_counter() - t0)
+            out["learners"].append(clock["learners"])
+            out["n_active"].append(current["n"])
+        current["post"] = not ctrl.warming_up
+        clock["learners"] = 0.0
+        return z
+
+    ctrl.filter, ctrl.observe = timed_filter, timed_observe
+    policy = NominalController(env)
+    obs, _ = env.reset(seed=seed)
+    warm = env.unwrapped.warmup_steps
+    for _ in range(warm + steps):
+        obs, _, term, trunc, _ = env.step(policy(obs))
+        if term or trunc:
+            obs, _ = env.reset()
+    env.close()
+    res = {k: np.asarray(v, dtype=float) for k, v in out.items()}
+    res["fit_cpu_s"] = np.array(fit_cpu)
+    res["n_barriers"] = np.array([env.unwrapped.n_barriers])
+    return res
+
+
+def run(quick: bool = False, steps: int | None = None, rounds: int = 2) -> dict[str, float]:
+    """Median and p99 (s) of the step and learner times per configuration, fit time, and the
+    ratios the issue asks for: K = 21 against K = 1 for the learners' per-step cost."""
+    steps = steps or (300 if quick else 1500)
+    rounds = 1 if quick else rounds
+    acc: dict[str, dict[str, list]] = {}
+    for _ in range(rounds):
+        for name, spec in CONFIGS.items():
+            r = time_config(spec, steps=steps)
+            d = acc.setdefault(name, {})
+            for k, v in r.items():
+                d.setdefault(k, []).append(v)
+    out: dict[str, float] = {}
+    for name, d in acc.items():
+        step = np.concatenate(d["step"])
+        learn = np.concatenate(d["learners"])
+        out[f"{name}: step median_s"] = float(np.median(step))
+        out[f"{name}: step p99_s"] = float(np.percentile(step, 99))
+        out[f"{name}: learners median_s"] = float(np.median(learn))
+        out[f"{name}: learners p99_s"] = float(np.percentile(learn, 99))
+        out[f"{name}: barriers in program (mean)"] = float(np.mean(np.concatenate(d["n_active"])))
+        out[f"{name}: fit cpu_s"] = float(np.median(np.concatenate(d["fit_cpu_s"])))
+    out["learners median, K=21 / K=1"] = (out["21 (arm): learners median_s"]
+                                          / out["1 (ee): learners median_s"])
+    out["fit, K=21 / K=1"] = out["21 (arm): fit cpu_s"] / out["1 (ee): fit cpu_s"]
+    return out
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--quick", action="store_true", help="300 steps, one round")
+    p.add_argument("--steps", type=int, default=None, help="timed steps per episode")
+    p.add_argument("--rounds", type=int, default=2, help="interleaved rounds")
+    args = p.parse_args(argv)
+    print(machine())
+    for k, v in run(args.quick, args.steps, args.rounds).items():
+        unit = " us" if k.endswith("_s") and "fit" not in k else ""
+        val = v * 1e6 if unit else v
+        print(f"{k:48s} {val:10.1f}{unit}" if unit else f"{k:48s} {val:10.3f}")
+
+
+if __name__ == "__main__":
+    main()
