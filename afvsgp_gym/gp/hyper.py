@@ -28,6 +28,9 @@ THETA_BOX = 8.0
 #: The noise variance is searched in ``[NOISE_MIN, NOISE_MAX] * mean(lambda z^2)``.
 NOISE_MIN, NOISE_MAX = 1e-6, 10.0 * np.e
 
+#: L-BFGS-B stops when an iteration improves the objective by less than this fraction.
+FTOL = 1e-12
+
 #: Objective value reported to L-BFGS-B where the evidence cannot be evaluated (a failed
 #: Cholesky or a non-finite value while exploring): far worse than any evidence, so the line
 #: search backs off, yet finite so its interpolation stays finite.
@@ -96,7 +99,7 @@ def maximise(evidence: Callable[[np.ndarray], tuple[float, np.ndarray]], x0: np.
 
     f0 = negative(x0)[0]
     res = minimize(negative, x0, jac=True, method="L-BFGS-B", bounds=bounds,
-                   options={"maxiter": int(maxiter)})
+                   options={"maxiter": int(maxiter), "ftol": FTOL})
     if np.isfinite(res.fun) and res.fun < _FAILED and res.fun <= f0:
         return res.x, -float(res.fun)
     return x0, -float(f0)

@@ -265,6 +265,8 @@ class SOGP(BaseLearner):
         inducing set.
     n_seen_ : int
         Samples absorbed into the posterior (buffered ones excluded).
+    jitter_ : float
+        Absolute jitter on the current inducing set's K_bb.
 
     Cost per step with M inducing points, n batch samples, b features, m actions:
     O(n (M+n) (m+1) b) for the kernel (the old block K_aa is reused while the hyperparameters
@@ -530,6 +532,12 @@ class SOGP(BaseLearner):
         st = self._state
         x = _tri(st.ld, st.chol.T)  # L_D^-1 L_b'
         return x.T @ x
+
+    @property
+    def jitter_(self) -> float:
+        """Absolute jitter on the current K_bb (:func:`~afvsgp_gym.gp._linalg.jitter_for`)."""
+        self._check_fitted()
+        return self._state.eps
 
     @property
     def n_buffered(self) -> int:

@@ -123,14 +123,17 @@ class MpProblem:
                     - mp.fsum(mp.log(w) for w in self.w) / 2
                     - mp.fsum(self.w[t] * (kdiag[t] - q[t, t]) for t in range(n)) / (2 * s2))
 
-    def _contract(self, g, comp, sq, ub1, ub2, inv_l2):
-        """``sum_nj g[n, j] dK[n, j] / d(log l, log s)`` for a gram given by ``comp``/``sq``."""
+    def _contract(self, g, comp, sq, ub1, ub2, inv_l2, magnitude=False):
+        """``sum_nj g[n, j] dK[n, j] / d(log l, log s)`` for a gram given by ``comp``/``sq``
+        (``magnitude``: the same sum of absolute values)."""
         b, c = self.b, self.c
         out = [mp.mpf(0)] * (c * (b + 1))
         for i in range(c):
             for n, row in enumerate(sq):
                 for j, dd in enumerate(row):
                     t = g[n, j] * ub1[n][i] * ub2[j][i] * comp[i][n][j]
+                    if magnitude:
+                        t = abs(t)
                     if not t:
                         continue
                     out[c * b + i] += t
@@ -138,31 +141,60 @@ class MpProblem:
                         out[i * b + d] += t * dd[d] * inv_l2[i][d]
         return out
 
-    def grad_analytic(self, params, jitter=0.0, relative=False):
-        """Gradient w.r.t. ``concat(theta, [log s2])`` from the textbook adjoints (module
-        docstring), all inverses explicit."""
+    def _adjoints(self, params, jitter, relative):
+        """``dF/dK_oo``, ``dF/dK_xo`` (textbook, explicit inverses) and the pieces they need."""
+        theta, log_s2 = params[:-1], params[-1]
+        koo, kxo, S, r, s2, kdiag, var, inv_l2 = self._stats(theta, log_s2, jitter, relative)
+        m, n = self.m, self.n
+        kinv = koo ** -1
+        sinv = (koo + S / s2) ** -1
+        a = sinv * r
+        aa = a * a.T
+        kis = kinv * S
+        g_koo = -sinv / 2 + kinv / 2 - aa / (2 * s2 ** 2) - kis * kinv / (2 * s2)
+        g_s = -sinv / (2 * s2) - aa / (2 * s2 ** 3) + kinv / (2 * s2)
+        g_r = a / s2 ** 2
+        g_kxo = mp.matrix(n, m)
+        kg = kxo * g_s
+        for t in range(n):
+            for j in range(m):
+                g_kxo[t, j] = self.w[t] * (2 * kg[t, j] + self.z[t] * g_r[j])
+        return dict(koo=koo, kxo=kxo, S=S, r=r, s2=s2, kdiag=kdiag, var=var, inv_l2=inv_l2,
+                    kinv=kinv, sinv=sinv, a=a, kis=kis, g_koo=g_koo, g_kxo=g_kxo)
+
+    def bound_sensitivity(self, params, jitter=0.0):
+        """First-order change of the bound under relative perturbations of size 1 of every
+        kernel entry: ``sum |dF/dK_oo| |K_oo| + sum |dF/dK_xo| |K_xo| + sum lambda k_tt/(2 s2)``
+        (times the relative rounding of a float64 kernel entry, the error any float64
+        evaluation from float64 kernel values inherits)."""
         with mp.workdps(self.dps):
-            theta, log_s2 = params[:-1], params[-1]
-            koo, kxo, S, r, s2, kdiag, var, inv_l2 = self._stats(theta, log_s2, jitter,
-                                                                 relative)
+            d = self._adjoints(params, jitter, False)
+            tot = mp.fsum(abs(d["g_koo"][i, j] * d["koo"][i, j])
+                          for i in range(self.m) for j in range(self.m))
+            tot += mp.fsum(abs(d["g_kxo"][t, j] * d["kxo"][t, j])
+                           for t in range(self.n) for j in range(self.m))
+            tot += mp.fdot(self.w, d["kdiag"]) / (2 * d["s2"])
+            return float(tot)
+
+    def grad_analytic(self, params, jitter=0.0, relative=False, magnitude=False):
+        """Gradient w.r.t. ``concat(theta, [log s2])`` from the textbook adjoints (module
+        docstring), all inverses explicit. ``magnitude``: instead, per parameter, the sum of
+        the absolute values of the terms whose sum the kernel parameters' gradient is (the
+        cancellation a float64 evaluation suffers; the last entry is then 0)."""
+        with mp.workdps(self.dps):
+            d = self._adjoints(params, jitter, relative)
             m, n, b, c = self.m, self.n, self.b, self.c
-            kinv = koo ** -1
-            sinv = (koo + S / s2) ** -1
-            a = sinv * r
-            aa = a * a.T
-            kis = kinv * S
-            g_koo = -sinv / 2 + kinv / 2 - aa / (2 * s2 ** 2) - kis * kinv / (2 * s2)
-            g_s = -sinv / (2 * s2) - aa / (2 * s2 ** 3) + kinv / (2 * s2)
-            g_r = a / s2 ** 2
-            g_kxo = mp.matrix(n, m)
-            kg = kxo * g_s
-            for t in range(n):
-                for j in range(m):
-                    g_kxo[t, j] = self.w[t] * (2 * kg[t, j] + self.z[t] * g_r[j])
+            S, r, s2, kdiag = d["S"], d["r"], d["s2"], d["kdiag"]
+            var, inv_l2, kis, sinv, a = d["var"], d["inv_l2"], d["kis"], d["sinv"], d["a"]
+            g_koo, g_kxo = d["g_koo"], d["g_kxo"]
             grad = [x + y for x, y in zip(
-                self._contract(g_koo, self._comp_oo, self.d_oo, self.ub_o, self.ub_o, inv_l2),
-                self._contract(g_kxo, self._comp_xo, self.d_xo, self.ub, self.ub_o, inv_l2),
+                self._contract(g_koo, self._comp_oo, self.d_oo, self.ub_o, self.ub_o, inv_l2,
+                               magnitude),
+                self._contract(g_kxo, self._comp_xo, self.d_xo, self.ub, self.ub_o, inv_l2,
+                               magnitude),
                 strict=True)]
+            if magnitude:
+                return np.array([float(v) for v in grad] + [0.0])
             for i in range(c):  # the diagonal k_tt (variances only)
                 grad[c * b + i] -= mp.fsum(self.w[t] * self.ub[t][i] ** 2
                                            for t in range(n)) * var[i] / (2 * s2)
@@ -228,3 +260,38 @@ class MpProblem:
                 ev = [abs(e) for e in ev]
                 out.append(float(max(ev) / min(ev)))
             return tuple(out)
+
+    def affine_rounding_bound(self, theta, log_s2, jitter, xs):
+        """First-order bound on the error of the affine predictive (eq. 20) caused by a
+        relative perturbation ``gamma_{N+M}`` of every sum that forms ``K_oo + S/s2`` and
+        ``r`` (what rounding does to a learner that accumulates ``S``, and what a backward
+        stable factorisation of ``K_oo + S/s2`` adds), per unit ``gamma``:
+        ``|Kt Sig^-1| (|K_ox| |z| + (|K_oo| + |K_ox| |K_xo| / s2) |w| s2) / s2`` for ``b`` and
+        ``|Kt Sig^-1| (|K_oo| + |K_ox| |K_xo| / s2) |Sig^-1 Kt'|`` for Sigma. Returns
+        ``(tol_b (N*, m+1), tol_sigma (N*, m+1, m+1))`` as float64 (multiply by gamma)."""
+        with mp.workdps(self.dps):
+            koo, kxo, S, r, s2, _, var, inv_l2 = self._stats(theta, log_s2, jitter, False)
+            sig_inv = (koo + S / s2) ** -1
+            w = sig_inv * r / s2
+            akxo = np.array([[abs(float(kxo[n, j])) for j in range(self.m)]
+                             for n in range(self.n)])
+            akoo = np.array([[abs(float(koo[i, j])) for j in range(self.m)]
+                             for i in range(self.m)])
+            az = np.abs(np.array([float(v) for v in self.z]))
+            aw = np.abs(np.array([float(v) for v in w]))
+            wts = np.array([float(v) for v in self.w])
+            s2f = float(s2)
+            pert = akoo + akxo.T @ (wts[:, None] * akxo) / s2f  # |delta Sig| per unit gamma
+            pert_r = akxo.T @ (wts * az)
+            sq = self._sqdiff(_mp_rows(xs), self.xo)
+            tb, ts = [], []
+            for row in sq:
+                kt = mp.matrix(self.c, self.m)
+                for i in range(self.c):
+                    for j in range(self.m):
+                        kt[i, j] = (var[i] * mp.exp(-mp.fdot(row[j], inv_l2[i]) / 2)
+                                    * self.ub_o[j][i])
+                ks = np.abs(np.array((kt * sig_inv).tolist(), dtype=float))  # |Kt Sig^-1|
+                tb.append(ks @ (pert_r / s2f + pert @ aw))
+                ts.append(ks @ pert @ ks.T)
+            return np.array(tb), np.array(ts)
