@@ -62,7 +62,9 @@ class LogNormalPrior:
         return -0.5 * float(dev @ dev), -dev / std
 
 
-#: The prior every learner uses unless told otherwise (``prior=None`` fits without one).
+#: The prior every learner uses unless told otherwise (``prior=None`` fits without one); the
+#: choice of 1.5 for both standard deviations, against none, variances only, 1.0 and 3.0, is in
+#: benchmarks/gp.md ("Hyperparameter fit").
 DEFAULT_PRIOR = LogNormalPrior()
 
 

@@ -1,7 +1,7 @@
 """VSGP: Titsias (2009) collapsed variational sparse GP with a fixed inducing set (paper
-eqs. 14-18); the paper's non-adaptive baseline. ``update`` appends the sample; the posterior over
-all data seen is refreshed from the stored kernel rows (O(N M^2), no forgetting) at the next
-prediction, in the whitened form from the data (:meth:`WhitenedPosterior.from_data`)."""
+eqs. 14-18); the paper's non-adaptive baseline. ``update`` appends the sample and refreshes the
+posterior over all data seen from the stored kernel rows (O(N M^2), no forgetting), in the
+whitened form from the data (:meth:`WhitenedPosterior.from_data`)."""
 
 from __future__ import annotations
 
@@ -129,5 +129,5 @@ class VSGP(SparseLearner):
         self._kxo[n] = k_new
         self._z[n] = z
         self.n_seen_ = n + 1
-        self._dirty = True
+        self._refresh_posterior()
         return self
