@@ -54,6 +54,7 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
+from scipy.linalg.blas import dsyrk, dtrsm
 from scipy.linalg.lapack import dtrtrs
 
 from afvsgp_gym.gp._linalg import jitter_for, jittered_cholesky, ubar
@@ -124,11 +125,15 @@ class WhitenedPosterior:
     @classmethod
     def from_data(cls, l_oo: np.ndarray, kxo: np.ndarray, z: np.ndarray, weights,
                   noise_variance: float) -> WhitenedPosterior:
-        """From ``K_xo`` (N, M), targets and weights: ``A = L^-1 K_ox Lambda^1/2 / s``."""
+        """From ``K_xo`` (N, M), targets and weights: ``A = L^-1 K_ox Lambda^1/2 / s`` (one BLAS
+        triangular solve and one ``syrk``, O(N M^2))."""
         s = np.sqrt(float(noise_variance))
         sq_w = np.sqrt(np.broadcast_to(np.asarray(weights, dtype=float), z.shape))
-        a = _tri(l_oo, (kxo * (sq_w / s)[:, None]).T)
-        return cls(l_oo, a @ a.T, a @ (sq_w * z / s))
+        rhs = kxo.T if np.all(sq_w == 1.0) else (kxo * sq_w[:, None]).T
+        a = dtrsm(1.0 / s, l_oo, rhs, lower=1)  # [M, N]
+        p = dsyrk(1.0, a)  # upper triangle of A A'
+        p = np.triu(p) + np.triu(p, 1).T
+        return cls(l_oo, p, a @ (sq_w * z / s))
 
     def whiten(self, kt: np.ndarray):
         """``(G, H)`` for cross-covariances ``kt`` (..., M): ``G = L^-1 kt'``,
