@@ -203,7 +203,7 @@ def run(quick: bool = False) -> dict:
             "afvsgp_step_reuse_median_s"]
         # VSGP with N = 2000 samples seen
         n_v = 2000
-        xv, uv, zv = make_stream(n_v + 500, seed=1)
+        xv, uv, zv = make_stream(n_v + 501, seed=1)
         vs = VSGP(gp.kernel_, gp.noise_variance_, num_inducing=M_IND)
         vs.fit(xv[:n_v], uv[:n_v], zv[:n_v], learn_hyperparameters=False)
         vt = []
