@@ -3,12 +3,11 @@ wrapper (type-II maximum a posteriori of ``concat(kernel.theta, [log s2])``).
 
 The objective is a log evidence (the collapsed bound of eq. 23 for the sparse learners, the log
 marginal likelihood for the exact GP) plus :class:`LogNormalPrior`'s log density. The prior is
-centred at the initial kernel (the caller's, or ``ADPKernel.from_data``): it leaves the
-parameters the data determine where the data put them and pulls the flat directions of the
-evidence (a lengthscale far beyond the data's extent, a variance traded against a lengthscale)
-back towards the initial scale instead of letting them drift to the edge of the box, which is
-what made ``K_oo + S/s2`` reach a condition number of 1e12 (issue 10; evidence in
-benchmarks/gp.md, "Hyperparameter fit").
+centred at the initial kernel (the caller's, or ``ADPKernel.from_data``): parameters the data
+determine stay where the data put them, while the flat directions of the evidence (a lengthscale
+far beyond the data's extent, a variance traded against a lengthscale) are held near the initial
+scale instead of drifting to the edge of the box. Choice and evidence: benchmarks/gp.md,
+"Hyperparameter fit".
 """
 
 from __future__ import annotations
