@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -45,6 +46,7 @@ def run_episode(
     seed: int,
     env_kwargs: dict | None = None,
     clearance: float = 0.05,
+    probe: Callable[[Any], dict] | None = None,
     **filter_options: Any,
 ) -> dict[str, float]:
     """One seeded episode with the nominal tracker; ``learner=None`` runs it unfiltered.
@@ -52,7 +54,8 @@ def run_episode(
     The counting is :func:`afvsgp_gym.evaluation.run_episode`'s (the CLI's); this adds the
     tracking error away from the obstacle. Returns violations (steps with h < 0), min h,
     fallbacks (backup or max-margin steps), interventions, mean/max tracking error away from
-    the obstacle, filter time median/p99 (s) and wall time (s).
+    the obstacle, filter time median/p99 (s) and wall time (s). ``probe(controller)`` (with a
+    learner) is called once, right after the warm-up fit; its dict is merged into the result.
     """
     import gymnasium as gym
 
@@ -67,11 +70,15 @@ def run_episode(
         env = SafetyFilter(env, learner=learner, seed=seed, **filter_options)
     base = env.unwrapped
     errs, away = [], []
+    probed: dict = {}
 
     def track(info: dict) -> None:
         if base.time > base.warmup_steps * base.dt:
             errs.append(-info["reward_tracking"] / base.tracking_weight)
             away.append(_reference_clearance(base) > clearance)
+        if probe is not None and learner is not None and not probed \
+                and not env.controller.warming_up:
+            probed.update(probe(env.controller) or {"probed": True})
 
     t0 = time.perf_counter()
     try:
@@ -91,6 +98,7 @@ def run_episode(
         "filter_p99_s": rec["filter_time_p99_s"],
         "steps": float(rec["steps"]),
         "wall_s": time.perf_counter() - t0,
+        **probed,
     }
 
 

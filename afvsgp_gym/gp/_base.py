@@ -1,25 +1,26 @@
 """Common learner plumbing: validation, fitted checks, predict / predict_affine wrappers, and the
-sparse (Titsias) predictive cache shared by VSGP and AFVSGP."""
+sparse (Titsias) posterior shared by VSGP and AFVSGP."""
 
 from __future__ import annotations
 
 import math
 
 import numpy as np
-from scipy.linalg.lapack import dpotrf, dpotrs
+from scipy.linalg.lapack import dpotrs
 
-from afvsgp_gym.gp._linalg import check_batch, check_matrix, jittered_cholesky, ubar
-from afvsgp_gym.gp._sparse import InducingCache, affine_from_kt
+from afvsgp_gym.gp._linalg import (
+    check_batch,
+    check_matrix,
+    check_real,
+    jitter_for,
+    jittered_cholesky,
+    ubar,
+)
+from afvsgp_gym.gp._sparse import InducingCache, fit_collapsed
+from afvsgp_gym.gp.bound import WhitenedPosterior, weighted_bound
 from afvsgp_gym.gp.kernels import ADPKernel
 
 __all__ = ["BaseLearner", "SparseLearner"]
-
-
-def _check_positive(value, name: str) -> float:
-    value = float(value)
-    if not (np.isfinite(value) and value > 0):
-        raise ValueError(f"{name} must be a positive finite number, got {value}")
-    return value
 
 
 class BaseLearner:
@@ -30,10 +31,11 @@ class BaseLearner:
     noise_variance_: float
 
     def _init_hyper(self, xi, u, z):
-        """Kernel and noise from the constructor or the data (never modifies parameters)."""
+        """Kernel and noise from the constructor or the data (never modifies parameters):
+        ``ADPKernel.from_data`` and ``max(0.1 var(z), 1e-6)`` by default."""
         if self.kernel is not None:
             if not isinstance(self.kernel, ADPKernel):
-                raise ValueError("kernel must be an ADPKernel or None")
+                raise ValueError(f"kernel must be an ADPKernel or None, got {type(self.kernel)}")
             if self.kernel.input_dim != xi.shape[1] or self.kernel.action_dim != u.shape[1]:
                 raise ValueError(
                     f"kernel is for b={self.kernel.input_dim}, m={self.kernel.action_dim} but "
@@ -42,7 +44,7 @@ class BaseLearner:
         else:
             kernel = ADPKernel.from_data(xi, u, z)
         if self.noise_variance is not None:
-            noise = _check_positive(self.noise_variance, "noise_variance")
+            noise = check_real(self.noise_variance, "noise_variance", low=0.0, low_open=True)
         else:
             vz = float(np.var(z)) if z.shape[0] > 1 else float(np.mean(z * z))
             noise = max(0.1 * vz, 1e-6)
@@ -87,32 +89,35 @@ class BaseLearner:
 
 
 class SparseLearner(BaseLearner):
-    """Titsias posterior from (chol K_oo, S, r): ``Sig = K_oo + S/s2 = B^-1``,
-    mean weights ``w = B r / s2``, ``D = K_oo^-1 - B`` (DESIGN, eq. 20).
+    """Weighted Titsias posterior (eq. 20) from ``chol(K_oo)`` and the statistics ``S``, ``r``,
+    through :class:`~afvsgp_gym.gp.bound.WhitenedPosterior` (triangular solves only).
 
     ``S`` and ``r`` live in one Fortran array ``_stats = scale * [r, S]`` (M, M+1), so a new
     sample ``(k, z)`` is a single BLAS rank-one update ``_stats += scale k [z, k']``; the scalar
     ``_scale`` absorbs AFVSGP's forgetting (``phi S`` becomes ``scale /= phi``).
+
+    Subclasses provide ``_initial_inducing(kernel, xi, u)`` and the constructor parameters
+    ``jitter`` (relative, :func:`~afvsgp_gym.gp._linalg.jitter_for`), ``max_iter`` and ``prior``.
     """
 
     def _fit_hyperparameters(self, xi, u, z, weights, learn_hyperparameters):
-        """Initial kernel/noise, inducing set and jitter; maximise the weighted bound (eq. 23).
+        """Initial kernel/noise, inducing set and jitter; with ``learn_hyperparameters`` the
+        weighted bound (eq. 23) plus the prior is maximised (:func:`fit_collapsed`).
 
-        Returns ``(kernel, noise, xo, uo, jitter, bound)``; ``bound`` is None without learning.
-        Needs ``_initial_inducing``, ``jitter``, ``inducing`` and ``max_iter`` on the subclass.
+        Returns ``(kernel, noise, xo, uo, jitter, bound)``: ``bound`` is the weighted collapsed
+        bound of ``(xi, u, z, weights)`` at the returned hyperparameters, inducing set and
+        (absolute) jitter.
         """
-        from afvsgp_gym.gp._sparse import fit_bound
-
         kernel, noise = self._init_hyper(xi, u, z)
-        xo, uo = self._initial_inducing(kernel, xi, u)
-        jitter = self.jitter * float(np.mean(kernel.diag(xi, u)))
-        bound = None
         if learn_hyperparameters:
-            kernel, noise, bound = fit_bound(kernel, noise, xi, u, z, weights, xo, uo, jitter,
-                                             self.max_iter)
-            if self.inducing is None:
-                xo, uo = self._initial_inducing(kernel, xi, u)
-            jitter = self.jitter * float(np.mean(kernel.diag(xi, u)))
+            kernel, noise, (xo, uo) = fit_collapsed(
+                kernel, noise, xi, u, z, weights,
+                lambda k: self._initial_inducing(k, xi, u), jitter=self.jitter,
+                maxiter=self.max_iter, prior=self.prior)
+        else:
+            xo, uo = self._initial_inducing(kernel, xi, u)
+        jitter = jitter_for(kernel._gram(xo, ubar(uo)), self.jitter)
+        bound = weighted_bound(kernel, noise, xi, u, z, weights, xo, uo, jitter).total
         return kernel, noise, xo, uo, jitter, bound
 
     def _set_stats(self, S: np.ndarray, r: np.ndarray) -> None:
@@ -134,55 +139,37 @@ class SparseLearner(BaseLearner):
 
     def _set_koo_chol(self, low: np.ndarray) -> None:
         self._l_oo = low
-        m = low.shape[0]
-        self._eye = np.eye(m)
-        self._koo_inv = dpotrs(low, self._eye, lower=1)[0]
+        # K_oo^-1 for AFVSGP's cheap eq. 27 screening only (confirmed through the factor before
+        # a point is added); predictions and the bound never use it
+        self._koo_inv = dpotrs(low, np.eye(low.shape[0]), lower=1)[0]
         self._dirty = True
 
     def _refresh_posterior(self) -> None:
-        """Factor ``Sig = K_oo + S/s2`` and cache ``B = Sig^-1``, ``w = B r / s2`` and
-        ``D = K_oo^-1 - B`` (then a prediction is three small matrix products)."""
-        s2 = self.noise_variance_
-        inv_s = 1.0 / (s2 * self._scale)
-        stats = self._stats
-        sig = self._koo + stats[:, 1:] * inv_s
-        if not sig.flags.f_contiguous:
-            sig = sig.T  # symmetric: the Fortran view avoids a copy in LAPACK
-        low, info = dpotrf(sig, lower=1, clean=1, overwrite_a=1)
-        if info != 0:
-            low = jittered_cholesky(self._koo + stats[:, 1:] * inv_s, name="K_oo + S/s2")
-        inv = dpotrs(low, self._eye, lower=1)[0]  # B (full, symmetric)
-        self._b_mat = inv
-        w = inv @ stats[:, 0]
-        w *= inv_s
-        self._w = w
-        self._d_mat = self._koo_inv - inv
+        """Whitened posterior from ``L_oo`` and the current ``[r, S]`` (eq. 20)."""
+        inv = 1.0 / self._scale
+        st = self._stats
+        self._post = WhitenedPosterior.from_stats(self._l_oo, st[:, 1:] * inv, st[:, 0] * inv,
+                                                  self.noise_variance_)
         self._dirty = False
 
-    def _dense(self) -> None:
+    def _posterior(self) -> WhitenedPosterior:
         if self._dirty:
             self._refresh_posterior()
+        return self._post
 
     def _predict_affine(self, xi):
-        if self._dirty:
-            self._refresh_posterior()
+        post = self._posterior()
         if xi.shape[0] == 1:  # the per-control-step path
-            kt = self._ind.kt(xi[0])  # [m+1, M], eq. 21
-            bvec = kt @ self._w  # eq. 20 mean, per component
-            sig = kt @ (self._d_mat @ kt.T)  # Kt (K_oo^-1 - B) Kt'
-            sig += sig.T
-            sig *= -0.5
-            sig += self._ind.var_diag
-            return bvec[None, :], sig[None, :, :]
-        return affine_from_kt(self._ind.kt_batch(xi), self._ind.var, self._w, self._d_mat)
+            kt = self._ind.kt(xi[0])[None]  # [1, m+1, M], eq. 21
+        else:
+            kt = self._ind.kt_batch(xi)
+        return post.affine(kt, self._ind.var)
 
     def _predict(self, xi, u):
-        self._dense()
-        kt = self._ind.kt_batch(xi)
-        k_so = np.einsum("ni,nij->nj", ubar(u), kt)  # [N, M]
-        mean = k_so @ self._w
-        var = self.kernel_._diag(ubar(u)) - np.einsum("nj,jk,nk->n", k_so, self._d_mat, k_so)
-        return mean, var
+        post = self._posterior()
+        ub = ubar(u)
+        k_so = np.einsum("ni,nij->nj", ub, self._ind.kt_batch(xi))  # [N, M]
+        return post.predict(k_so, self.kernel_._diag(ub))
 
     @property
     def inducing_xi_(self) -> np.ndarray:
@@ -206,6 +193,6 @@ class SparseLearner(BaseLearner):
 
     @property
     def B_(self) -> np.ndarray:
-        """(M, M) ``(K_oo + S/s2)^-1`` (copy)."""
-        self._dense()
-        return self._b_mat.copy()
+        """(M, M) ``(K_oo + S/s2)^-1`` (a dense copy for diagnostics; predictions use the
+        factors)."""
+        return self._posterior().precision_inverse()

@@ -1,7 +1,6 @@
-"""Shared numerics for the GP learners: jittered Cholesky and input validation.
-
-Names here are stable (the streaming SGP imports them): ``DEFAULT_JITTER``,
-``jittered_cholesky``, ``check_matrix``, ``check_batch``, ``check_sample``, ``ubar``.
+"""Shared numerics for the GP learners: the jitter policy, jittered Cholesky and the one set of
+validation helpers (arrays: ``check_matrix``, ``check_batch``, ``check_sample``; parameters:
+``check_count``, ``check_real``), each raising ``ValueError`` naming the argument.
 """
 
 from __future__ import annotations
@@ -13,15 +12,29 @@ from scipy.linalg import LinAlgError, cholesky
 
 __all__ = [
     "DEFAULT_JITTER",
+    "jitter_for",
     "check_batch",
+    "check_count",
+    "check_real",
     "check_matrix",
     "check_sample",
     "jittered_cholesky",
     "ubar",
 ]
 
-#: Relative jitter (times the mean diagonal) added by learners to K_oo.
+#: Relative jitter of the sparse learners (see :func:`jitter_for`).
 DEFAULT_JITTER = 1e-8
+
+
+def jitter_for(koo: np.ndarray, relative: float) -> float:
+    """The jitter policy of every sparse learner: ``relative * mean(diag K_oo)`` is added to the
+    diagonal of ``K_oo`` (the inducing variables are ``f(o) + e``, ``var(e)`` that value).
+
+    Relative to the inducing prior variances, so it bounds ``cond(K_oo)`` by about
+    ``M / relative`` whatever the kernel's scale. The learners fix it when they set up an
+    inducing set (``jitter_``); the hyperparameter fit lets it follow the kernel.
+    """
+    return float(relative) * float(np.mean(np.diag(koo))) if koo.size else 0.0
 
 
 def jittered_cholesky(a: np.ndarray, *, jitter: float = 0.0, max_tries: int = 10,
@@ -104,3 +117,30 @@ def check_sample(xi, u, z, *, input_dim: int, action_dim: int):
     u = check_matrix(u, "u", ndim=1, nrows=action_dim)
     z = check_matrix(z, "z", ndim=0)
     return xi, u, float(z)
+
+
+def check_count(value, name: str, minimum: int = 1) -> int:
+    """``value`` as an ``int >= minimum`` (bool and non-integral types rejected)."""
+    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < minimum:
+        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
+    return int(value)
+
+
+def check_real(value, name: str, *, low: float | None = None, high: float | None = None,
+               low_open: bool = False, high_open: bool = False) -> float:
+    """``value`` as a finite float in the interval given by ``low``/``high`` (``*_open``:
+    excluding the end point)."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a real number, got {value!r}") from None
+    ok = np.isfinite(v)
+    if low is not None:
+        ok = ok and (v > low if low_open else v >= low)
+    if high is not None:
+        ok = ok and (v < high if high_open else v <= high)
+    if not ok:
+        lo = "(-inf" if low is None else ("(" if low_open else "[") + f"{low:g}"
+        hi = "inf)" if high is None else f"{high:g}" + (")" if high_open else "]")
+        raise ValueError(f"{name} must be a finite number in {lo}, {hi}, got {value!r}")
+    return v

@@ -1,19 +1,17 @@
-"""Pieces shared by the sparse learners (VSGP, AFVSGP): inducing-point cache, greedy
-selection, hyperparameter fit of the weighted bound, and the affine predictive (eqs. 20-22).
+"""Pieces shared by the sparse learners (VSGP, AFVSGP, SOGP): the inducing-point cache, greedy
+inducing selection and the hyperparameter fit of the weighted collapsed bound (eqs. 21-23, 27).
 """
 
 from __future__ import annotations
 
-import warnings
-
 import numpy as np
-from scipy.optimize import minimize
 
 from afvsgp_gym.gp._linalg import ubar
 from afvsgp_gym.gp.bound import weighted_bound_and_grad
+from afvsgp_gym.gp.hyper import LogNormalPrior, maximise, noise_box, theta_box
 from afvsgp_gym.gp.kernels import ADPKernel
 
-__all__ = ["InducingCache", "affine_from_kt", "fit_bound", "greedy_inducing"]
+__all__ = ["InducingCache", "fit_collapsed", "greedy_inducing", "pivoted_cholesky_select"]
 
 
 class InducingCache:
@@ -90,67 +88,93 @@ class InducingCache:
         return self.kernel._cross_affine(xi, self.xi[:m], self.ub[:m])
 
 
-def affine_from_kt(kt: np.ndarray, var: np.ndarray, w: np.ndarray, d: np.ndarray):
-    """Affine predictive (eq. 20) from ``Kt`` (N, m+1, M): ``b = Kt w``,
-    ``Sigma = diag(var) - Kt D Kt'`` with ``D = K_oo^-1 - B`` (symmetrised)."""
-    b = kt @ w
-    sig = -np.matmul(kt @ d, kt.transpose(0, 2, 1))
-    sig = 0.5 * (sig + sig.transpose(0, 2, 1))
-    idx = np.arange(var.shape[0])
-    sig[:, idx, idx] += var
-    return b, sig
+SELECTION_TOL = 1e-6
+"""Candidates whose residual prior variance is below this fraction of the largest prior variance
+are never chosen as inducing points (guards against near-duplicate inducing inputs)."""
 
 
-def greedy_inducing(kernel: ADPKernel, xi: np.ndarray, u: np.ndarray, num: int,
-                    rel_tol: float = 1e-6) -> np.ndarray:
-    """Indices of up to ``num`` inducing points by pivoted Cholesky of the ADP gram
-    (largest residual prior variance first, i.e. eq. 27 greedily); O(N num^2).
-    Stops early when every residual is below ``rel_tol`` times the largest prior variance,
-    so duplicates are never chosen."""
-    ub = ubar(u)
-    n = xi.shape[0]
-    resid = kernel._diag(ub).copy()
-    tol = rel_tol * float(resid.max())
-    rows = np.zeros((min(num, n), n))
+def pivoted_cholesky_select(diag: np.ndarray, column, num: int,
+                            rel_tol: float = SELECTION_TOL) -> np.ndarray:
+    """Greedy inducing-point selection (eq. 27 greedily): indices of up to ``num`` candidates,
+    in the order chosen, each the one of largest residual prior variance given those before.
+
+    ``diag`` (C,) are the candidates' prior variances, ``column(j)`` their covariances with
+    candidate ``j`` (pivoted Cholesky with columns on demand, O(C num^2)); it greedily minimises
+    ``tr(K_cc - Q_cc)``, the trace term of the collapsed bound. Stops early when every residual
+    is below ``rel_tol`` times the largest prior variance, so duplicates are never chosen.
+    """
+    c = diag.shape[0]
+    k_max = min(int(num), c)
+    resid = diag.astype(np.float64, copy=True)
+    tol = rel_tol * float(resid.max()) if c else 0.0
+    rows = np.zeros((k_max, c))
     chosen: list[int] = []
-    for k in range(min(num, n)):
+    for k in range(k_max):
         j = int(np.argmax(resid))
-        if resid[j] <= tol:
+        if not resid[j] > tol:
             break
-        col = kernel._gram(xi, ub, xi[j:j + 1], ub[j:j + 1])[:, 0]
-        col -= rows[:k].T @ rows[:k, j]
+        col = column(j) - rows[:k, j] @ rows[:k]
         col /= np.sqrt(resid[j])
         rows[k] = col
         resid -= col * col
         resid[j] = -np.inf
         chosen.append(j)
-    return np.asarray(chosen, dtype=int)
+    return np.asarray(chosen, dtype=np.intp)
 
 
-def fit_bound(kernel: ADPKernel, noise_variance: float, xi, u, z, weights, xi_o, u_o,
-              jitter: float, maxiter: int = 200, min_noise: float = 1e-6):
-    """Maximise the weighted collapsed bound (eq. 23) over kernel theta and log noise with
-    L-BFGS-B (analytic gradients). Returns (kernel, noise_variance, bound value)."""
+def greedy_inducing(kernel: ADPKernel, xi: np.ndarray, u: np.ndarray, num: int,
+                    rel_tol: float = SELECTION_TOL) -> np.ndarray:
+    """:func:`pivoted_cholesky_select` on the samples ``(xi, u)`` under ``kernel``."""
+    ub = ubar(u)
+    return pivoted_cholesky_select(
+        kernel._diag(ub), lambda j: kernel._gram(xi, ub, xi[j:j + 1], ub[j:j + 1])[:, 0], num,
+        rel_tol)
+
+
+def _same_set(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]) -> bool:
+    """Whether two inducing sets hold the same points (in any order)."""
+    pa, pb = np.hstack(a), np.hstack(b)
+    if pa.shape != pb.shape:
+        return False
+    return bool(np.array_equal(pa[np.lexsort(pa.T)], pb[np.lexsort(pb.T)]))
+
+
+def fit_collapsed(kernel: ADPKernel, noise_variance: float, xi, u, z, weights, select, *,
+                  jitter: float, maxiter: int, prior: LogNormalPrior | None, rounds: int = 3):
+    """Maximise the weighted collapsed bound (eq. 23) plus the prior's log density over
+    ``concat(theta, [log s2])`` (L-BFGS-B, analytic gradients, the jitter of
+    :func:`~afvsgp_gym.gp._linalg.jitter_for` with factor ``jitter`` following the kernel).
+
+    ``select(kernel) -> (xi_o, u_o)`` chooses the inducing set. After a fit the set is chosen
+    again with the fitted kernel; if it changed, the fit is repeated on the new set (at most
+    ``rounds`` fits). The result is therefore a stationary point on the set it returns (the
+    last one fitted), never on a set chosen afterwards.
+
+    Returns ``(kernel, noise_variance, (xi_o, u_o))``.
+    """
+    center = kernel.theta
+    nl = kernel.n_components * kernel.input_dim
+    bounds = theta_box(center) + [noise_box(z, weights)]
     work = kernel.clone()
-    x0 = np.concatenate([kernel.theta, [np.log(noise_variance)]])
-    scale = max(float(np.average(z * z, weights=weights)), 1e-12)
-    lo_noise = np.log(max(min_noise * scale, 1e-12))
-    bounds = [(t - 8.0, t + 8.0) for t in x0[:-1]] + [(lo_noise, np.log(10.0 * scale) + 1.0)]
-    x0[-1] = np.clip(x0[-1], bounds[-1][0], bounds[-1][1])
 
-    def fun(p):
-        try:
-            with warnings.catch_warnings():  # jitter retries while exploring are expected
-                warnings.simplefilter("ignore", RuntimeWarning)
-                val, grad = weighted_bound_and_grad(p, work, xi, u, z, weights, xi_o, u_o,
-                                                    jitter)
-        except np.linalg.LinAlgError:
-            return 1e300, np.zeros_like(p)
-        if not np.isfinite(val) or not np.all(np.isfinite(grad)):
-            return 1e300, np.zeros_like(p)
-        return -val, -grad
+    def evidence(p):
+        val, grad = weighted_bound_and_grad(p, work, xi, u, z, weights, xo, uo, jitter,
+                                            relative_jitter=True)
+        if prior is not None:
+            lp, glp = prior.log_density(p[:-1], center, nl)
+            val += lp
+            grad[:-1] += glp
+        return val, grad
 
-    res = minimize(fun, x0, jac=True, method="L-BFGS-B", bounds=bounds,
-                   options={"maxiter": maxiter})
-    best = res.x if res.fun <= fun(x0)[0] else x0
-    return kernel.with_theta(best[:-1]), float(np.exp(best[-1])), -float(fun(best)[0])
+    params = np.concatenate([center, [np.log(noise_variance)]])
+    xo, uo = select(kernel)
+    for k in range(int(rounds)):
+        params, _ = maximise(evidence, params, bounds, maxiter)
+        kernel = kernel.with_theta(params[:-1])
+        if k == rounds - 1:
+            break
+        nxt = select(kernel)
+        if _same_set(nxt, (xo, uo)):
+            break
+        xo, uo = nxt
+    return kernel, float(np.exp(params[-1])), (xo, uo)

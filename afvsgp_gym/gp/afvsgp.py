@@ -34,8 +34,9 @@ Inducing set (``adapt_inducing=True``):
   churn on a stationary stream; with the margin it settles.
 - chol(K_oo) is appended (O(M^2)) on add and rank-one updated (O(M^2)) on removal.
 
-Hyperparameters are learned offline in ``fit`` by maximising the weighted bound (eq. 23) with
-L-BFGS-B on the (last ``window``) fit samples, then frozen online, as in the paper.
+Hyperparameters are learned offline in ``fit`` by maximising the weighted bound (eq. 23) plus a
+weak prior (:mod:`afvsgp_gym.gp.hyper`) with L-BFGS-B on the (last ``window``) fit samples, then
+frozen online, as in the paper.
 """
 
 from __future__ import annotations
@@ -43,13 +44,21 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.linalg import cho_solve
 from scipy.linalg.blas import dger, dtrsm
 from scipy.linalg.lapack import dpotrf, dtrtri, dtrtrs
 
 from afvsgp_gym.gp._base import SparseLearner
-from afvsgp_gym.gp._linalg import DEFAULT_JITTER, check_batch, check_matrix, jittered_cholesky, ubar
+from afvsgp_gym.gp._linalg import (
+    DEFAULT_JITTER,
+    check_batch,
+    check_count,
+    check_matrix,
+    check_real,
+    jittered_cholesky,
+    ubar,
+)
 from afvsgp_gym.gp._sparse import greedy_inducing
+from afvsgp_gym.gp.hyper import DEFAULT_PRIOR, LogNormalPrior
 from afvsgp_gym.gp.kernels import ADPKernel
 
 __all__ = ["AFVSGP"]
@@ -103,21 +112,29 @@ class AFVSGP(SparseLearner):
     refresh_every : int or None
         Rebuild S and r from the window every this many updates (None: ``window``).
     jitter : float
-        Relative jitter on K_oo (times the mean prior variance of the fit data).
+        Relative jitter on K_oo (:func:`~afvsgp_gym.gp._linalg.jitter_for`); the absolute
+        value ``jitter_`` is fixed at ``fit`` and used for inducing points added later.
     max_iter : int
-        L-BFGS-B iterations for the offline hyperparameter fit.
+        L-BFGS-B iterations per offline hyperparameter fit.
+    prior : LogNormalPrior or None
+        Weak prior on the log kernel parameters, centred at the initial kernel
+        (:mod:`afvsgp_gym.gp.hyper`); None maximises the bound alone.
 
     Attributes
     ----------
     kernel_, noise_variance_, jitter_, inducing_xi_, inducing_u_, S_, r_, B_, n_seen_,
-    n_added_, n_removed_, bound_
+    n_added_, n_removed_
+    bound_ : float
+        Weighted bound (eq. 23) of the fit window at the fitted hyperparameters on the inducing
+        set the learner starts streaming with (``fit``'s final set), with ``jitter_``.
     """
 
     def __init__(self, kernel: ADPKernel | None = None, noise_variance: float | None = None,
                  num_inducing: int = 20, window: int = 200, forgetting: float = 0.99,
                  inducing=None, adapt_inducing: bool = True, add_threshold: float = 0.1, *,
                  swap_margin: float = 1.0, refresh_every: int | None = None,
-                 jitter: float = DEFAULT_JITTER, max_iter: int = 200):
+                 jitter: float = DEFAULT_JITTER, max_iter: int = 200,
+                 prior: LogNormalPrior | None = DEFAULT_PRIOR):
         self.kernel = kernel
         self.noise_variance = noise_variance
         self.num_inducing = num_inducing
@@ -130,25 +147,23 @@ class AFVSGP(SparseLearner):
         self.refresh_every = refresh_every
         self.jitter = jitter
         self.max_iter = max_iter
+        self.prior = prior
 
     # ------------------------------------------------------------------ fit
     def _check_params(self) -> None:
-        if int(self.num_inducing) < 1:
-            raise ValueError(f"num_inducing must be >= 1, got {self.num_inducing}")
-        if int(self.window) < 1:
-            raise ValueError(f"window must be >= 1, got {self.window}")
-        if not 0.0 < float(self.forgetting) <= 1.0:
-            raise ValueError(f"forgetting must be in (0, 1], got {self.forgetting}")
-        if not float(self.add_threshold) >= 0.0:
-            raise ValueError(f"add_threshold must be >= 0, got {self.add_threshold}")
-        if not float(self.swap_margin) >= 0.0:
-            raise ValueError(f"swap_margin must be >= 0, got {self.swap_margin}")
-        if self.refresh_every is not None and int(self.refresh_every) < 1:
-            raise ValueError(f"refresh_every must be >= 1, got {self.refresh_every}")
+        check_count(self.num_inducing, "num_inducing")
+        check_count(self.window, "window")
+        check_real(self.forgetting, "forgetting", low=0.0, high=1.0, low_open=True)
+        check_real(self.add_threshold, "add_threshold", low=0.0)
+        check_real(self.swap_margin, "swap_margin", low=0.0)
+        if self.refresh_every is not None:
+            check_count(self.refresh_every, "refresh_every")
+        check_real(self.jitter, "jitter", low=0.0)
+        check_count(self.max_iter, "max_iter")
 
     def fit(self, xi, u, z, learn_hyperparameters: bool = True) -> AFVSGP:
         """Fit on the first samples (chronological rows; the last ``window`` are kept) and
-        learn hyperparameters by maximising the weighted bound (eq. 23)."""
+        learn hyperparameters by maximising the weighted bound (eq. 23) plus the prior."""
         self._check_params()
         xi, u, z = check_batch(xi, u, z)
         p = int(self.window)
@@ -551,10 +566,3 @@ class AFVSGP(SparseLearner):
         order = (self._head + 1 + np.arange(cnt)) % cnt if cnt == self._p else np.arange(cnt)
         return (self._win_xi[order].copy(), self._win_ub[order, 1:].copy(),
                 self._win[order, 0].copy(), self._weights()[order])
-
-    def weighted_trace(self) -> float:
-        """eq. 27 over the window: ``sum lambda (k_tt - Q_tt)`` (the bound's trace part)."""
-        cnt = self._count
-        kdiag = self.kernel_._diag(self._win_ub[:cnt])
-        return float(self._weights() @ kdiag
-                     - np.trace(cho_solve((self._l_oo, True), self.S_, check_finite=False)))

@@ -1,17 +1,22 @@
 """ExactGP: full GP with the ADP kernel (Castaneda et al. 2021), the paper's offline "GP"
-baseline. Hyperparameters maximise the log marginal likelihood (analytic gradients);
-``update`` appends a sample by a Cholesky row append (O(N^2)) unless ``online=False``."""
+baseline. Hyperparameters maximise the log marginal likelihood plus the learners' weak prior
+(:mod:`afvsgp_gym.gp.hyper`, analytic gradients); ``update`` appends a sample by a Cholesky row
+append (O(N^2)) unless ``online=False``."""
 
 from __future__ import annotations
 
-import warnings
-
 import numpy as np
-from scipy.linalg import LinAlgError, cho_solve, solve_triangular
-from scipy.optimize import minimize
+from scipy.linalg import cho_solve, solve_triangular
 
 from afvsgp_gym.gp._base import BaseLearner
-from afvsgp_gym.gp._linalg import check_batch, check_sample, jittered_cholesky, ubar
+from afvsgp_gym.gp._linalg import (
+    check_batch,
+    check_count,
+    check_sample,
+    jittered_cholesky,
+    ubar,
+)
+from afvsgp_gym.gp.hyper import DEFAULT_PRIOR, LogNormalPrior, maximise, noise_box, theta_box
 from afvsgp_gym.gp.kernels import ADPKernel
 
 __all__ = ["ExactGP", "log_marginal_likelihood"]
@@ -50,6 +55,9 @@ class ExactGP(BaseLearner):
         baseline; ``update`` validates its input and leaves the posterior unchanged.
     max_iter : int
         L-BFGS-B iterations for the hyperparameters.
+    prior : LogNormalPrior or None
+        Weak prior on the log kernel parameters, centred at the initial kernel; None
+        maximises the marginal likelihood alone.
 
     Attributes
     ----------
@@ -58,36 +66,36 @@ class ExactGP(BaseLearner):
     """
 
     def __init__(self, kernel: ADPKernel | None = None, noise_variance: float | None = None, *,
-                 online: bool = True, max_iter: int = 200):
+                 online: bool = True, max_iter: int = 200,
+                 prior: LogNormalPrior | None = DEFAULT_PRIOR):
         self.kernel = kernel
         self.noise_variance = noise_variance
         self.online = online
         self.max_iter = max_iter
+        self.prior = prior
 
     def fit(self, xi, u, z, learn_hyperparameters: bool = True) -> ExactGP:
-        """Fit on (xi (N,b), u (N,m), z (N,)), maximising the log marginal likelihood."""
+        """Fit on (xi (N,b), u (N,m), z (N,)), maximising the log marginal likelihood plus the
+        prior unless ``learn_hyperparameters`` is False."""
+        check_count(self.max_iter, "max_iter")
         xi, u, z = check_batch(xi, u, z)
         kernel, noise = self._init_hyper(xi, u, z)
         if learn_hyperparameters:
+            center = kernel.theta
+            nl = kernel.n_components * kernel.input_dim
             work = kernel.clone()
-            x0 = np.concatenate([kernel.theta, [np.log(noise)]])
-            scale = max(float(np.mean(z * z)), 1e-12)
-            bounds = [(t - 8.0, t + 8.0) for t in x0[:-1]]
-            bounds.append((np.log(max(1e-6 * scale, 1e-12)), np.log(10.0 * scale) + 1.0))
-            x0[-1] = np.clip(x0[-1], *bounds[-1])
+            prior = self.prior
 
-            def fun(p):
-                try:
-                    with warnings.catch_warnings():  # jitter retries while exploring
-                        warnings.simplefilter("ignore", RuntimeWarning)
-                        v, gr = log_marginal_likelihood(p, work, xi, u, z)
-                except LinAlgError:
-                    return 1e300, np.zeros_like(p)
-                return -v, -gr
+            def evidence(p):
+                val, grad = log_marginal_likelihood(p, work, xi, u, z)
+                if prior is not None:
+                    lp, glp = prior.log_density(p[:-1], center, nl)
+                    val += lp
+                    grad[:-1] += glp
+                return val, grad
 
-            res = minimize(fun, x0, jac=True, method="L-BFGS-B", bounds=bounds,
-                           options={"maxiter": self.max_iter})
-            best = res.x if res.fun <= fun(x0)[0] else x0
+            best, _ = maximise(evidence, np.concatenate([center, [np.log(noise)]]),
+                               theta_box(center) + [noise_box(z)], self.max_iter)
             kernel = kernel.with_theta(best[:-1])
             noise = float(np.exp(best[-1]))
         self.kernel_ = kernel

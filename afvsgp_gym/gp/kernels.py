@@ -145,9 +145,11 @@ class ADPKernel:
             u2 = check_matrix(u2, "u2", ncols=self._n_comp - 1, nrows=xi2.shape[0])
         return self._gram(xi1, ubar(u1), xi2, None if u2 is None else ubar(u2))
 
-    def _gram(self, xi1, ub1, xi2=None, ub2=None) -> np.ndarray:
-        """Gram from validated inputs with precomputed ubar (internal fast path)."""
-        comp = self._components(xi1, xi2)
+    def _gram(self, xi1, ub1, xi2=None, ub2=None, comp=None) -> np.ndarray:
+        """Gram from validated inputs with precomputed ubar (internal fast path); ``comp``:
+        the components ``_components(xi1, xi2)`` if already computed."""
+        if comp is None:
+            comp = self._components(xi1, xi2)
         if ub2 is None:
             gram = np.einsum("ni,inj,ji->nj", ub1, comp, ub1)
             return 0.5 * (gram + gram.T)
@@ -177,16 +179,19 @@ class ADPKernel:
         return comp.transpose(1, 0, 2) * ub2.T[None, :, :]
 
     # ----------------------------------------------------------------- gradients
-    def grad_contract(self, g: np.ndarray, xi1, ub1, xi2=None, ub2=None) -> np.ndarray:
+    def grad_contract(self, g: np.ndarray, xi1, ub1, xi2=None, ub2=None,
+                      comp=None) -> np.ndarray:
         """``sum_{n,j} g[n, j] dK[n, j] / dtheta``: (n_params,).
 
         ``xi*`` are validated (N, b) arrays, ``ub*`` are ubar arrays (N, m+1) (see ``ubar``).
-        With ``xi2 is None`` the gram is ``K(x1, x1)``.
+        With ``xi2 is None`` the gram is ``K(x1, x1)``. ``comp``: the components
+        ``_components(xi1, xi2)`` if already computed.
         """
         same = xi2 is None
+        if comp is None:
+            comp = self._components(xi1, xi2)  # (m+1, N1, N2)
         if same:
             xi2, ub2 = xi1, ub1
-        comp = self._components(xi1, None if same else xi2)  # (m+1, N1, N2)
         # W_i = g o (ub1_i ub2_i') o k_i
         w = comp * g[None, :, :]
         w *= ub1.T[:, :, None]

@@ -1,14 +1,24 @@
 """VSGP: Titsias (2009) collapsed variational sparse GP with a fixed inducing set (paper
 eqs. 14-18); the paper's non-adaptive baseline. ``update`` appends the sample and refreshes the
-posterior over all data seen (O(N M^2) per update, no forgetting)."""
+posterior over all data seen from the stored kernel rows (O(N M^2), no forgetting), in the
+whitened form from the data (:meth:`WhitenedPosterior.from_data`)."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from afvsgp_gym.gp._base import SparseLearner
-from afvsgp_gym.gp._linalg import DEFAULT_JITTER, check_batch, check_sample, ubar
+from afvsgp_gym.gp._linalg import (
+    DEFAULT_JITTER,
+    check_batch,
+    check_count,
+    check_real,
+    check_sample,
+    ubar,
+)
 from afvsgp_gym.gp._sparse import greedy_inducing
+from afvsgp_gym.gp.bound import WhitenedPosterior
+from afvsgp_gym.gp.hyper import DEFAULT_PRIOR, LogNormalPrior
 from afvsgp_gym.gp.kernels import ADPKernel
 
 __all__ = ["VSGP"]
@@ -29,31 +39,40 @@ class VSGP(SparseLearner):
     inducing : tuple (xi_o (M, b), u_o (M, m)) or None
         Fixed inducing set.
     jitter : float
-        Relative jitter added to K_oo (times the mean prior variance of the fit data).
+        Relative jitter on K_oo (:func:`~afvsgp_gym.gp._linalg.jitter_for`).
     max_iter : int
-        L-BFGS-B iterations for the hyperparameters.
+        L-BFGS-B iterations per hyperparameter fit.
+    prior : LogNormalPrior or None
+        Weak prior on the log kernel parameters, centred at the initial kernel
+        (:mod:`afvsgp_gym.gp.hyper`); None maximises the bound alone.
 
     Attributes
     ----------
-    kernel_, noise_variance_, jitter_, inducing_xi_, inducing_u_, S_, r_, B_, n_seen_,
-    bound_ (collapsed bound after fit)
+    kernel_, noise_variance_, jitter_ (absolute), inducing_xi_, inducing_u_, S_, r_, B_,
+    n_seen_
+    bound_ : float
+        Titsias bound (eq. 18) of the fit data at the fitted hyperparameters on the final
+        inducing set (the one the learner keeps), with ``jitter_``.
     """
 
     def __init__(self, kernel: ADPKernel | None = None, noise_variance: float | None = None, *,
                  num_inducing: int = 20, inducing=None, jitter: float = DEFAULT_JITTER,
-                 max_iter: int = 200):
+                 max_iter: int = 200, prior: LogNormalPrior | None = DEFAULT_PRIOR):
         self.kernel = kernel
         self.noise_variance = noise_variance
         self.num_inducing = num_inducing
         self.inducing = inducing
         self.jitter = jitter
         self.max_iter = max_iter
+        self.prior = prior
 
     def fit(self, xi, u, z, learn_hyperparameters: bool = True) -> VSGP:
-        """Fit on (xi (N,b), u (N,m), z (N,)); maximises the Titsias bound (eq. 18)."""
+        """Fit on (xi (N,b), u (N,m), z (N,)); maximises the Titsias bound (eq. 18) plus the
+        prior over the hyperparameters unless ``learn_hyperparameters`` is False."""
+        check_count(self.num_inducing, "num_inducing")
+        check_real(self.jitter, "jitter", low=0.0)
+        check_count(self.max_iter, "max_iter")
         xi, u, z = check_batch(xi, u, z)
-        if int(self.num_inducing) < 1:
-            raise ValueError(f"num_inducing must be >= 1, got {self.num_inducing}")
         kernel, noise, xo, uo, jitter, bound = self._fit_hyperparameters(
             xi, u, z, np.ones(len(z)), learn_hyperparameters)
         self.kernel_ = kernel
@@ -68,7 +87,7 @@ class VSGP(SparseLearner):
         self._kxo[:n] = kernel._gram(xi, ubar(u), xo, ubar(uo))
         self._z[:n] = z
         self.n_seen_ = n
-        self._recompute_stats()
+        self._dirty = True
         return self
 
     def _initial_inducing(self, kernel, xi, u):
@@ -79,10 +98,22 @@ class VSGP(SparseLearner):
         idx = greedy_inducing(kernel, xi, u, int(self.num_inducing))
         return xi[idx], u[idx]
 
-    def _recompute_stats(self) -> None:
+    def _refresh_posterior(self) -> None:
         n = self.n_seen_
-        k = self._kxo[:n]
-        self._set_stats(k.T @ k, k.T @ self._z[:n])
+        self._post = WhitenedPosterior.from_data(self._l_oo, self._kxo[:n], self._z[:n], 1.0,
+                                                 self.noise_variance_)
+        self._dirty = False
+
+    @property
+    def S_(self) -> np.ndarray:
+        """(M, M) ``K_ox K_xo`` over all data seen."""
+        k = self._kxo[: self.n_seen_]
+        return k.T @ k
+
+    @property
+    def r_(self) -> np.ndarray:
+        """(M,) ``K_ox z`` over all data seen."""
+        return self._kxo[: self.n_seen_].T @ self._z[: self.n_seen_]
 
     def update(self, xi, u, z) -> VSGP:
         """Append one sample and refresh the posterior over all data seen."""
@@ -98,5 +129,5 @@ class VSGP(SparseLearner):
         self._kxo[n] = k_new
         self._z[n] = z
         self.n_seen_ = n + 1
-        self._recompute_stats()
+        self._refresh_posterior()
         return self

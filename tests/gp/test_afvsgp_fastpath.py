@@ -1,15 +1,13 @@
 """AFVSGP per-step fast path: the one-point ``predict_affine`` and the update that reuses its
-kernel row, checked against the independent batch formula and against the general paths."""
+kernel row, checked against the independent batch formula and against the general paths.
+Tolerances: tests/gp/tolerances.py (first-order rounding bounds)."""
 
 import numpy as np
 import pytest
 from gp_batch_formulas import synthetic, weighted_titsias_affine
+from tolerances import assert_within, sparse_affine_tolerance, warned_jitter
 
 from afvsgp_gym.gp import AFVSGP, ADPKernel
-
-
-def _rel(a, b):
-    return np.max(np.abs(a - b)) / np.max(np.abs(b))
 
 
 def _kernel(b=3, m=2):
@@ -24,12 +22,14 @@ def _learner(xi, u, z, p, **kw):
 
 
 def _batch(gp, xi, u, z, xs):
+    """Batch reference and the tolerance of the comparison (S accumulated from the data)."""
     p, phi = gp.window, gp.forgetting
     w = phi ** np.arange(p - 1, -1, -1, dtype=float)
     k = gp.kernel_
-    return weighted_titsias_affine(k.lengthscales, k.variances, gp.noise_variance_,
-                                   xi[-p:], u[-p:], z[-p:], w, gp.inducing_xi_,
-                                   gp.inducing_u_, xs, jitter=gp.jitter_)
+    ref = weighted_titsias_affine(k.lengthscales, k.variances, gp.noise_variance_,
+                                  xi[-p:], u[-p:], z[-p:], w, gp.inducing_xi_,
+                                  gp.inducing_u_, xs, jitter=gp.jitter_)
+    return ref, sparse_affine_tolerance(gp, xs, (xi[-p:], u[-p:], z[-p:], w))
 
 
 @pytest.mark.parametrize("reuse", [True, False])
@@ -52,9 +52,9 @@ def test_one_point_predictions_equal_batch_formula_through_inducing_events(reuse
         if i % 23 == 0 or gp.n_added_ != before:
             xs = xi[i + 1:i + 2] if (reuse and i + 1 < n) else other
             b1, s1 = gp.predict_affine(xs)
-            bref, sref = _batch(gp, xi[: i + 1], u[: i + 1], z[: i + 1], xs)
-            assert _rel(b1, bref) < 1e-8
-            assert _rel(s1, sref) < 1e-8
+            (bref, sref), (tol_b, tol_s) = _batch(gp, xi[: i + 1], u[: i + 1], z[: i + 1], xs)
+            assert_within(b1, bref, tol_b, "b")
+            assert_within(s1, sref, tol_s, "Sigma")
             np.testing.assert_array_equal(s1[0], s1[0].T)  # exactly symmetric
             checked_after_event += gp.n_added_ != before
     assert gp.n_added_ > 0 and gp.n_removed_ > 0 and checked_after_event > 0
@@ -68,13 +68,14 @@ def test_one_point_path_equals_general_path():
     for i in range(p, 300):
         gp.update(xi[i], u[i], z[i])
     xs = rng.normal(size=(4, 3))
-    ball, sall = gp.predict_affine(xs)  # N > 1: the general (cached B, D) path
+    ball, sall = gp.predict_affine(xs)  # N > 1: the general (whitened) path
+    tol_b, tol_s = sparse_affine_tolerance(gp, xs)  # the same statistics, other algebra
     for n in range(4):
         for arg in (xs[n:n + 1], xs[n:n + 1].tolist()):  # fast path, validated path
             b1, s1 = gp.predict_affine(arg)
             assert b1.shape == (1, 3) and s1.shape == (1, 3, 3)
-            np.testing.assert_allclose(b1[0], ball[n], rtol=1e-9, atol=1e-12)
-            np.testing.assert_allclose(s1[0], sall[n], rtol=1e-9, atol=1e-12)
+            assert_within(b1[0], ball[n], tol_b[n], "b")
+            assert_within(s1[0], sall[n], tol_s[n], "Sigma")
     # results are fresh arrays: a later call does not change earlier results
     b1, s1 = gp.predict_affine(xs[:1])
     keep = b1.copy(), s1.copy()
@@ -161,29 +162,41 @@ def test_one_point_prediction_far_away_and_huge_inputs_are_finite():
     for x in ([[1e3, -1e3, 0.0]], [[1e200, 0.0, 0.0]]):
         bvec, sig = gp.predict_affine(np.array(x))
         assert np.all(np.isfinite(bvec)) and np.all(np.isfinite(sig))
-        np.testing.assert_allclose(sig[0], np.diag(gp.kernel_.variances), atol=1e-12)
+        # exp underflows to exactly 0 this far away: the prior, exactly
+        np.testing.assert_array_equal(sig[0], np.diag(gp.kernel_.variances))
     with pytest.raises(ValueError, match="xi"):
         gp.predict_affine(np.array([[np.inf, 0.0, 0.0]]))
 
 
 def test_singular_posterior_matrix_falls_back_to_jittered_factor():
     """Duplicate inducing points, no jitter and no data nearby: K_oo + S/s2 is singular, the
-    in-place factorisation fails, the jittered retry warns and matches the general path."""
+    one-point path's in-place factorisation fails, its jittered retry warns and matches the
+    general (whitened) path, which needs no retry (D = I + L^-1 S L^-T / s2 >= I)."""
+    import warnings
+
     rng = np.random.default_rng(17)
     xi, u, z, _ = synthetic(rng, 40)
     ind = (np.vstack([xi[:3], xi[:3]]), np.vstack([u[:3], u[:3]]))
     gp = AFVSGP(_kernel(), 0.01, num_inducing=6, window=20, inducing=ind,
                 adapt_inducing=False, jitter=0.0)
-    with pytest.warns(RuntimeWarning, match="K_oo"):
+    with pytest.warns(RuntimeWarning, match="K_oo") as fit_record:
         gp.fit(xi[:20] + 50.0, u[:20], z[:20], learn_hyperparameters=False)
     gp.update(xi[21] + 50.0, u[21], z[21])
-    with pytest.warns(RuntimeWarning, match="K_oo \\+ S/s2"):
+    with pytest.warns(RuntimeWarning, match="K_oo \\+ S/s2") as record:
         b1, s1 = gp.predict_affine(xi[:1])
-    with pytest.warns(RuntimeWarning, match="K_oo \\+ S/s2"):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
         ball, sall = gp.predict_affine(xi[:2])
     assert np.all(np.isfinite(b1)) and np.all(np.isfinite(s1))
-    np.testing.assert_allclose(b1[0], ball[0], atol=1e-12)
-    np.testing.assert_allclose(s1[0], sall[0], rtol=1e-9, atol=1e-12)
+    # S = 0 (the data are 50 lengthscales away: exp underflows), so the one-point path
+    # factors K_oo + extra I with the same jitter the fit gave K_oo; the two paths then
+    # differ by rounding in the regularised K_oo only
+    assert np.all(gp.S_ == 0.0)
+    extra = warned_jitter(fit_record)
+    assert warned_jitter(record) == extra
+    tol_b, tol_s = sparse_affine_tolerance(gp, xi[:1], extra_jitter=extra)
+    assert_within(b1[0], ball[0], tol_b[0], "b")
+    assert_within(s1[0], sall[0], tol_s[0], "Sigma")
 
 
 @pytest.mark.parametrize("how", ["deepcopy", "pickle"])

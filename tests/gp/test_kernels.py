@@ -1,7 +1,9 @@
-"""ADP compound kernel: brute-force formula, PSD, diag, cross_affine, gradients."""
+"""ADP compound kernel: brute-force formula, PSD, diag, cross_affine, gradients.
+Tolerances: tests/gp/tolerances.py (the relative rounding of a kernel entry, ``kernel_rtol``)."""
 
 import numpy as np
 import pytest
+from tolerances import assert_within, central_difference, gamma, kernel_rtol
 
 from afvsgp_gym.gp._linalg import ubar
 from afvsgp_gym.gp.kernels import ADPKernel
@@ -29,8 +31,14 @@ def test_gram_matches_brute_force():
     k = _kernel(rng)
     xi1, u1 = rng.normal(size=(5, 4)), rng.normal(size=(5, 2))
     xi2, u2 = rng.normal(size=(3, 4)), rng.normal(size=(3, 2))
-    np.testing.assert_allclose(k(xi1, u1, xi2, u2), _brute(k, xi1, u1, xi2, u2), rtol=1e-12)
-    np.testing.assert_allclose(k(xi1, u1), _brute(k, xi1, u1, xi1, u1), rtol=1e-12, atol=1e-14)
+    # both evaluations round each entry by at most kernel_rtol (relative to the sum of the
+    # absolute values of its m+1 component terms)
+    mag = np.abs(_brute(k, xi1, np.abs(u1), xi2, np.abs(u2)))
+    tol = 2 * kernel_rtol(k, xi1, xi2) * mag
+    assert_within(k(xi1, u1, xi2, u2), _brute(k, xi1, u1, xi2, u2), tol, "cross gram")
+    mag = np.abs(_brute(k, xi1, np.abs(u1), xi1, np.abs(u1)))
+    assert_within(k(xi1, u1), _brute(k, xi1, u1, xi1, u1), 2 * kernel_rtol(k, xi1) * mag,
+                  "gram")
 
 
 def test_gram_is_psd_and_symmetric():
@@ -39,14 +47,20 @@ def test_gram_is_psd_and_symmetric():
     xi, u = rng.normal(size=(40, 3)), rng.normal(size=(40, 3))
     gram = k(xi, u)
     np.testing.assert_array_equal(gram, gram.T)
-    assert np.linalg.eigvalsh(gram).min() > -1e-10 * np.abs(gram).max()
+    # PSD up to the entries' rounding (Weyl: |dlambda| <= |dK|_2 <= N max|dK_ij|) and
+    # eigvalsh's own error gamma(N) |K|_2
+    n = len(gram)
+    norm = np.linalg.norm(gram, 2)
+    mag = np.max(np.abs(k(xi, np.abs(u))))
+    assert np.linalg.eigvalsh(gram).min() >= -(n * kernel_rtol(k, xi) * mag + gamma(n) * norm)
 
 
 def test_diag_matches_full():
     rng = np.random.default_rng(2)
     k = _kernel(rng)
     xi, u = rng.normal(size=(7, 4)), rng.normal(size=(7, 2))
-    np.testing.assert_allclose(k.diag(xi, u), np.diag(k(xi, u)), rtol=1e-13)
+    mag = k.diag(xi, np.abs(u))  # sum of the component terms' absolute values
+    assert_within(k.diag(xi, u), np.diag(k(xi, u)), 2 * kernel_rtol(k, xi) * mag, "diag")
 
 
 def test_components_and_cross_affine_compose_to_gram():
@@ -59,8 +73,11 @@ def test_components_and_cross_affine_compose_to_gram():
     cross = k.cross_affine(xs, x2, u2)
     assert cross.shape == (6, 3, 4)
     via_cross = np.einsum("ni,nij->nj", ubar(us), cross)
-    np.testing.assert_allclose(via_cross, k(xs, us, x2, u2), rtol=1e-12)
-    np.testing.assert_allclose(cross[:, 1, :], comp[1] * u2[:, 0][None, :], rtol=1e-13)
+    mag = np.abs(k(xs, np.abs(us), x2, np.abs(u2)))
+    assert_within(via_cross, k(xs, us, x2, u2), 2 * kernel_rtol(k, xs, x2) * mag, "composed")
+    # the same component times the same factor: one rounding of the product
+    assert_within(cross[:, 1, :], comp[1] * u2[:, 0][None, :],
+                  gamma(1) * np.abs(comp[1] * u2[:, 0][None, :]), "component")
 
 
 def test_theta_is_log_parametrisation_and_roundtrips():
@@ -84,13 +101,12 @@ def test_grad_contract_matches_finite_differences(same):
     g = rng.normal(size=(5, 5 if same else 4))
 
     def f(theta):
-        return float(np.sum(g * k.with_theta(theta)(xi1, u1, xi2, u2)))
+        gram = k.with_theta(theta)(xi1, u1, xi2, u2)
+        return float(np.sum(g * gram)), float(np.sum(np.abs(g * gram)))
 
     ana = k.grad_contract(g, xi1, ubar(u1), xi2, None if same else ubar(u2))
-    th = k.theta
-    eps = 1e-6
-    fd = np.array([(f(th + eps * e) - f(th - eps * e)) / (2 * eps) for e in np.eye(len(th))])
-    np.testing.assert_allclose(ana, fd, rtol=1e-6, atol=1e-8)
+    fd, err = central_difference(f, k.theta, 1e-4)
+    assert_within(ana, fd, err + gamma(g.size) * np.abs(ana), "gradient")
 
 
 def test_grad_diag_contract_matches_finite_differences():
@@ -99,12 +115,13 @@ def test_grad_diag_contract_matches_finite_differences():
     xi, u = rng.normal(size=(6, 3)), rng.normal(size=(6, 2))
     g = rng.normal(size=6)
     ana = k.grad_diag_contract(g, ubar(u))
-    th = k.theta
-    eps = 1e-6
-    fd = np.array([(g @ k.with_theta(th + eps * e).diag(xi, u)
-                    - g @ k.with_theta(th - eps * e).diag(xi, u)) / (2 * eps)
-                   for e in np.eye(len(th))])
-    np.testing.assert_allclose(ana, fd, rtol=1e-6, atol=1e-8)
+
+    def f(theta):
+        d = k.with_theta(theta).diag(xi, u)
+        return float(g @ d), float(np.abs(g) @ d)
+
+    fd, err = central_difference(f, k.theta, 1e-4)
+    assert_within(ana, fd, err + gamma(g.size) * np.abs(ana), "gradient")
 
 
 def test_from_data_gives_prior_variance_near_data_variance():
@@ -114,7 +131,7 @@ def test_from_data_gives_prior_variance_near_data_variance():
     k = ADPKernel.from_data(xi, u, z)
     assert k.lengthscales.shape == (3, 5) and k.variances.shape == (3,)
     ratio = np.mean(k.diag(xi, u)) / np.var(z)
-    assert 0.7 < ratio < 1.3
+    assert 0.7 < ratio < 1.3  # a heuristic: the prior variance matches var(z) within 30 %
 
 
 @pytest.mark.parametrize("bad", [

@@ -1,0 +1,23 @@
+"""The warm-up fit inside the filter loop: ``benchmarks.gp_fit``'s probe sees the fitted learner
+once, right after warm-up (issue 10's conditioning report)."""
+
+import numpy as np
+
+from afvsgp_gym.benchmarks.filter import run_episode
+from afvsgp_gym.benchmarks.gp_fit import conditioning
+
+
+def test_probe_reports_conditioning_after_the_warm_up_fit():
+    calls = []
+
+    def probe(controller):
+        assert not controller.warming_up
+        calls.append(controller.learners[0].n_seen_)
+        return conditioning(controller)
+
+    res = run_episode("pointmass", "afvsgp", 0, probe=probe)
+    assert len(calls) == 1 and calls[0] >= 2  # once, right after the fit on the warm-up data
+    assert res["cond_koo"] >= 1.0 and res["cond_sig"] >= 1.0 and np.isfinite(res["cond_sig"])
+    assert res["noise"] > 0
+    unfiltered = run_episode("pointmass", None, 0, probe=probe)
+    assert "cond_koo" not in unfiltered and len(calls) == 1
