@@ -25,18 +25,24 @@ DEFAULT_SCENARIOS = ("franka_static:0-9", "franka_dynamic:0-9", "franka_random:0
 
 def conditioning(controller) -> dict:
     """Conditioning and noise of the controller's sparse learners (max over barriers)."""
-    ck, cs, noise = [], [], []
-    for learner in controller.learners:
-        if not hasattr(learner, "S_"):
-            continue
-        koo = learner.kernel_(learner.inducing_xi_, learner.inducing_u_)
-        koo[np.diag_indices_from(koo)] += learner.jitter_
-        ck.append(float(np.linalg.cond(koo)))
-        cs.append(float(np.linalg.cond(koo + learner.S_ / learner.noise_variance_)))
-        noise.append(float(learner.noise_variance_))
-    if not ck:
+    bank = getattr(controller.bank, "bank", None)  # AFVSGP: the stacked learners
+    if bank is not None:
+        ck, cs = bank.conditioning()
+        noise = bank.noise_variance
+    else:
+        ck, cs, noise = [], [], []
+        for learner in getattr(controller.bank, "learners", []):
+            if not hasattr(learner, "S_"):
+                continue
+            koo = learner.kernel_(learner.inducing_xi_, learner.inducing_u_)
+            koo[np.diag_indices_from(koo)] += learner.jitter_
+            ck.append(float(np.linalg.cond(koo)))
+            cs.append(float(np.linalg.cond(koo + learner.S_ / learner.noise_variance_)))
+            noise.append(float(learner.noise_variance_))
+    if len(ck) == 0:
         return {}
-    return {"cond_koo": max(ck), "cond_sig": max(cs), "noise": float(np.median(noise))}
+    return {"cond_koo": float(np.max(ck)), "cond_sig": float(np.max(cs)),
+            "noise": float(np.median(noise))}
 
 
 def _seeds(spec: str) -> tuple[str, range]:

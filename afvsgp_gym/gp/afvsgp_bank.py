@@ -197,6 +197,16 @@ class AFVSGPBank:
             self._stats[k] *= 1.0 / self._scale[k]
             self._scale[k] = 1.0
 
+    def conditioning(self) -> tuple[np.ndarray, np.ndarray]:
+        """(K,) 2-norm condition numbers of ``K_oo`` and ``K_oo + S/s2`` of every learner."""
+        c_oo, c_sig = np.empty(self.n_learners), np.empty(self.n_learners)
+        for k in range(self.n_learners):
+            m = self.n_inducing_[k]
+            koo = self._koo[k, :m, :m]
+            sig = koo + self._stats[k, :m, 1 : m + 1] / (self.noise_variance[k] * self._scale[k])
+            c_oo[k], c_sig[k] = np.linalg.cond(koo), np.linalg.cond(sig)
+        return c_oo, c_sig
+
     # ------------------------------------------------------------------ kernel rows
     def _kt(self, rows, xi: np.ndarray) -> np.ndarray:
         """``Kt`` (k, m+1, Mp) of learners ``rows`` at their points ``xi`` (k, b) (eq. 21)."""

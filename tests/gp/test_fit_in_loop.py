@@ -12,7 +12,7 @@ def test_probe_reports_conditioning_after_the_warm_up_fit():
 
     def probe(controller):
         assert not controller.warming_up
-        calls.append(controller.learners[0].n_seen_)
+        calls.append(int(controller.bank.bank.n_seen_[0]))
         return conditioning(controller)
 
     res = run_episode("pointmass", "afvsgp", 0, probe=probe)
