@@ -7,12 +7,13 @@
 - :func:`fit_with_restarts`: one learner; L-BFGS-B on the collapsed bound sometimes stops at
   its initial point (a failed first line search), so it restarts from a smaller noise, doubled
   lengthscales and the learner's own data heuristic until the optimiser moves.
-- :func:`fit_shared`: K learners (one per barrier) with one hyperparameter fit. The
-  barriers' samples are pooled (each divided by its root mean square, so every barrier
-  counts alike), one kernel and noise are learned on the pool, and each barrier's learner
-  gets them rescaled by its own mean square (variances and noise times ``rms_k^2``: the same
-  prior shape, the barrier's own output scale) with its own inducing set and posterior.
-  The cost is one fit plus K posteriors instead of K fits.
+- :func:`fit_shared`: K learners (one per barrier) with one hyperparameter fit: on the
+  barrier whose samples have the largest mean square (default), or on the samples of all
+  barriers pooled (each divided by its root mean square; measured worse: the pool's fit put
+  everything into the noise). Each barrier's learner gets the kernel and noise rescaled to
+  its own mean square (variances and noise times ``rms_k^2``: the same prior shape, the
+  barrier's own output scale) with its own inducing set and posterior. The cost is one fit
+  plus K posteriors instead of K fits.
 """
 
 from __future__ import annotations
