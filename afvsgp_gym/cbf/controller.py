@@ -487,15 +487,9 @@ class SafetyController:
             except Exception as exc:
                 self.last_error = f"{type(exc).__name__}: {exc}"
                 a0[k] = np.nan
-        Gc = G if use_cone else None
-        if nom_finite and math.isfinite(float(a0.sum() + a.sum() + G.sum())):
-            # Checked data: skip SOCPFilter.solve's validation. It returns the clipped
-            # proposal at once (status "inactive") when it satisfies every chance constraint:
-            # it is then the SOCP optimum itself, and no cone program is solved.
-            marg = self.socp.margins(u_clip, a0, a, Gc)
-            res = self.socp.solve_checked(u_nom, u_clip, a0, a, Gc, marg, t0, u_backup)
-        else:
-            res = self.socp.solve(u_nom, a0, a, Gc, u_backup)
+        # solve returns the clipped proposal at once (status "inactive") when it satisfies
+        # every chance constraint: it is then the SOCP optimum itself
+        res = self.socp.solve(u_nom, a0, a, G if use_cone else None, u_backup)
         u = res.u
         ubar = np.empty(m + 1)
         ubar[0] = 1.0

@@ -1,0 +1,450 @@
+"""Filter-solve benchmark: our SOCPFilter against cbfpy and against clarabel's own solve time.
+
+Problem ("sphere arm"): a kinematically linearised 7-joint arm, ``q'' = B u`` with
+``B = diag(b)``, ``u`` in ``[-1, 1]^7``, K safety spheres with centres ``p_i(q) = c_i + J_i q``
+and radii ``r_i``, one spherical obstacle ``(o, R)``: ``h_i = ||p_i - o|| - r_i - R``,
+relative degree 2, HOCBF with linear gains ``alpha_1 = alpha_2 = 4`` (our default; cbfpy's
+``alpha_2`` and ``alpha``). Known model: the QP of eq. 04. Learned: the same constraints with
+a cone ``G_i = beta L_i'`` (eq. 05) of a synthetic posterior covariance. Every state is
+``(q, q', o, u_des)``; both filters get the same states in the same run, interleaved.
+
+``record_filter_instances`` records ``(u_nom, a0, a, G)`` of every cone program a
+:class:`~afvsgp_gym.wrappers.SafetyFilter` solves on a registered env; ``fast_path_agreement``
+compares the fast path with clarabel on recorded instances. Command line::
+
+    python -m afvsgp_gym.benchmarks.solver [--quick] [--cbfpy] [--record N]
+
+cbfpy (``pip install afvsgp-gym[bench]``) is optional; without it that part is skipped.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from afvsgp_gym.cbf import SOCPFilter
+from afvsgp_gym.cbf.cone_programs import ConePrograms
+
+M = 7
+ALPHA = (4.0, 4.0)
+
+
+# ---------------------------------------------------------------------- problem
+@dataclass(frozen=True)
+class SphereArm:
+    """Linearised arm with S spheres (``p_i = c[i] + J[i] q``, radii ``r``, gains ``b``) and
+    ``n_obstacles`` spherical obstacles of radius ``R``: K = S * n_obstacles barriers."""
+
+    c: np.ndarray  # (S, 3)
+    J: np.ndarray  # (S, 3, 7)
+    r: np.ndarray  # (S,)
+    b: np.ndarray  # (7,)
+    n_obstacles: int = 1
+    R: float = 0.08
+
+    @classmethod
+    def make(cls, n_barriers: int, seed: int = 0) -> SphereArm:
+        """K = 1: one sphere, one obstacle; K <= 21: K spheres, one obstacle; larger K:
+        20 spheres and K / 20 obstacles. Seven joints along a 0.9 m chain with random unit
+        axes ``w_j``; spheres spread along the chain, the first at its tip (the end-effector);
+        ``J_i[:, j] = w_j x (c_i - x_j)`` for the joints ``x_j`` before sphere i (the
+        geometric Jacobian of a serial arm), so neighbouring spheres move alike."""
+        n_obs = 1 if n_barriers <= 21 else max(1, n_barriers // 20)
+        n_spheres = n_barriers // n_obs
+        if n_spheres * n_obs != n_barriers:
+            raise ValueError(f"n_barriers must be <= 21 or a multiple of 20. Got: {n_barriers}")
+        rng = np.random.default_rng(seed)
+        chain = lambda s: np.stack([0.3 * s, 0.1 * np.sin(4 * s), 0.3 + 0.6 * s], axis=-1)  # noqa: E731
+        s = np.linspace(1.0, 0.1, n_spheres)
+        c = chain(s)
+        x = chain(np.arange(M) / M)  # joint positions
+        w = rng.normal(size=(M, 3))
+        w /= np.linalg.norm(w, axis=1, keepdims=True)
+        J = np.cross(w[None], c[:, None] - x[None]).transpose(0, 2, 1)  # (S, 3, 7)
+        J *= (np.arange(M) / M)[None, None, :] < s[:, None, None]
+        r = rng.uniform(0.04, 0.08, n_spheres)
+        return cls(c, J, r, np.full(M, 10.0), n_obs)
+
+    def sample_states(self, n: int, seed: int = 1):
+        """``n`` states: q, q' (n, 7), obstacle centres o (n, n_obstacles, 3), u_des (n, 7).
+        Each obstacle is placed 0-10 cm outside a random sphere, on a random side; the arm
+        moves at up to ~0.5 m/s; u_des is uniform in the box."""
+        rng = np.random.default_rng(seed)
+        S, n_obs = len(self.r), self.n_obstacles
+        q = rng.uniform(-0.3, 0.3, (n, M))
+        qd = rng.normal(scale=0.3, size=(n, M))
+        i = rng.integers(0, S, (n, n_obs))
+        p = self.c[i] + np.einsum("noij,nj->noi", self.J[i], q)
+        d = rng.normal(size=(n, n_obs, 3))
+        d /= np.linalg.norm(d, axis=2, keepdims=True)
+        o = p + d * (self.r[i] + self.R + rng.uniform(0.02, 0.15, (n, n_obs)))[..., None]
+        u_des = rng.uniform(-1.0, 1.0, (n, M))
+        return q, qd, o, u_des
+
+    def constraints(self, q, qd, o):
+        """``(a0, a)`` of ``psi_2 = h'' + (a1 + a2) h' + a1 a2 h >= 0`` for every (obstacle,
+        sphere) pair, obstacle-major."""
+        a1, a2 = ALPHA
+        p = self.c + self.J @ q  # (S, 3)
+        v = self.J @ qd
+        dvec = p[None] - o[:, None]  # (n_obs, S, 3)
+        dist = np.linalg.norm(dvec, axis=2)
+        n = dvec / dist[..., None]
+        h = dist - self.r - self.R
+        hd = np.einsum("osj,sj->os", n, v)
+        curv = (np.einsum("sj,sj->s", v, v) - hd**2) / dist
+        a0 = curv + (a1 + a2) * hd + a1 * a2 * h
+        a = np.einsum("osj,sjk->osk", n, self.J) * self.b
+        return a0.ravel(), a.reshape(-1, M)
+
+
+def synthetic_cones(a: np.ndarray, rng, beta: float = 3.0) -> np.ndarray:
+    """``G_i = beta L_i'`` (upper Cholesky factor) of a posterior covariance of ``Delta B``
+    whose standard deviation is ~2 % of the constraint's action gain (as after warm-up)."""
+    k = a.shape[0]
+    out = np.zeros((k, M + 1, M + 1))
+    for i in range(k):
+        s = 0.02 * (1.0 + np.linalg.norm(a[i]))
+        W = rng.normal(scale=s / np.sqrt(M + 1), size=(M + 1, M + 1))
+        sig = W @ W.T + (0.1 * s) ** 2 * np.eye(M + 1)
+        out[i] = beta * np.linalg.cholesky(sig).T
+    return out
+
+
+def make_instances(n_barriers: int, n: int, learned: bool, seed: int = 0):
+    """``(arm, states, instances)``: ``instances`` a list of ``(u_nom, a0, a, G)`` on the
+    sphere arm (G None when not ``learned``), ``states`` ``(q, q', o, u_des)`` for cbfpy."""
+    arm = SphereArm.make(n_barriers, seed)
+    q, qd, o, u_des = arm.sample_states(n, seed + 1)
+    rng = np.random.default_rng(seed + 2)
+    out = []
+    for j in range(n):
+        a0, a = arm.constraints(q[j], qd[j], o[j])
+        G = synthetic_cones(a, rng) if learned else None
+        out.append((u_des[j], a0, a, G))
+    return arm, (q, qd, o, u_des), out
+
+
+# ---------------------------------------------------------------------- timing helpers
+def _stats(t: np.ndarray) -> dict[str, float]:
+    return {"median_s": float(np.median(t)), "p99_s": float(np.percentile(t, 99))}
+
+
+def time_filter(instances, fast_path: bool = True) -> tuple[np.ndarray, list]:
+    """Per-call wall times of ``SOCPFilter.solve`` (one filter for all calls, the first call
+    excluded by the caller) and the results."""
+    f = SOCPFilter(-np.ones(M), np.ones(M), fast_path=fast_path)
+    times, results = np.empty(len(instances)), []
+    for j, (u, a0, a, G) in enumerate(instances):
+        t0 = time.perf_counter()
+        res = f.solve(u, a0, a, G)
+        times[j] = time.perf_counter() - t0
+        results.append(res)
+    return times, results
+
+
+def clarabel_own_times(instances) -> np.ndarray:
+    """Wall time of clarabel's ``solve()`` alone (reused solver, data updated beforehand) on
+    the instances whose clipped proposal is unsafe (NaN for the others)."""
+    low, high = -np.ones(M), np.ones(M)
+    progs = ConePrograms(low, high, 1e-9, 1e-4)
+    f = SOCPFilter(low, high)
+    out = np.full(len(instances), np.nan)
+    for j, (u, a0, a, G) in enumerate(instances):
+        uc = np.clip(u, low, high)
+        if (f.margins(uc, a0, a, G) >= 0).all():
+            continue
+        kind = "qp" if G is None else "socp"
+        key = (kind, a0.size)
+        progs.solve(kind, u, a0, a, G)  # build or update, then time a solve on the same data
+        solver = progs._solvers[key]
+        t0 = time.perf_counter()
+        solver.solve()
+        out[j] = time.perf_counter() - t0
+    return out
+
+
+def filter_vs_clarabel(n_barriers: int, n: int, learned: bool, seed: int = 0) -> dict:
+    """Our filter (fast paths on / off) and clarabel's own solve on the same instances."""
+    _, _, inst = make_instances(n_barriers, n, learned, seed)
+    t_fast, res = time_filter(inst, True)
+    t_clar, _ = time_filter(inst, False)
+    t_own = clarabel_own_times(inst)
+    active = np.array([r.status != "inactive" for r in res])
+    certified = np.array([r.status.startswith("certified") for r in res])
+    out = {"active_fraction": float(active.mean()),
+           "certified_share_of_active": float(certified[active].mean()) if active.any() else 0.0}
+    for name, t in (("filter", t_fast), ("filter_clarabel_only", t_clar)):
+        for key, val in _stats(t[1:]).items():
+            out[f"{name}_{key}"] = val
+        for key, val in _stats(t[1:][active[1:]]).items():
+            out[f"{name}_active_{key}"] = val
+    own = t_own[1:][active[1:]]
+    for key, val in _stats(own).items():
+        out[f"clarabel_own_{key}"] = val
+    # overhead: the package's clarabel path over clarabel's own solve on the same problems
+    out["overhead_clarabel_path"] = float(np.median(t_clar[1:][active[1:]]) / np.median(own))
+    out["overhead_filter"] = float(np.median(t_fast[1:][active[1:]]) / np.median(own))
+    return out
+
+
+# ---------------------------------------------------------------------- cbfpy
+def cbfpy_filters(arm: SphereArm):
+    """``{name: jitted safety_filter(z, u_des, o)}`` for cbfpy's configurations on the arm
+    (qpax soft, qpax hard, elastiqp soft where installed). Raises ImportError without cbfpy."""
+    import jax
+    import jax.numpy as jnp
+    from cbfpy import CBF, CBFConfig
+
+    jax.config.update("jax_enable_x64", True)
+    c, J, r, b = (jnp.asarray(x) for x in (arm.c, arm.J, arm.r, arm.b))
+    R, n_obs = arm.R, arm.n_obstacles
+    a1, a2 = ALPHA
+
+    class ArmConfig(CBFConfig):
+        def __init__(self, **kw):
+            super().__init__(n=2 * M, m=M, u_min=-np.ones(M), u_max=np.ones(M),
+                             init_args=(np.zeros((n_obs, 3)),), **kw)
+
+        def f(self, z, o):
+            return jnp.concatenate([z[M:], jnp.zeros(M)])
+
+        def g(self, z, o):
+            return jnp.concatenate([jnp.zeros((M, M)), jnp.diag(b)])
+
+        def h_2(self, z, o):  # obstacle-major, as SphereArm.constraints
+            p = c + J @ z[:M]
+            return (jnp.linalg.norm(p[None] - o[:, None], axis=2) - r - R).ravel()
+
+        def alpha(self, h, o):
+            return a2 * h
+
+        def alpha_2(self, h2, o):
+            return a1 * h2
+
+    configs = {
+        "cbfpy_qpax_soft": dict(relax_qp=True),
+        "cbfpy_qpax_hard": dict(relax_qp=False),
+    }
+    try:
+        import elastiqp.jax  # noqa: F401
+
+        configs["cbfpy_elastiqp_soft"] = dict(relax_qp=True, backend="elastiqp", solver_tol=1e-6)
+    except ImportError:
+        pass
+    return {name: CBF.from_config(ArmConfig(**kw)).safety_filter for name, kw in configs.items()}
+
+
+def cbfpy_comparison(n_barriers: int, n: int, seed: int = 0) -> dict:
+    """cbfpy's configurations and our known-model filter on the same states, interleaved:
+    median / p99 per call (first call of each apart, reported as ``first_call_s``), the
+    largest difference of the actions and each one's worst constraint violation relative to
+    the constraint's scale."""
+    import jax.numpy as jnp
+
+    from afvsgp_gym.cbf.fastpath import constraint_scales
+
+    arm, (q, qd, o, u_des), inst = make_instances(n_barriers, n, learned=False, seed=seed)
+    fns = cbfpy_filters(arm)
+    f = SOCPFilter(-np.ones(M), np.ones(M))
+    bound_norm = f.bound_norm
+    names = ["ours", *fns]
+    times = {k: np.empty(n) for k in names}
+    worst = {k: 0.0 for k in names}
+    diff = {k: 0.0 for k in fns}
+    for j in range(n):
+        z = jnp.asarray(np.concatenate([q[j], qd[j]]))
+        ud, oj = jnp.asarray(u_des[j]), jnp.asarray(o[j])
+        u0, a0, a, _ = inst[j]
+        scales = constraint_scales(a0, a, None, bound_norm)
+        t0 = time.perf_counter()
+        res = f.solve(u0, a0, a)
+        times["ours"][j] = time.perf_counter() - t0
+        viol = -np.min(np.append((a0 + a @ res.u) / scales, 0.0))
+        worst["ours"] = max(worst["ours"], viol if res.feasible else 0.0)
+        for name, fn in fns.items():
+            t0 = time.perf_counter()
+            u = fn(z, ud, oj).block_until_ready()
+            times[name][j] = time.perf_counter() - t0
+            u = np.asarray(u, dtype=np.float64)
+            if res.feasible:
+                excess = np.maximum(np.abs(u) - 1.0, 0.0).max()
+                v = -np.min(np.append((a0 + a @ u) / scales, 0.0))
+                worst[name] = max(worst[name], v, excess)
+                diff[name] = max(diff[name], float(np.abs(u - res.u).max()))
+    out = {}
+    for name in names:
+        out[f"{name}_first_call_s"] = float(times[name][0])
+        for key, val in _stats(times[name][1:]).items():
+            out[f"{name}_{key}"] = val
+        out[f"{name}_worst_violation"] = float(worst[name])
+    for name in fns:
+        out[f"{name}_max_action_diff"] = diff[name]
+    return out
+
+
+# ---------------------------------------------------------------------- recorded instances
+def record_filter_instances(
+    env_id: str = "afvsgp_gym/FrankaObstacleStatic-v0",
+    n: int = 1000,
+    learner: str = "afvsgp",
+    seeds=range(1000),
+    env_kwargs: dict | None = None,
+    active_only: bool = True,
+    **filter_options,
+) -> list[tuple]:
+    """Run seeded episodes of ``SafetyFilter(gym.make(env_id), learner)`` with the nominal
+    tracker and record ``(u_nom, a0, a, G)`` of every ``SOCPFilter.solve`` call after
+    warm-up (``active_only``: only those whose clipped proposal is unsafe, i.e. where a
+    program is solved) until ``n`` are collected. Works with any controller that filters
+    through ``controller.socp.solve``."""
+    import gymnasium as gym
+
+    import afvsgp_gym  # noqa: F401
+    from afvsgp_gym.agents import NominalController
+    from afvsgp_gym.wrappers import SafetyFilter
+
+    out: list[tuple] = []
+    for seed in seeds:
+        env = SafetyFilter(gym.make(env_id, **(env_kwargs or {})), learner=learner, seed=seed,
+                           **filter_options)
+        ctrl = env.controller
+        socp = ctrl.socp
+        inner = socp.solve  # the controller calls self.socp.solve: record around it
+
+        def recording_solve(u_nom, a0, a, G=None, backup=None, _inner=inner, _ctrl=ctrl):
+            res = _inner(u_nom, a0, a, G, backup)
+            if not _ctrl.warming_up and not (active_only and res.status == "inactive"):
+                out.append(tuple(None if x is None else np.array(x, dtype=np.float64)
+                                 for x in (u_nom, a0, a, G)))
+            return res
+
+        socp.solve = recording_solve
+        policy = NominalController(env)
+        obs, _ = env.reset(seed=int(seed))
+        try:
+            while len(out) < n:
+                obs, _, term, trunc, _ = env.step(policy(obs))
+                if term or trunc:
+                    break
+        finally:
+            env.close()
+        if len(out) >= n:
+            break
+    return out[:n]
+
+
+def save_instances(path, instances) -> None:
+    """Save recorded ``(u_nom, a0, a, G)`` instances (any k per instance) to an ``.npz``."""
+    ks = np.array([len(x[1]) for x in instances])
+    m = len(instances[0][0])
+    has_g = np.array([x[3] is not None for x in instances])
+    G = [x[3] if x[3] is not None else np.zeros((len(x[1]), m + 1, m + 1)) for x in instances]
+    np.savez_compressed(
+        path, k=ks, has_g=has_g, u_nom=np.array([x[0] for x in instances]),
+        a0=np.concatenate([x[1] for x in instances]),
+        a=np.concatenate([x[2] for x in instances]).reshape(-1, m),
+        G=np.concatenate(G).reshape(-1, m + 1, m + 1),
+    )
+
+
+def load_instances(path) -> list[tuple]:
+    """Inverse of :func:`save_instances`."""
+    d = np.load(path)
+    idx = np.concatenate([[0], np.cumsum(d["k"])])
+    return [
+        (d["u_nom"][j], d["a0"][idx[j]:idx[j + 1]], d["a"][idx[j]:idx[j + 1]],
+         d["G"][idx[j]:idx[j + 1]] if d["has_g"][j] else None)
+        for j in range(len(d["k"]))
+    ]
+
+
+def fast_path_agreement(instances, low=None, high=None, reference_tol: float = 1e-12) -> dict:
+    """Fast path against clarabel on the instances: the share the fast path certifies, the
+    largest ``|u_fast - u_clarabel|`` over them, and how many differ by more than 1e-6
+    (for those: whether the fast action is feasible and at least as good as clarabel's)."""
+    m = len(instances[0][0])
+    low = -np.ones(m) if low is None else low
+    high = np.ones(m) if high is None else high
+    fast = SOCPFilter(low, high)
+    ref = SOCPFilter(low, high, fast_path=False, tol=reference_tol)
+    n_active = n_cert = n_far = n_far_better = 0
+    max_diff = 0.0
+    for u, a0, a, G in instances:
+        r = fast.solve(u, a0, a, G)
+        if r.status == "inactive":
+            continue
+        n_active += 1
+        if not r.status.startswith("certified"):
+            continue
+        n_cert += 1
+        rr = ref.solve(u, a0, a, G)
+        d = float(np.abs(r.u - rr.u).max()) if rr.feasible else np.nan
+        max_diff = max(max_diff, d) if np.isfinite(d) else max_diff
+        if not d <= 1e-6:
+            n_far += 1
+            better = 0.5 * np.sum((r.u - u) ** 2) <= 0.5 * np.sum((rr.u - u) ** 2) + 1e-12
+            n_far_better += bool(better and r.margins.min() >= 0.0)
+    return {"instances": float(len(instances)), "active": float(n_active),
+            "certified": float(n_cert),
+            "certified_share": n_cert / n_active if n_active else 0.0,
+            "max_diff_vs_clarabel": max_diff, "differ_over_1e-6": float(n_far),
+            "differ_fast_better": float(n_far_better)}
+
+
+# ---------------------------------------------------------------------- entry points
+def run(quick: bool = False, cbfpy: bool = False) -> dict[str, float]:
+    """Filter vs clarabel at 1 / 21 / 100 barriers, known model and learned; with ``cbfpy``
+    (installed) also cbfpy's configurations on the known-model states."""
+    n = 200 if quick else 2000
+    out: dict[str, float] = {}
+    for K in (1, 21, 100):
+        for learned in (False, True):
+            tag = f"K{K}_{'socp' if learned else 'qp'}"
+            for key, val in filter_vs_clarabel(K, n, learned).items():
+                out[f"{tag}_{key}"] = val
+        if cbfpy:
+            for key, val in cbfpy_comparison(K, n).items():
+                out[f"K{K}_cbf_{key}"] = val
+    return out
+
+
+def main(argv=None) -> None:
+    from afvsgp_gym.benchmarks._machine import machine
+
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="200 states instead of 2000")
+    parser.add_argument("--cbfpy", action="store_true", help="also run cbfpy (bench extra)")
+    parser.add_argument("--record", type=int, default=0, metavar="N",
+                        help="record N Franka filter instances (static and dynamic) and check "
+                             "the fast path against clarabel on them")
+    parser.add_argument("--instances", default=None, help=".npz to save/load recorded instances")
+    args = parser.parse_args(argv)
+    print(f"machine: {machine()}")
+    if args.record:
+        import os
+
+        if args.instances and os.path.exists(args.instances):
+            inst = load_instances(args.instances)
+        else:
+            half = args.record // 2
+            inst = record_filter_instances("afvsgp_gym/FrankaObstacleStatic-v0", half)
+            inst += record_filter_instances("afvsgp_gym/FrankaObstacleDynamic-v0",
+                                            args.record - half)
+            if args.instances:
+                save_instances(args.instances, inst)
+        for key, val in fast_path_agreement(inst).items():
+            print(f"recorded_{key:<30} {val:.6g}")
+        return
+    res = run(quick=args.quick, cbfpy=args.cbfpy)
+    width = max(len(k) for k in res)
+    for key, val in res.items():
+        txt = f"{val * 1e6:10.1f} us" if key.endswith("_s") else f"{val:10.4g}"
+        print(f"{key:<{width}}  {txt}")
+
+
+if __name__ == "__main__":
+    main()
