@@ -12,7 +12,8 @@ a cone ``G_i = beta L_i'`` (eq. 05) of a synthetic posterior covariance. Every s
 :class:`~afvsgp_gym.wrappers.SafetyFilter` solves on a registered env; ``fast_path_agreement``
 compares the fast path with clarabel on recorded instances. Command line::
 
-    python -m afvsgp_gym.benchmarks.solver [--quick] [--cbfpy] [--record N]
+    python -m afvsgp_gym.benchmarks.solver [--quick] [--no-cbfpy]
+    python -m afvsgp_gym.benchmarks.solver --record N [--instances file.npz]
 
 cbfpy (``pip install afvsgp-gym[bench]``) is optional; without it that part is skipped.
 """
@@ -195,6 +196,11 @@ def filter_vs_clarabel(n_barriers: int, n: int, learned: bool, seed: int = 0) ->
 def cbfpy_filters(arm: SphereArm):
     """``{name: jitted safety_filter(z, u_des, o)}`` for cbfpy's configurations on the arm
     (qpax soft, qpax hard, elastiqp soft where installed). Raises ImportError without cbfpy."""
+    import os
+
+    # cbfpy's recommended CPU settings (effective if jax is not imported yet)
+    os.environ.setdefault("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=false")
+    os.environ.setdefault("JAX_ENABLE_X64", "1")
     import jax
     import jax.numpy as jnp
     from cbfpy import CBF, CBFConfig
@@ -362,17 +368,108 @@ def load_instances(path) -> list[tuple]:
     ]
 
 
-def fast_path_agreement(instances, low=None, high=None, reference_tol: float = 1e-12) -> dict:
-    """Fast path against clarabel on the instances: the share the fast path certifies, the
-    largest ``|u_fast - u_clarabel|`` over them, and how many differ by more than 1e-6
-    (for those: whether the fast action is feasible and at least as good as clarabel's)."""
+def refine_kkt_mp(u_guess, u_nom, a0, a, G, low, high, digits: int = 40, tol: float = 1e-7):
+    """The program's optimum in ``digits``-digit arithmetic (mpmath), by Newton's method on
+    the KKT equations with the active set read off ``u_guess`` (a clarabel answer: box faces
+    within ``tol`` of ``u_guess``, constraints with margin below ``tol``); None unless the
+    refined point satisfies every KKT condition (feasible, multipliers of the right sign).
+    An independent high-precision reference for the fast path (it never sees its answer)."""
+    import mpmath
+
+    mp = mpmath.mp
+    mp.dps = digits
+    m, k = len(u_nom), len(a0)
+    f = lambda x: [mp.mpf(float(v)) for v in np.ravel(x)]  # noqa: E731
+    un, lo, hi, b0 = f(u_nom), f(low), f(high), f(a0)
+    A = [f(row) for row in a]
+    Gm = None if G is None else [[f(row) for row in Gi] for Gi in G]
+
+    def cons(u, i):
+        """c_i(u), grad, -Hessian (matrix) in mp."""
+        c = b0[i] + mp.fsum(A[i][j] * u[j] for j in range(m))
+        if Gm is None:
+            return c, list(A[i]), mp.zeros(m, m)
+        v = [Gm[i][r][0] + mp.fsum(Gm[i][r][j + 1] * u[j] for j in range(m))
+             for r in range(m + 1)]
+        nv = mp.sqrt(mp.fsum(x * x for x in v))
+        if nv == 0:
+            return c, None, None
+        n = [x / nv for x in v]
+        G1n = [mp.fsum(Gm[i][r][j + 1] * n[r] for r in range(m + 1)) for j in range(m)]
+        grad = [A[i][j] - G1n[j] for j in range(m)]
+        H = mp.zeros(m, m)
+        for j in range(m):
+            for l_ in range(m):
+                gg = mp.fsum(Gm[i][r][j + 1] * Gm[i][r][l_ + 1] for r in range(m + 1))
+                H[j, l_] = (gg - G1n[j] * G1n[l_]) / nv
+        return c - nv, grad, H
+
+    ug = np.asarray(u_guess, dtype=np.float64)
+    at_lo = [abs(float(ug[j] - low[j])) <= tol for j in range(m)]
+    at_hi = [abs(float(ug[j] - high[j])) <= tol for j in range(m)]
+    free = [j for j in range(m) if not (at_lo[j] or at_hi[j])]
+    u = [lo[j] if at_lo[j] else hi[j] if at_hi[j] else mp.mpf(float(ug[j])) for j in range(m)]
+    act = [i for i in range(k) if float(cons(u, i)[0]) <= tol * (1 + abs(float(a0[i])))]
+    lam = [mp.mpf(0)] * len(act)
+    nF, nA = len(free), len(act)
+    for _ in range(60):
+        cs = [cons(u, i) for i in act]
+        if any(c[1] is None for c in cs):
+            return None
+        res = [u[j] - un[j] - mp.fsum(lam[q] * cs[q][1][j] for q in range(nA)) for j in free]
+        res += [c[0] for c in cs]
+        if max((abs(x) for x in res), default=mp.mpf(0)) < mp.mpf(10) ** (-digits + 8):
+            break
+        J = mp.zeros(nF + nA, nF + nA)
+        for r, j in enumerate(free):
+            for cidx, l_ in enumerate(free):
+                J[r, cidx] = (1 if j == l_ else 0) + mp.fsum(lam[q] * cs[q][2][j, l_]
+                                                             for q in range(nA))
+            for q in range(nA):
+                J[r, nF + q] = -cs[q][1][j]
+        for q in range(nA):
+            for cidx, l_ in enumerate(free):
+                J[nF + q, cidx] = cs[q][1][l_]
+        try:
+            step = mp.lu_solve(J, mp.matrix([-x for x in res]))
+        except ZeroDivisionError:
+            return None
+        for r, j in enumerate(free):
+            u[j] += step[r]
+        lam = [lam[q] + step[nF + q] for q in range(nA)]
+    else:
+        return None
+    # every KKT condition at the refined point
+    if any(x < 0 for x in lam):
+        return None
+    cs = [cons(u, i) for i in range(k)]
+    if any(c[0] < -mp.mpf(10) ** (-digits + 10) for c in cs):
+        return None
+    if any(not (lo[j] <= u[j] <= hi[j]) for j in range(m)):
+        return None
+    for j in range(m):
+        if j in free:
+            continue
+        w = u[j] - un[j] - mp.fsum(lam[q] * cs[act[q]][1][j] for q in range(nA))
+        if (at_lo[j] and w < 0) or (at_hi[j] and w > 0):
+            return None
+    return np.array([float(x) for x in u])
+
+
+def fast_path_agreement(instances, low=None, high=None) -> dict:
+    """The fast path against a high-precision reference on the instances: clarabel's answer
+    (tol 1e-10) refined in 40-digit arithmetic (:func:`refine_kkt_mp`). Returns the share the
+    fast path certifies, the largest ``|u_fast - u_ref|`` over those, how many exceed 1e-6,
+    the same for clarabel's own answers, and how many references could not be refined
+    (then clarabel's answer is the reference and ``fast_vs_clarabel_when_unrefined`` the
+    largest difference); ``max_diff_vs_clarabel`` compares with clarabel's answers directly."""
     m = len(instances[0][0])
-    low = -np.ones(m) if low is None else low
-    high = np.ones(m) if high is None else high
+    low = -np.ones(m) if low is None else np.asarray(low, dtype=np.float64)
+    high = np.ones(m) if high is None else np.asarray(high, dtype=np.float64)
     fast = SOCPFilter(low, high)
-    ref = SOCPFilter(low, high, fast_path=False, tol=reference_tol)
-    n_active = n_cert = n_far = n_far_better = 0
-    max_diff = 0.0
+    ref = SOCPFilter(low, high, fast_path=False, tol=1e-10)
+    n_active = n_cert = n_far = n_unrefined = n_clar_far = 0
+    max_diff = max_clar = max_unrefined = max_vs_clarabel = 0.0
     for u, a0, a, G in instances:
         r = fast.solve(u, a0, a, G)
         if r.status == "inactive":
@@ -382,51 +479,74 @@ def fast_path_agreement(instances, low=None, high=None, reference_tol: float = 1
             continue
         n_cert += 1
         rr = ref.solve(u, a0, a, G)
-        d = float(np.abs(r.u - rr.u).max()) if rr.feasible else np.nan
-        max_diff = max(max_diff, d) if np.isfinite(d) else max_diff
-        if not d <= 1e-6:
-            n_far += 1
-            better = 0.5 * np.sum((r.u - u) ** 2) <= 0.5 * np.sum((rr.u - u) ** 2) + 1e-12
-            n_far_better += bool(better and r.margins.min() >= 0.0)
+        if not rr.feasible:
+            n_far += 1  # certified but clarabel says infeasible: count as a disagreement
+            continue
+        max_vs_clarabel = max(max_vs_clarabel, float(np.abs(r.u - rr.u).max()))
+        exact = refine_kkt_mp(rr.u, u, a0, a, G, low, high)
+        if exact is None:
+            n_unrefined += 1
+            max_unrefined = max(max_unrefined, float(np.abs(r.u - rr.u).max()))
+            continue
+        d = float(np.abs(r.u - exact).max())
+        max_diff = max(max_diff, d)
+        n_far += d > 1e-6
+        dc = float(np.abs(rr.u - exact).max())
+        max_clar = max(max_clar, dc)
+        n_clar_far += dc > 1e-6
     return {"instances": float(len(instances)), "active": float(n_active),
             "certified": float(n_cert),
             "certified_share": n_cert / n_active if n_active else 0.0,
-            "max_diff_vs_clarabel": max_diff, "differ_over_1e-6": float(n_far),
-            "differ_fast_better": float(n_far_better)}
+            "max_diff_vs_reference": max_diff, "differ_over_1e-6": float(n_far),
+            "max_diff_vs_clarabel": max_vs_clarabel,
+            "clarabel_max_diff_vs_reference": max_clar,
+            "clarabel_differ_over_1e-6": float(n_clar_far),
+            "unrefined": float(n_unrefined),
+            "fast_vs_clarabel_when_unrefined": max_unrefined}
 
 
 # ---------------------------------------------------------------------- entry points
-def run(quick: bool = False, cbfpy: bool = False) -> dict[str, float]:
+def _have_cbfpy() -> bool:
+    try:
+        import cbfpy  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def run(quick: bool = False, cbfpy: bool | None = None) -> dict[str, float]:
     """Filter vs clarabel at 1 / 21 / 100 barriers, known model and learned; with ``cbfpy``
-    (installed) also cbfpy's configurations on the known-model states."""
+    (default: when it is installed) also cbfpy's configurations on the known-model states."""
+    cbfpy = _have_cbfpy() if cbfpy is None else cbfpy
     n = 200 if quick else 2000
     out: dict[str, float] = {}
     for K in (1, 21, 100):
+        if cbfpy:
+            for key, val in cbfpy_comparison(K, n).items():
+                out[f"K{K}_qp_{key}"] = val
         for learned in (False, True):
             tag = f"K{K}_{'socp' if learned else 'qp'}"
             for key, val in filter_vs_clarabel(K, n, learned).items():
                 out[f"{tag}_{key}"] = val
-        if cbfpy:
-            for key, val in cbfpy_comparison(K, n).items():
-                out[f"K{K}_cbf_{key}"] = val
     return out
 
 
 def main(argv=None) -> None:
+    import os
+
     from afvsgp_gym.benchmarks._machine import machine
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="200 states instead of 2000")
-    parser.add_argument("--cbfpy", action="store_true", help="also run cbfpy (bench extra)")
+    parser.add_argument("--no-cbfpy", action="store_true", help="skip cbfpy even if installed")
     parser.add_argument("--record", type=int, default=0, metavar="N",
-                        help="record N Franka filter instances (static and dynamic) and check "
-                             "the fast path against clarabel on them")
-    parser.add_argument("--instances", default=None, help=".npz to save/load recorded instances")
+                        help="record N Franka filter instances (half static, half dynamic) "
+                             "and check the fast path against a 40-digit reference on them")
+    parser.add_argument("--instances", default=None,
+                        help=".npz to save the recorded instances to (or load them from)")
     args = parser.parse_args(argv)
-    print(f"machine: {machine()}")
+    print(f"machine: {machine()}", flush=True)
     if args.record:
-        import os
-
         if args.instances and os.path.exists(args.instances):
             inst = load_instances(args.instances)
         else:
@@ -437,9 +557,9 @@ def main(argv=None) -> None:
             if args.instances:
                 save_instances(args.instances, inst)
         for key, val in fast_path_agreement(inst).items():
-            print(f"recorded_{key:<30} {val:.6g}")
+            print(f"recorded_{key:<34} {val:.6g}")
         return
-    res = run(quick=args.quick, cbfpy=args.cbfpy)
+    res = run(quick=args.quick, cbfpy=False if args.no_cbfpy else None)
     width = max(len(k) for k in res)
     for key, val in res.items():
         txt = f"{val * 1e6:10.1f} us" if key.endswith("_s") else f"{val:10.4g}"

@@ -275,17 +275,19 @@ class _Secular:
         """``(eta, t)`` of a root with ``eta >= 0`` and ``t > 0`` (the cone's boundary, not
         the other nappe): ``h`` rises from ``h(0)`` to ``h(1 / max(d)) >= 0``; the root on that
         interval, else one beyond it. None if there is none."""
-        h0 = self(0.0), self.size_and_t(0.0)[1]
-        if h0[0][0] >= 0.0 and h0[1] >= 0.0:
-            return 0.0, h0[1]
-        h0 = h0[0]
+        h0, t0 = self.W00, self.t0  # at eta = 0, y = p
+        for s, d, p, al in self.terms:
+            h0 += (2.0 * s + d * p) * p
+            t0 += al * p
+        if h0 >= 0.0 and t0 >= 0.0:
+            return 0.0, t0
         dmax = self.dmax
         pole = 1.0 / dmax if dmax > 0.0 else math.inf
-        if h0[0] < 0.0 and pole < math.inf:  # h(pole) >= 0 (a square times max(d))
+        if h0 < 0.0 and pole < math.inf:  # h(pole) >= 0 (a square times max(d))
             found = self.root(0.0, pole, start)
             if found is not None and found[1] > 0.0:
                 return found
-        elif h0[0] < 0.0:
+        elif h0 < 0.0:
             hi = max(1.0, 2.0 * start)
             for _ in range(60):  # no pole: a point with h > 0
                 if self(hi)[0] > 0.0:
