@@ -31,8 +31,8 @@ def test_sphere_arm_constraint_is_psi2_by_finite_differences(n_barriers):
 
 
 def test_kkt_reference_equals_lorentz_projection():
-    """From a guess 1e-8 off (as a clarabel answer), the refinement reaches the closed-form projection onto the
-    second-order cone u_1 >= |(u_2, u_3)| (box too large to matter)."""
+    """From a guess 1e-8 off (as a clarabel answer), the refinement reaches the closed-form
+    projection onto the second-order cone u_1 >= |(u_2, u_3)| (box too large to matter)."""
     m = 3
     low, high = -100 * np.ones(m), 100 * np.ones(m)
     a, a0 = np.array([[1.0, 0.0, 0.0]]), np.array([0.0])
