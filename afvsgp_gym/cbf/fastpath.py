@@ -46,7 +46,10 @@ def constraint_scales(a0, a, G, bound_norm: float) -> np.ndarray:
 def cone_margin_gradient(u, a0: float, a, G):
     """``(c(u), grad c(u))`` of one cone constraint: ``c = a0 + a u - ||v||``,
     ``grad c = a - G[:, 1:]' v / ||v||`` with ``v = G ubar`` (gradient None at the apex)."""
-    v = G[:, 1:] @ u + G[:, 0]
+    ubar = np.empty(u.size + 1)
+    ubar[0] = 1.0
+    ubar[1:] = u
+    v = G @ ubar
     nv = math.sqrt(float(v @ v))
     c = a0 + float(a @ u) - nv
     if nv == 0.0:
@@ -249,9 +252,10 @@ class _Secular:
         return q * q * size, t
 
     def root(self, neg: float, pos: float, start: float, max_iter: int = 60):
-        """``(eta, t)`` with ``h(eta) = 0`` between ``neg`` (h < 0) and ``pos`` (h > 0):
-        Newton's method from ``start``, bisection when a step leaves the bracket."""
-        eta = start if min(neg, pos) < start < max(neg, pos) else 0.5 * (neg + pos)
+        """``(eta, t)`` with ``h(eta) = 0`` between ``neg`` (h < 0; ``inf`` if not known yet)
+        and ``pos`` (h > 0): Newton's method from ``start``, bisection (doubling towards an
+        unknown ``neg``) when a step leaves the bracket."""
+        eta = start if min(neg, pos) <= start < max(neg, pos) else 0.5 * (neg + pos)
         size = self.size_and_t(eta)[0]
         for _ in range(max_iter):
             h, dh = self(eta)
@@ -262,10 +266,13 @@ class _Secular:
             else:
                 pos = eta
             nxt = eta - h / dh if dh != 0.0 else math.nan
-            if abs(nxt - eta) <= 1e-15 * abs(eta) or abs(pos - neg) <= 1e-16 * abs(pos):
+            if abs(nxt - eta) <= 1e-9 * abs(eta) and min(neg, pos) < nxt < max(neg, pos):
+                eta = nxt  # quadratic convergence: this step is exact to rounding
+                break
+            if abs(pos - neg) <= 1e-16 * abs(pos):
                 break
             if not min(neg, pos) < nxt < max(neg, pos):
-                nxt = 0.5 * (neg + pos)
+                nxt = 0.5 * (neg + pos) if neg < math.inf else 2.0 * max(pos, eta)
             eta = nxt
         else:
             return None
@@ -296,13 +303,54 @@ class _Secular:
                 hi *= 2.0
         if pole == math.inf:
             return None
-        hi = 2.0 * pole
-        for _ in range(60):  # beyond the pole: a point with h < 0
-            if self(hi)[0] < 0.0:
-                found = self.root(hi, pole, 1.5 * pole)
-                return found if found is not None and found[1] > 0.0 else None
-            hi *= 2.0
-        return None
+        found = self.root_beyond_pole(pole)
+        if found is None:  # phi not of that shape: plain Newton from the pole on h
+            found = self.root(math.inf, pole, pole * (1.0 + 1e-9))
+        return found if found is not None and found[1] > 0.0 else None
+
+    def root_beyond_pole(self, pole: float, max_iter: int = 60):
+        """``(eta, t)`` of the root right of the pole, where ``phi`` falls from ``+inf`` to
+        ``phi_inf = W00 - sum s^2 / d``. Near and far from the pole ``phi - phi_inf`` behaves
+        like ``C / (1 - eta max(d))^2``, so Newton's method on
+        ``(phi - phi_inf)^(-1/2) = (-phi_inf)^(-1/2)`` (nearly linear in ``eta``; the
+        secular-equation device of More and Sorensen 1983) converges in a few steps;
+        bisection keeps it in the bracket. None if ``phi_inf >= 0`` (no root there)."""
+        if any(d == 0.0 and s != 0.0 for s, d, _, _ in self.terms):
+            return None  # phi grows linearly in eta: not of that shape
+        c = self.W00 - sum(s * s / d for s, d, _, _ in self.terms if d != 0.0)
+        if not c < 0.0:
+            return None
+        target = 1.0 / math.sqrt(-c)
+        pos, neg = pole, math.inf
+        eta = 2.0 * pole
+        size = self.size_and_t(eta)[0]
+        for _ in range(max_iter):
+            h, dh = self(eta)
+            q = 1.0 - eta * self.dmax
+            phi = h / (q * q)
+            dphi = (dh + 2.0 * self.dmax * q * phi) / (q * q)
+            if abs(h) <= 1e-14 * size:
+                break
+            if phi < 0.0:
+                neg = eta
+            else:
+                pos = eta
+            r = phi - c
+            nxt = math.nan
+            if r > 0.0 and dphi != 0.0:
+                g = 1.0 / math.sqrt(r)
+                nxt = eta - (g - target) / (-0.5 * g * g * g * dphi)
+            if abs(nxt - eta) <= 1e-9 * abs(eta) and pos < nxt < neg:
+                eta = nxt  # quadratic convergence: this step is exact to rounding
+                break
+            if abs(neg - pos) <= 1e-16 * abs(pos):
+                break
+            if not pos < nxt < neg:
+                nxt = 0.5 * (neg + pos) if neg < math.inf else 2.0 * max(pos, eta)
+            eta = nxt
+        else:
+            return None
+        return eta, self.size_and_t(eta)[1]
 
 
 def project_cone_box(u_nom, a0: float, a, G, low, high, max_rounds: int = 16):
@@ -313,34 +361,41 @@ def project_cone_box(u_nom, a0: float, a, G, low, high, max_rounds: int = 16):
     ``W = abar abar' - G'G``, ``abar = [a0, a]`` (the gradient of ``(t^2 - ||v||^2) / 2``): for a
     fixed ``eta`` a linear system. With some coordinates fixed at box faces, ``W_FF = V
     diag(d) V'`` makes ``ubar' W ubar`` a secular function of ``eta`` whose root
-    (:class:`_Secular`) gives ``u``. The faces start as those of the projection onto the
-    constraint linearised at the clipped ``u_nom`` (whose multiplier also starts ``eta``; if
-    these faces admit no root, none) and change one at a time (fix the coordinate farthest
-    outside the box, else release the face whose multiplier has the wrong sign). None when
-    no set of faces settles, the root is on the cone's other nappe (``t < 0``) or at its
-    apex (``v = 0``: not differentiable; clarabel solves those).
+    (:class:`_Secular`) gives ``u``. The faces change one at a time (fix the coordinate
+    farthest outside the box, else release the face whose multiplier has the wrong sign),
+    starting with none; if that does not settle, once more from the faces (and multiplier)
+    of the projection onto the constraint linearised at the clipped ``u_nom``. None when
+    neither settles, the root is on the cone's other nappe (``t < 0``) or at its apex
+    (``v = 0``: not differentiable; clarabel solves those).
     """
     GtG = G.T @ G
     W11 = np.outer(a, a)
     W11 -= GtG[1:, 1:]
     W10 = a0 * a - GtG[1:, 0]
     W00 = a0 * a0 - float(GtG[0, 0])
+    m = a.size
+    found = _cone_faces(u_nom, a0, a, low, high, W00, W10, W11, np.zeros(m, dtype=bool),
+                        u_nom.clip(low, high), 0.0, max_rounds)
+    if found is not None:
+        return found
     uc = u_nom.clip(low, high)
-    v = G[:, 1:] @ uc + G[:, 0]
-    nv = math.sqrt(float(v @ v))
-    if nv == 0.0:
+    c_uc, grad = cone_margin_gradient(uc, a0, a, G)
+    if grad is None:
         return None
-    grad = a - (G[:, 1:].T @ v) / nv
-    lin = project_halfspace_box(u_nom, a0 - nv - float(grad @ uc) + float(a @ uc), grad,
-                                low, high)
+    lin = project_halfspace_box(u_nom, c_uc - float(grad @ uc), grad, low, high)
     if lin is None:
         return None
     u, lam = lin
     t = a0 + float(a @ u)
-    eta = lam / t if t > 0.0 else 0.0
-    fixed = u != u_nom + lam * grad
+    return _cone_faces(u_nom, a0, a, low, high, W00, W10, W11, u != u_nom + lam * grad, u,
+                       lam / t if t > 0.0 else 0.0, max_rounds)
+
+
+def _cone_faces(u_nom, a0, a, low, high, W00, W10, W11, fixed, u, eta, max_rounds):
+    """The face iteration of :func:`project_cone_box` from the faces ``fixed`` (at the
+    values of ``u``) and the multiplier estimate ``eta``."""
     lo_l, hi_l = low.tolist(), high.tolist()
-    seen, restarted = set(), False
+    seen = set()
     for _ in range(max_rounds):
         key = fixed.tobytes()
         if key in seen:
@@ -366,10 +421,6 @@ def project_cone_box(u_nom, a0: float, a, G, low, high, max_rounds: int = 16):
         sec = _Secular(c00, s, d, p, t0, V.T @ aF)
         found = sec.boundary_point(eta)
         if found is None:
-            if fixed.any() and not restarted:  # no root on these faces: start without any
-                fixed[:] = False
-                restarted = True
-                continue
             return None
         eta = found[0]
         uF = V @ np.array([(pi + eta * si) / (1.0 - eta * di) for si, di, pi, _ in sec.terms])

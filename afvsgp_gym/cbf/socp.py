@@ -149,9 +149,11 @@ class SOCPFilter:
         """``a0 + a @ u - ||G ubar||`` for every constraint."""
         out = np.asarray(a, dtype=np.float64) @ u + np.asarray(a0, dtype=np.float64)
         if G is not None:
-            G = np.asarray(G, dtype=np.float64)
-            Gu = G[:, :, 1:] @ u + G[:, :, 0]
-            out -= np.sqrt(np.einsum("ki,ki->k", Gu, Gu))
+            ubar = np.empty(self.m + 1)
+            ubar[0] = 1.0
+            ubar[1:] = u
+            v = np.asarray(G, dtype=np.float64) @ ubar
+            out -= np.sqrt(np.einsum("ki,ki->k", v, v))
         return out
 
     def solve(self, u_nom, a0, a, G=None, backup=None) -> SOCPResult:
