@@ -359,7 +359,8 @@ def save_instances(path, instances) -> None:
 
 def load_instances(path) -> list[tuple]:
     """Inverse of :func:`save_instances`."""
-    d = np.load(path)
+    with np.load(path) as z:
+        d = {key: z[key] for key in z.files}  # decompress each array once
     idx = np.concatenate([[0], np.cumsum(d["k"])])
     return [
         (d["u_nom"][j], d["a0"][idx[j]:idx[j + 1]], d["a"][idx[j]:idx[j + 1]],
@@ -514,9 +515,11 @@ def _have_cbfpy() -> bool:
     return True
 
 
-def run(quick: bool = False, cbfpy: bool | None = None) -> dict[str, float]:
+def run(quick: bool = False, cbfpy: bool | None = None, cbfpy_only: bool = False
+        ) -> dict[str, float]:
     """Filter vs clarabel at 1 / 21 / 100 barriers, known model and learned; with ``cbfpy``
-    (default: when it is installed) also cbfpy's configurations on the known-model states."""
+    (default: when it is installed) also cbfpy's configurations on the known-model states
+    (``cbfpy_only``: only those)."""
     cbfpy = _have_cbfpy() if cbfpy is None else cbfpy
     n = 200 if quick else 2000
     out: dict[str, float] = {}
@@ -524,6 +527,8 @@ def run(quick: bool = False, cbfpy: bool | None = None) -> dict[str, float]:
         if cbfpy:
             for key, val in cbfpy_comparison(K, n).items():
                 out[f"K{K}_qp_{key}"] = val
+        if cbfpy_only:
+            continue
         for learned in (False, True):
             tag = f"K{K}_{'socp' if learned else 'qp'}"
             for key, val in filter_vs_clarabel(K, n, learned).items():
@@ -539,6 +544,8 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="200 states instead of 2000")
     parser.add_argument("--no-cbfpy", action="store_true", help="skip cbfpy even if installed")
+    parser.add_argument("--cbfpy-only", action="store_true",
+                        help="only cbfpy against our known-model filter")
     parser.add_argument("--record", type=int, default=0, metavar="N",
                         help="record N Franka filter instances (half static, half dynamic) "
                              "and check the fast path against a 40-digit reference on them")
@@ -559,7 +566,8 @@ def main(argv=None) -> None:
         for key, val in fast_path_agreement(inst).items():
             print(f"recorded_{key:<34} {val:.6g}")
         return
-    res = run(quick=args.quick, cbfpy=False if args.no_cbfpy else None)
+    res = run(quick=args.quick, cbfpy=False if args.no_cbfpy else None,
+              cbfpy_only=args.cbfpy_only)
     width = max(len(k) for k in res)
     for key, val in res.items():
         txt = f"{val * 1e6:10.1f} us" if key.endswith("_s") else f"{val:10.4g}"

@@ -185,8 +185,10 @@ def project_polyhedron_box(u_nom, a0, a, low, high):
     (rows of ``a`` normalised, the box as ``x >= low - u_nom``, ``-x >= u_nom - high``),
     solved through the non-negative least squares ``min ||[E'; f'] y - e_{m+1}||, y >= 0``:
     ``r = [E'; f'] y - e``, ``x = -r[:m] / r[m]`` and the multipliers are ``y / -r[m]``
-    (Lawson and Hanson, ch. 23). None if the program is infeasible (``r[m] = 0``) or the
-    solver fails.
+    (Lawson and Hanson, ch. 23). ``"infeasible"`` when ``r[m] = 0`` and ``y`` is a Farkas
+    certificate: ``y >= 0``, ``f'y = 1 - r[m] > 0`` and ``|E'y| R < f'y`` for the largest
+    ``|x| = R`` in the box, so ``y'(Ex - f) < 0`` for every ``x`` there (no point satisfies
+    ``Ex >= f``). None if the solver fails or neither holds.
     """
     k, m = a.shape
     tpl = _M_TEMPLATES.get((k, m))
@@ -212,6 +214,9 @@ def project_polyhedron_box(u_nom, a0, a, low, high):
     r = M @ y
     den = 1.0 - float(r[m])
     if not den > 1e-12:
+        reach = math.sqrt(float(np.maximum((high - u_nom) ** 2, (low - u_nom) ** 2).sum()))
+        if math.sqrt(float(r[:m] @ r[:m])) * reach < float(r[m]):
+            return "infeasible"
         return None
     return snap_to_box(u_nom + r[:m] / den, low, high), y[:k] / (den * norms)
 

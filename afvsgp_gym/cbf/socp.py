@@ -59,7 +59,8 @@ class SOCPResult:
         ``"inactive"`` (the clipped proposal is safe), ``"certified:halfspace"``,
         ``"certified:polyhedron"``, ``"certified:cone"`` (exact fast path, KKT-certified),
         clarabel's ``"Solved"`` / ``"AlmostSolved"``, ``"backup:<why>"``,
-        ``"fallback:<why>"`` or ``"invalid_input"``.
+        ``"fallback:<why>"`` (``<why>``: clarabel's status, or ``infeasible`` for a Farkas
+        certificate of the QP from the fast path) or ``"invalid_input"``.
     margins : ndarray of shape (k,)
         ``a0 + a @ u - ||G ubar||`` at ``u`` (NaN for invalid constraints).
     solve_time_s : float
@@ -219,6 +220,8 @@ class SOCPFilter:
                 found = self._fast(u_nom, a0, a, G, marg, tol)
             except Exception:  # an uncertified case: clarabel decides
                 found = None
+            if found == "infeasible":  # certified: no clarabel solve to confirm it
+                return self._fallback("infeasible", u_nom, uc, a0, a, G, None, t0, backup)
             if found is not None:
                 u, path, marg = found
                 return SOCPResult(u, True, f"certified:{path}", marg, time.perf_counter() - t0)
@@ -242,7 +245,8 @@ class SOCPFilter:
 
     # ------------------------------------------------------------------ internals
     def _fast(self, u_nom, a0, a, G, marg, tol):
-        """``(u, path, margins at u)`` from a certified fast path, or None."""
+        """``(u, path, margins at u)`` from a certified fast path, ``"infeasible"`` (a Farkas
+        certificate of the QP), or None."""
         low, high = self.low, self.high
         violated = np.flatnonzero(marg < 0.0)
         if G is None:
@@ -256,8 +260,8 @@ class SOCPFilter:
                                         a[violated], low, high):
                         return u, "halfspace", c
             sol = fastpath.project_polyhedron_box(u_nom, a0, a, low, high)
-            if sol is None:
-                return None
+            if sol is None or sol == "infeasible":
+                return sol
             u, lam = sol
             c = a @ u + a0
             act = np.flatnonzero(lam)

@@ -186,6 +186,26 @@ def _margins_batch(U, a0, a, G):
     return out - np.linalg.norm(ubar @ G.T, axis=1)
 
 
+@pytest.mark.parametrize("seed", range(20))
+def test_farkas_infeasibility_agrees_with_clarabel(seed):
+    """A QP the fast path declares infeasible (Farkas certificate) is infeasible for clarabel
+    too; a feasible one with a margin of 1e-6 is never declared infeasible."""
+    rng = np.random.default_rng(300 + seed)
+    m, k = 7, int(rng.integers(2, 30))
+    low, high = -np.ones(m), np.ones(m)
+    a = rng.normal(size=(k, m))
+    u_star = rng.uniform(-1, 1, m)
+    u_nom = rng.uniform(-1.5, 1.5, m)
+    for shift in (-rng.uniform(0.5, 3.0), 1e-6):
+        a0 = -(a @ u_star) + shift + np.where(np.arange(k) < 2, 0.0, 5.0)
+        res = SOCPFilter(low, high).solve(u_nom, a0, a)
+        ref = SOCPFilter(low, high, fast_path=False).solve(u_nom, a0, a)
+        if res.status == "fallback:infeasible":
+            assert ref.status.startswith("fallback:") and not ref.feasible
+        if shift > 0:
+            assert res.feasible and res.status != "fallback:infeasible"
+
+
 def test_backup_only_evaluated_when_infeasible():
     calls = []
 
