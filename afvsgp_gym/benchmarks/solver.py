@@ -506,6 +506,47 @@ def fast_path_agreement(instances, low=None, high=None) -> dict:
             "fast_vs_clarabel_when_unrefined": max_unrefined}
 
 
+def solver_before_after(instances, before_path: str, low=None, high=None) -> dict[str, float]:
+    """Per-call times of another ``SOCPFilter`` (the module file at ``before_path``, e.g. an
+    older ``afvsgp_gym/cbf/socp.py``; constructed as ``SOCPFilter(low, high, k)``) and ours on
+    the same instances, interleaved: median and p99 of each, over all calls and over the
+    active ones (where ours is not ``"inactive"``), and the largest action difference."""
+    import importlib.util
+    import sys
+
+    spec = importlib.util.spec_from_file_location("socp_before", before_path)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod  # its dataclass looks its module up
+    spec.loader.exec_module(mod)
+    m = len(instances[0][0])
+    low = -np.ones(m) if low is None else low
+    high = np.ones(m) if high is None else high
+    k = len(instances[0][1])
+    old, new = mod.SOCPFilter(low, high, k), SOCPFilter(low, high)
+    t_old, t_new, active, diff = [], [], [], 0.0
+    for u, a0, a, G in instances:
+        t0 = time.perf_counter()
+        r_old = old.solve(u, a0, a, G)
+        t1 = time.perf_counter()
+        r_new = new.solve(u, a0, a, G)
+        t2 = time.perf_counter()
+        t_old.append(t1 - t0)
+        t_new.append(t2 - t1)
+        active.append(r_new.status != "inactive")
+        if r_old.feasible and r_new.feasible:
+            diff = max(diff, float(np.abs(r_old.u - r_new.u).max()))
+    t_old, t_new, active = np.array(t_old[1:]), np.array(t_new[1:]), np.array(active[1:])
+    out = {"calls": float(len(t_old)), "active_fraction": float(active.mean()),
+           "max_action_diff": diff}
+    for name, t in (("before", t_old), ("after", t_new)):
+        for key, val in _stats(t).items():
+            out[f"{name}_{key}"] = val
+        if active.any():
+            for key, val in _stats(t[active]).items():
+                out[f"{name}_active_{key}"] = val
+    return out
+
+
 # ---------------------------------------------------------------------- entry points
 def _have_cbfpy() -> bool:
     try:
@@ -551,8 +592,18 @@ def main(argv=None) -> None:
                              "and check the fast path against a 40-digit reference on them")
     parser.add_argument("--instances", default=None,
                         help=".npz to save the recorded instances to (or load them from)")
+    parser.add_argument("--before", default=None, metavar="SOCP_PY",
+                        help="time this socp.py against ours on every filter call of a "
+                             "Franka episode (static, afvsgp, seed 0, all calls recorded)")
     args = parser.parse_args(argv)
     print(f"machine: {machine()}", flush=True)
+    if args.before:
+        calls = record_filter_instances("afvsgp_gym/FrankaObstacleStatic-v0", 3000,
+                                        seeds=range(1), active_only=False)
+        for key, val in solver_before_after(calls, args.before).items():
+            txt = f"{val * 1e6:10.1f} us" if key.endswith("_s") else f"{val:10.4g}"
+            print(f"step_{key:<30} {txt}")
+        return
     if args.record:
         if args.instances and os.path.exists(args.instances):
             inst = load_instances(args.instances)
