@@ -134,61 +134,50 @@ def _stats(t: np.ndarray) -> dict[str, float]:
     return {"median_s": float(np.median(t)), "p99_s": float(np.percentile(t, 99))}
 
 
-def time_filter(instances, fast_path: bool = True) -> tuple[np.ndarray, list]:
-    """Per-call wall times of ``SOCPFilter.solve`` (one filter for all calls, the first call
-    excluded by the caller) and the results."""
-    f = SOCPFilter(-np.ones(M), np.ones(M), fast_path=fast_path)
-    times, results = np.empty(len(instances)), []
-    for j, (u, a0, a, G) in enumerate(instances):
-        t0 = time.perf_counter()
-        res = f.solve(u, a0, a, G)
-        times[j] = time.perf_counter() - t0
-        results.append(res)
-    return times, results
-
-
-def clarabel_own_times(instances) -> np.ndarray:
-    """Wall time of clarabel's ``solve()`` alone (reused solver, data updated beforehand) on
-    the instances whose clipped proposal is unsafe (NaN for the others)."""
-    low, high = -np.ones(M), np.ones(M)
-    progs = ConePrograms(low, high, 1e-9, 1e-4)
-    f = SOCPFilter(low, high)
-    out = np.full(len(instances), np.nan)
-    for j, (u, a0, a, G) in enumerate(instances):
-        uc = np.clip(u, low, high)
-        if (f.margins(uc, a0, a, G) >= 0).all():
-            continue
-        kind = "qp" if G is None else "socp"
-        key = (kind, a0.size)
-        progs.solve(kind, u, a0, a, G)  # build or update, then time a solve on the same data
-        solver = progs._solvers[key]
-        t0 = time.perf_counter()
-        solver.solve()
-        out[j] = time.perf_counter() - t0
-    return out
-
-
 def filter_vs_clarabel(n_barriers: int, n: int, learned: bool, seed: int = 0) -> dict:
-    """Our filter (fast paths on / off) and clarabel's own solve on the same instances."""
+    """Our filter (fast paths on), our filter with clarabel for every active call, and
+    clarabel's own ``solve()`` (a reused solver whose data were updated beforehand) on the
+    same instances, interleaved. Medians and p99 over all calls, over the active ones and
+    over the active feasible ones (the first call apart); ``overhead_*`` = median over the
+    active feasible calls / clarabel's own median on them."""
     _, _, inst = make_instances(n_barriers, n, learned, seed)
-    t_fast, res = time_filter(inst, True)
-    t_clar, _ = time_filter(inst, False)
-    t_own = clarabel_own_times(inst)
-    active = np.array([r.status != "inactive" for r in res])
-    certified = np.array([r.status.startswith("certified") for r in res])
+    low, high = -np.ones(M), np.ones(M)
+    fast, clar = SOCPFilter(low, high), SOCPFilter(low, high, fast_path=False)
+    own = ConePrograms(low, high, 1e-9, 1e-4)
+    kind = "qp" if not learned else "socp"
+    t = np.full((3, n), np.nan)
+    status = []
+    for j, (u, a0, a, G) in enumerate(inst):
+        t0 = time.perf_counter()
+        res = fast.solve(u, a0, a, G)
+        t1 = time.perf_counter()
+        ref = clar.solve(u, a0, a, G)
+        t[:2, j] = t1 - t0, time.perf_counter() - t1
+        status.append((res.status, ref.feasible))
+        if res.status != "inactive":
+            own.solve(kind, u, a0, a, G)  # build or update, then time a solve on these data
+            solver = own._solvers[(kind, a0.size)]
+            t0 = time.perf_counter()
+            solver.solve()
+            t[2, j] = time.perf_counter() - t0
+    t = t[:, 1:]
+    active = np.array([st != "inactive" for st, _ in status])[1:]
+    feas = active & np.array([ok for _, ok in status])[1:]
+    certified = np.array([st.startswith("certified") for st, _ in status])[1:]
     out = {"active_fraction": float(active.mean()),
-           "certified_share_of_active": float(certified[active].mean()) if active.any() else 0.0}
-    for name, t in (("filter", t_fast), ("filter_clarabel_only", t_clar)):
-        for key, val in _stats(t[1:]).items():
-            out[f"{name}_{key}"] = val
-        for key, val in _stats(t[1:][active[1:]]).items():
-            out[f"{name}_active_{key}"] = val
-    own = t_own[1:][active[1:]]
-    for key, val in _stats(own).items():
-        out[f"clarabel_own_{key}"] = val
-    # overhead: the package's clarabel path over clarabel's own solve on the same problems
-    out["overhead_clarabel_path"] = float(np.median(t_clar[1:][active[1:]]) / np.median(own))
-    out["overhead_filter"] = float(np.median(t_fast[1:][active[1:]]) / np.median(own))
+           "feasible_fraction_of_active": float(feas.sum() / max(active.sum(), 1)),
+           "certified_share_of_active": float(certified.sum() / max(active.sum(), 1))}
+    for i, name in enumerate(("filter", "filter_clarabel_only")):
+        for sel, tag in ((np.ones_like(active), ""), (active, "active_"), (feas, "feasible_")):
+            if sel.any():
+                for key, val in _stats(t[i][sel]).items():
+                    out[f"{name}_{tag}{key}"] = val
+    if feas.any():
+        for key, val in _stats(t[2][feas]).items():
+            out[f"clarabel_own_feasible_{key}"] = val
+        own_med = float(np.median(t[2][feas]))
+        out["overhead_clarabel_path"] = float(np.median(t[1][feas])) / own_med
+        out["overhead_filter"] = float(np.median(t[0][feas])) / own_med
     return out
 
 
@@ -246,9 +235,11 @@ def cbfpy_filters(arm: SphereArm):
 
 def cbfpy_comparison(n_barriers: int, n: int, seed: int = 0) -> dict:
     """cbfpy's configurations and our known-model filter on the same states, interleaved:
-    median / p99 per call (first call of each apart, reported as ``first_call_s``), the
-    largest difference of the actions and each one's worst constraint violation relative to
-    the constraint's scale."""
+    median / p99 per call (first call of each apart, reported as ``first_call_s``) over all
+    states, the active ones (our clipped proposal unsafe) and the active feasible ones; the
+    largest difference of the actions and each one's worst constraint violation (box
+    excess, or ``-c_i / scale_i`` with :func:`~afvsgp_gym.cbf.fastpath.constraint_scales`)
+    over the states where our program is feasible."""
     import jax.numpy as jnp
 
     from afvsgp_gym.cbf.fastpath import constraint_scales
@@ -261,6 +252,7 @@ def cbfpy_comparison(n_barriers: int, n: int, seed: int = 0) -> dict:
     times = {k: np.empty(n) for k in names}
     worst = {k: 0.0 for k in names}
     diff = {k: 0.0 for k in fns}
+    active, feasible = np.zeros(n, dtype=bool), np.zeros(n, dtype=bool)
     for j in range(n):
         z = jnp.asarray(np.concatenate([q[j], qd[j]]))
         ud, oj = jnp.asarray(u_des[j]), jnp.asarray(o[j])
@@ -269,6 +261,7 @@ def cbfpy_comparison(n_barriers: int, n: int, seed: int = 0) -> dict:
         t0 = time.perf_counter()
         res = f.solve(u0, a0, a)
         times["ours"][j] = time.perf_counter() - t0
+        active[j], feasible[j] = res.status != "inactive", res.feasible
         viol = -np.min(np.append((a0 + a @ res.u) / scales, 0.0))
         worst["ours"] = max(worst["ours"], viol if res.feasible else 0.0)
         for name, fn in fns.items():
@@ -281,11 +274,16 @@ def cbfpy_comparison(n_barriers: int, n: int, seed: int = 0) -> dict:
                 v = -np.min(np.append((a0 + a @ u) / scales, 0.0))
                 worst[name] = max(worst[name], v, excess)
                 diff[name] = max(diff[name], float(np.abs(u - res.u).max()))
-    out = {}
+    out = {"active_fraction": float(active[1:].mean()),
+           "feasible_fraction": float(feasible[1:].mean())}
+    act, act_feas = active[1:], (active & feasible)[1:]
     for name in names:
         out[f"{name}_first_call_s"] = float(times[name][0])
-        for key, val in _stats(times[name][1:]).items():
-            out[f"{name}_{key}"] = val
+        t = times[name][1:]
+        for sel, tag in ((np.ones_like(act), ""), (act, "active_"), (act_feas, "feasible_")):
+            if sel.any():
+                for key, val in _stats(t[sel]).items():
+                    out[f"{name}_{tag}{key}"] = val
         out[f"{name}_worst_violation"] = float(worst[name])
     for name in fns:
         out[f"{name}_max_action_diff"] = diff[name]
