@@ -233,13 +233,16 @@ def cbfpy_filters(arm: SphereArm):
     return {name: CBF.from_config(ArmConfig(**kw)).safety_filter for name, kw in configs.items()}
 
 
-def cbfpy_comparison(n_barriers: int, n: int, seed: int = 0) -> dict:
-    """cbfpy's configurations and our known-model filter on the same states, interleaved:
-    median / p99 per call (first call of each apart, reported as ``first_call_s``) over all
-    states, the active ones (our clipped proposal unsafe) and the active feasible ones; the
-    largest difference of the actions and each one's worst constraint violation (box
-    excess, or ``-c_i / scale_i`` with :func:`~afvsgp_gym.cbf.fastpath.constraint_scales`)
-    over the states where our program is feasible."""
+def cbfpy_comparison(n_barriers: int, n: int, seed: int = 0, block: int = 50) -> dict:
+    """cbfpy's configurations and our known-model filter on the same states in one run:
+    blocks of ``block`` states, each solved by ours and then by every cbfpy configuration
+    (``block=1`` interleaves every call; the code of one filter then evicts the other's from
+    the caches, which costs ours about as much as its solve, see benchmarks/solver.md).
+    Median / p99 per call (first call of each apart, ``first_call_s``) over all states, the
+    active ones (our clipped proposal unsafe) and the active feasible ones; the largest
+    difference of the actions and each one's worst constraint violation (box excess, or
+    ``-c_i / scale_i`` with :func:`~afvsgp_gym.cbf.fastpath.constraint_scales`) over the
+    states where our program is feasible."""
     import jax.numpy as jnp
 
     from afvsgp_gym.cbf.fastpath import constraint_scales
@@ -247,33 +250,39 @@ def cbfpy_comparison(n_barriers: int, n: int, seed: int = 0) -> dict:
     arm, (q, qd, o, u_des), inst = make_instances(n_barriers, n, learned=False, seed=seed)
     fns = cbfpy_filters(arm)
     f = SOCPFilter(-np.ones(M), np.ones(M))
-    bound_norm = f.bound_norm
     names = ["ours", *fns]
     times = {k: np.empty(n) for k in names}
+    actions = {k: np.empty((n, M)) for k in names}
+    active, feasible = np.zeros(n, dtype=bool), np.zeros(n, dtype=bool)
+    z = [jnp.asarray(np.concatenate([q[j], qd[j]])) for j in range(n)]
+    ud = [jnp.asarray(u_des[j]) for j in range(n)]
+    oj = [jnp.asarray(o[j]) for j in range(n)]
+    for start in range(0, n, block):
+        idx = range(start, min(start + block, n))
+        for j in idx:
+            u0, a0, a, _ = inst[j]
+            t0 = time.perf_counter()
+            res = f.solve(u0, a0, a)
+            times["ours"][j] = time.perf_counter() - t0
+            actions["ours"][j] = res.u
+            active[j], feasible[j] = res.status != "inactive", res.feasible
+        for name, fn in fns.items():
+            for j in idx:
+                t0 = time.perf_counter()
+                u = fn(z[j], ud[j], oj[j]).block_until_ready()
+                times[name][j] = time.perf_counter() - t0
+                actions[name][j] = np.asarray(u, dtype=np.float64)
     worst = {k: 0.0 for k in names}
     diff = {k: 0.0 for k in fns}
-    active, feasible = np.zeros(n, dtype=bool), np.zeros(n, dtype=bool)
-    for j in range(n):
-        z = jnp.asarray(np.concatenate([q[j], qd[j]]))
-        ud, oj = jnp.asarray(u_des[j]), jnp.asarray(o[j])
+    for j in np.flatnonzero(feasible):
         u0, a0, a, _ = inst[j]
-        scales = constraint_scales(a0, a, None, bound_norm)
-        t0 = time.perf_counter()
-        res = f.solve(u0, a0, a)
-        times["ours"][j] = time.perf_counter() - t0
-        active[j], feasible[j] = res.status != "inactive", res.feasible
-        viol = -np.min(np.append((a0 + a @ res.u) / scales, 0.0))
-        worst["ours"] = max(worst["ours"], viol if res.feasible else 0.0)
-        for name, fn in fns.items():
-            t0 = time.perf_counter()
-            u = fn(z, ud, oj).block_until_ready()
-            times[name][j] = time.perf_counter() - t0
-            u = np.asarray(u, dtype=np.float64)
-            if res.feasible:
-                excess = np.maximum(np.abs(u) - 1.0, 0.0).max()
-                v = -np.min(np.append((a0 + a @ u) / scales, 0.0))
-                worst[name] = max(worst[name], v, excess)
-                diff[name] = max(diff[name], float(np.abs(u - res.u).max()))
+        scales = constraint_scales(a0, a, None, f.bound_norm)
+        for name in names:
+            u = actions[name][j]
+            excess = float(np.maximum(np.abs(u) - 1.0, 0.0).max())
+            worst[name] = max(worst[name], excess, float(-np.min((a0 + a @ u) / scales)))
+            if name != "ours":
+                diff[name] = max(diff[name], float(np.abs(u - actions["ours"][j]).max()))
     out = {"active_fraction": float(active[1:].mean()),
            "feasible_fraction": float(feasible[1:].mean())}
     act, act_feas = active[1:], (active & feasible)[1:]
@@ -554,8 +563,8 @@ def _have_cbfpy() -> bool:
     return True
 
 
-def run(quick: bool = False, cbfpy: bool | None = None, cbfpy_only: bool = False
-        ) -> dict[str, float]:
+def run(quick: bool = False, cbfpy: bool | None = None, cbfpy_only: bool = False,
+        block: int = 50) -> dict[str, float]:
     """Filter vs clarabel at 1 / 21 / 100 barriers, known model and learned; with ``cbfpy``
     (default: when it is installed) also cbfpy's configurations on the known-model states
     (``cbfpy_only``: only those)."""
@@ -564,7 +573,7 @@ def run(quick: bool = False, cbfpy: bool | None = None, cbfpy_only: bool = False
     out: dict[str, float] = {}
     for K in (1, 21, 100):
         if cbfpy:
-            for key, val in cbfpy_comparison(K, n).items():
+            for key, val in cbfpy_comparison(K, n, block=block).items():
                 out[f"K{K}_qp_{key}"] = val
         if cbfpy_only:
             continue
@@ -585,6 +594,9 @@ def main(argv=None) -> None:
     parser.add_argument("--no-cbfpy", action="store_true", help="skip cbfpy even if installed")
     parser.add_argument("--cbfpy-only", action="store_true",
                         help="only cbfpy against our known-model filter")
+    parser.add_argument("--block", type=int, default=50,
+                        help="states per block of the cbfpy comparison (1: every call "
+                             "interleaved)")
     parser.add_argument("--record", type=int, default=0, metavar="N",
                         help="record N Franka filter instances (half static, half dynamic) "
                              "and check the fast path against a 40-digit reference on them")
@@ -616,7 +628,7 @@ def main(argv=None) -> None:
             print(f"recorded_{key:<34} {val:.6g}")
         return
     res = run(quick=args.quick, cbfpy=False if args.no_cbfpy else None,
-              cbfpy_only=args.cbfpy_only)
+              cbfpy_only=args.cbfpy_only, block=args.block)
     width = max(len(k) for k in res)
     for key, val in res.items():
         txt = f"{val * 1e6:10.1f} us" if key.endswith("_s") else f"{val:10.4g}"
