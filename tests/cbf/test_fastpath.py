@@ -245,3 +245,16 @@ def test_certificate_rejects_points_away_from_the_optimum(seed):
     assert not fastpath.certify(u, u_nom, c, tol, idx, np.array([-lam]), a[None], low, high)
     assert not fastpath.certify(u, u_nom, c - 1e-6, tol, idx, np.array([lam]), a[None],
                                 low, high)
+
+
+def test_nnls_routine_equals_scipys_public_nnls():
+    """The non-negative least squares used by the polyhedron path (scipy's compiled routine
+    without its wrapper, when available) gives scipy.optimize.nnls's answers."""
+    from scipy.optimize import nnls
+
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        A = rng.normal(size=(8, int(rng.integers(1, 120))))
+        b = rng.normal(size=8)
+        np.testing.assert_allclose(fastpath._nnls(A, b, 10 * A.shape[1]), nnls(A, b)[0],
+                                   rtol=0, atol=1e-12)
