@@ -320,7 +320,8 @@ class _Secular:
     def boundary_point(self, start: float):
         """``(eta, t)`` of a root with ``eta >= 0`` and ``t > 0`` (the cone's boundary, not
         the other nappe): ``h`` rises from ``h(0)`` to ``h(1 / max(d)) >= 0``; the root on that
-        interval, else one beyond it. None if there is none."""
+        interval, else one beyond it (beyond it first when ``t(0) < 0``). None if there is
+        none."""
         h0, t0 = self.W00, self.t0  # at eta = 0, y = p
         for s, d, p, al in self.terms:
             h0 += (2.0 * s + d * p) * p
@@ -329,6 +330,11 @@ class _Secular:
             return 0.0, t0
         dmax = self.dmax
         pole = 1.0 / dmax if dmax > 0.0 else math.inf
+        if t0 < 0.0 and pole < math.inf:
+            # u_nom on the far side (t < 0): the root with t > 0 is usually beyond the pole
+            found = self.root_beyond_pole(pole)
+            if found is not None and found[1] > 0.0:
+                return found
         if h0 < 0.0 and pole < math.inf:  # h(pole) >= 0 (a square times max(d))
             found = self.root(0.0, pole, start)
             if found is not None and found[1] > 0.0:
