@@ -311,6 +311,8 @@ class _Secular:
             if abs(pos - neg) <= 1e-16 * abs(pos):
                 break
             if not min(neg, pos) < nxt < max(neg, pos):
+                if neg == math.inf and eta > 1e6 * pos:
+                    return None  # no sign change found this far: give up
                 nxt = 0.5 * (neg + pos) if neg < math.inf else 2.0 * max(pos, eta)
             eta = nxt
         else:
@@ -349,7 +351,7 @@ class _Secular:
         if pole == math.inf:
             return None
         found = self.root_beyond_pole(pole)
-        if found is None:  # phi not of that shape: plain Newton from the pole on h
+        if found is None:  # phi not of that shape: plain Newton on h from the pole
             found = self.root(math.inf, pole, pole * (1.0 + 1e-9))
         return found if found is not None and found[1] > 0.0 else None
 
