@@ -102,7 +102,10 @@ def certify(u, u_nom, margins, tol: Tolerance, active, lam, grads, low, high) ->
     program whose ``a0`` differ from the given ones by at most that much (a backward error
     at the rounding level of ``c``).
     """
-    if not float(margins.min()) >= 0.0:  # only the negative margins need their tolerance
+    lowest = float(margins.min())
+    if not lowest >= 0.0:  # only the negative margins need their tolerance
+        if lowest != lowest:  # NaN
+            return False
         neg = np.flatnonzero(margins < 0.0)
         if not float((margins[neg] + tol.at(neg)).min()) >= 0.0:
             return False
