@@ -3,5 +3,6 @@
 - :mod:`afvsgp_gym.benchmarks.gp`: learner update / prediction times.
 - :mod:`afvsgp_gym.benchmarks.envs`: environment steps per second.
 - :mod:`afvsgp_gym.benchmarks.filter`: SOCP and full filtered-step times.
+- :mod:`afvsgp_gym.benchmarks.solver`: the filter's cone program against cbfpy and clarabel.
 - :mod:`afvsgp_gym.benchmarks.run_all`: all of them in one run (``afvsgp-gym bench``).
 """

@@ -33,13 +33,13 @@ from typing import Any
 import numpy as np
 from scipy.linalg.lapack import dpotrf
 
-from afvsgp_gym.cbf._socp_adapter import VariableSOCP as SOCPFilter
 from afvsgp_gym.cbf.config import FilterConfig
 from afvsgp_gym.cbf.exploration import Exploration
 from afvsgp_gym.cbf.hocbf import HOCBF
 from afvsgp_gym.cbf.learners import REGISTRY, check_learner_name, make_bank
 from afvsgp_gym.cbf.measurement import measure_all
 from afvsgp_gym.cbf.residuals import ResidualObserver
+from afvsgp_gym.cbf.socp import SOCPFilter
 from afvsgp_gym.types import BarrierSet
 from afvsgp_gym.validation import check_int
 

@@ -1,26 +1,27 @@
 """Chance-constrained HOCBF safety filter as a second-order cone program (paper eq. 05, 49).
 
-Decision variable ``u`` (action, ``m``), ``ubar = [1, u]``. For every barrier ``k``
+Decision variable ``u`` (action, ``m``), ``ubar = [1, u]``. For every barrier ``i`` passed
+to a call (any number ``k >= 0``; the caller may leave out barriers far from every obstacle)
 
     minimise    1/2 ||u - u_nom||^2
-    subject to  a0_k + a_k @ u - ||G_k @ ubar|| >= 0        (one second-order cone each)
+    subject to  a0_i + a_i @ u - ||G_i @ ubar|| >= 0        (one second-order cone each)
                 low <= u <= high
 
 with ``a0 + a @ u = F0 ubar + S + alpha_r(psi_{r-1}) + b' ubar`` (nominal part plus learned
 mean) and ``G = beta L'`` for the learned covariance ``Sigma = L L'`` (standard deviation, as in
-Castaneda et al. 2021; the paper's eq. 05 writes the variance). With ``G = 0`` this is the
-HOCBF-QP of eq. 04.
+Castaneda et al. 2021; the paper's eq. 05 writes the variance). With ``G = 0`` (or None) this
+is the HOCBF-QP of eq. 04.
 
-Clarabel's standard form is ``min 1/2 x'Px + q'x  s.t.  Ax + s = b, s in K``. The rows are
-
-    box:       [ I; -I] u + s = [high; -low],             s in R_+^{2m}
-    barrier k: [-a_k'; -G_k[:, 1:]] u + s = [a0_k; G_k[:, 0]],   s in SOC(m + 2)
-
-The matrices keep a dense sparsity pattern so each solver object is built once and only its
-values are updated (``DefaultSolver.update``). If the problem is infeasible or the solve fails,
-the fallback maximises the worst margin ``t`` within the bounds (another cone program,
-``min -t + eps/2 ||u - u_nom||^2``) and the result is flagged; the returned action is always
-finite and inside the bounds.
+:meth:`SOCPFilter.solve` tries, in order: the clipped proposal (returned as is when it
+satisfies every constraint: status ``"inactive"``); an exact fast path
+(:mod:`afvsgp_gym.cbf.fastpath`: one half-space, any number of half-spaces, one cone, each
+with the box) whose answer is used only when its KKT certificate holds (status
+``"certified:<path>"``); clarabel (:mod:`afvsgp_gym.cbf.cone_programs`, status ``"Solved"``
+or ``"AlmostSolved"``). If the program is infeasible or the solve fails, a backup action or
+the action maximising the worst margin (``min -t + eps/2 ||u - u_nom||^2``) is returned,
+flagged infeasible. The returned action is always finite and inside the bounds, and one
+returned as feasible satisfies every constraint to ``1e-8`` of the constraint's scale
+(:func:`afvsgp_gym.cbf.fastpath.constraint_scales`).
 """
 
 from __future__ import annotations
@@ -29,11 +30,18 @@ import math
 import time
 from dataclasses import dataclass
 
-import clarabel
 import numpy as np
-import scipy.sparse as sp
 
-_SOLVED = ("Solved", "AlmostSolved")
+from afvsgp_gym.cbf import fastpath
+from afvsgp_gym.cbf.cone_programs import SOLVED, ConePrograms
+
+#: A returned feasible action satisfies ``c_i(u) >= -FEASIBILITY_TOL * scale_i``.
+FEASIBILITY_TOL = 1e-8
+#: Fast-path attempts with a single cone (most violated constraint first) before clarabel.
+CONE_ATTEMPTS = 2
+#: The single-cone fast path is tried only when at most this many constraints are violated
+#: at the clipped proposal.
+CONE_MAX_VIOLATED = 2
 
 
 @dataclass(frozen=True)
@@ -45,13 +53,18 @@ class SOCPResult:
     u : ndarray of shape (m,)
         Applied action, finite and within the bounds.
     feasible : bool
-        True when the chance-constrained problem was solved; False means ``u`` is the fallback.
+        True when the chance-constrained problem was solved; False means ``u`` is the
+        backup action or the max-worst-margin fallback.
     status : str
-        Solver status (``"Solved"``, ``"fallback:<status>"``, ``"invalid_input"``, ...).
-    margins : ndarray of shape (K,)
+        ``"inactive"`` (the clipped proposal is safe), ``"certified:halfspace"``,
+        ``"certified:polyhedron"``, ``"certified:cone"`` (exact fast path, KKT-certified),
+        clarabel's ``"Solved"`` / ``"AlmostSolved"``, ``"backup:<why>"``,
+        ``"fallback:<why>"`` (``<why>``: clarabel's status, or ``infeasible`` for a Farkas
+        certificate of the QP from the fast path) or ``"invalid_input"``.
+    margins : ndarray of shape (k,)
         ``a0 + a @ u - ||G ubar||`` at ``u`` (NaN for invalid constraints).
     solve_time_s : float
-        Wall time of the solve(s).
+        Wall time of the call.
     """
 
     u: np.ndarray
@@ -61,45 +74,39 @@ class SOCPResult:
     solve_time_s: float
 
 
-def _settings(tol: float) -> clarabel.DefaultSettings:
-    s = clarabel.DefaultSettings()
-    s.verbose = False
-    s.presolve_enable = False  # needed for data updates
-    s.chordal_decomposition_enable = False
-    s.tol_gap_abs = tol
-    s.tol_gap_rel = tol
-    s.tol_feas = tol
-    s.max_iter = 100
-    return s
-
-
 class SOCPFilter:
-    """Reusable clarabel cone programs for the safety filter.
+    """The safety filter's cone program for any number of constraints per call.
 
     Parameters
     ----------
     action_low, action_high : array_like of shape (m,)
         Finite action bounds, ``low < high``.
-    n_constraints : int
-        Number of barriers ``K`` (one cone each).
+    n_constraints : int or None
+        Accepted for compatibility and checked (an integer >= 0); every call may pass any
+        number of constraints.
     qp_solver : str or None
-        Backend for the plain QP case (``G = 0``): None uses clarabel directly (cached solver
-        object); a name is passed to ``qpsolvers.solve_qp(..., solver=name)``.
+        Backend for the plain QP case (``G = 0``) when the fast path does not certify: None
+        uses clarabel directly (cached solver); a name is passed to
+        ``qpsolvers.solve_qp(..., solver=name)``.
     tol : float
         Clarabel feasibility and gap tolerances.
     fallback_regularization : float
         ``eps`` of the fallback objective (tie-break towards ``u_nom``).
+    fast_path : bool
+        Use the certified fast paths (False: clarabel for every active call; for reference
+        and benchmarks).
     """
 
     def __init__(
         self,
         action_low,
         action_high,
-        n_constraints: int = 1,
+        n_constraints: int | None = None,
         *,
         qp_solver: str | None = None,
         tol: float = 1e-9,
         fallback_regularization: float = 1e-4,
+        fast_path: bool = True,
     ):
         low = np.asarray(action_low, dtype=np.float64).ravel()
         high = np.asarray(action_high, dtype=np.float64).ravel()
@@ -112,8 +119,12 @@ class SOCPFilter:
             raise ValueError(
                 f"action bounds must be finite with action_low < action_high. Got: {low}, {high}"
             )
-        if not isinstance(n_constraints, (int, np.integer)) or n_constraints < 1:
-            raise ValueError(f"n_constraints must be a positive integer. Got: {n_constraints!r}")
+        if n_constraints is not None and (
+            not isinstance(n_constraints, (int, np.integer)) or n_constraints < 0
+        ):
+            raise ValueError(
+                f"n_constraints must be None or an integer >= 0. Got: {n_constraints!r}"
+            )
         if qp_solver is not None:
             import qpsolvers
 
@@ -122,89 +133,184 @@ class SOCPFilter:
                     f"qp_solver {qp_solver!r} is not available; installed: "
                     f"{qpsolvers.available_solvers}"
                 )
+        if not (np.isfinite(tol) and 0 < tol < 1):
+            raise ValueError(f"tol must be in (0, 1). Got: {tol!r}")
         self.low, self.high = low, high
         self.m = low.size
-        self.n_constraints = int(n_constraints)
         self.qp_solver = qp_solver
         self.tol = float(tol)
         self.fallback_regularization = float(fallback_regularization)
-        self._solvers: dict[str, clarabel.DefaultSolver] = {}
-        self._buffers: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        self.fast_path = bool(fast_path)
+        #: largest ``||u||`` in the box: the action scale of :func:`fastpath.constraint_scales`
+        self.bound_norm = float(np.linalg.norm(np.maximum(np.abs(low), np.abs(high))))
+        self.programs = ConePrograms(low, high, self.tol, self.fallback_regularization)
+
+    # ------------------------------------------------------------------ public
+    def margins(self, u, a0, a, G=None) -> np.ndarray:
+        """``a0 + a @ u - ||G ubar||`` for every constraint."""
+        out = np.asarray(a, dtype=np.float64) @ u + np.asarray(a0, dtype=np.float64)
+        if G is not None:
+            ubar = np.empty(self.m + 1)
+            ubar[0] = 1.0
+            ubar[1:] = u
+            v = np.asarray(G, dtype=np.float64) @ ubar
+            out -= np.sqrt(np.einsum("ki,ki->k", v, v))
+        return out
+
+    def solve(self, u_nom, a0, a, G=None, backup=None) -> SOCPResult:
+        """Filter ``u_nom``: the program's solution, or a flagged backup/fallback.
+
+        Never raises for NaN/inf values (they give the flagged fallback, status
+        ``"invalid_input"``; a non-finite constraint is left out of it); raises ValueError for
+        inputs of the wrong shape.
+
+        Parameters
+        ----------
+        u_nom : array_like of shape (m,)
+        a0 : array_like of shape (k,)
+            Action-free part of each constraint (``k >= 0``; ``k = 0`` returns the clipped
+            proposal, status ``"inactive"``).
+        a : array_like of shape (k, m)
+            Action coefficients.
+        G : array_like of shape (k, m+1, m+1) or None
+            Cone matrices ``beta L'``; None (or all zero) gives the plain QP.
+        backup : array_like of shape (m,), zero-argument callable returning one, or None
+            Action applied (clipped to the bounds, status ``"backup:..."``) when the program is
+            infeasible or fails; the callable is only evaluated then. None, or a backup that
+            is not finite, has the wrong shape or raises: the max-worst-margin fallback.
+        """
+        t0 = time.perf_counter()
         m = self.m
-        self._box_A = np.vstack([np.eye(m), -np.eye(m)])
-        self._box_b = np.concatenate([high, -low])
-
-    def __getstate__(self) -> dict:
-        """Pickle/deepcopy without the clarabel solver objects (not picklable; rebuilt on the
-        next solve with the same data layout)."""
-        state = self.__dict__.copy()
-        state["_solvers"] = {}
-        return state
-
-    # ------------------------------------------------------------------ problem data
-    def _data(self, kind: str, u_nom, a0, a, G):
-        """Dense (A transposed, b, q) for ``kind`` in {"qp", "socp", "fallback"} (reused)."""
-        m, K = self.m, self.n_constraints
-        buf = self._buffers.get(kind)
-        if buf is None:
-            nx = m + 1 if kind == "fallback" else m
-            rows = 2 * m + (K if kind == "qp" else K * (m + 2))
-            At = np.zeros((nx, rows))  # A transposed: At.ravel() is A's CSC value order
-            At[:m, : 2 * m] = self._box_A.T
-            b = np.zeros(rows)
-            b[: 2 * m] = self._box_b
-            buf = self._buffers[kind] = (At, b)
-        At, b = buf
-        A = At.T  # a view
-        if kind == "qp":
-            A[2 * m :, :] = -a
-            b[2 * m :] = a0
-        else:
-            for k in range(K):
-                r0 = 2 * m + k * (m + 2)
-                A[r0, :m] = -a[k]
-                A[r0 + 1 : r0 + m + 2, :m] = -G[k][:, 1:]
-                if kind == "fallback":
-                    A[r0, m] = 1.0
-                b[r0] = a0[k]
-                b[r0 + 1 : r0 + m + 2] = G[k][:, 0]
-        if kind == "fallback":
-            eps = self.fallback_regularization
-            q = np.concatenate([-eps * u_nom, [-1.0]])
-        else:
-            q = -u_nom
-        return At, b.copy(), q
-
-    def _cones(self, kind: str):
-        m, K = self.m, self.n_constraints
-        if kind == "qp":
-            return [clarabel.NonnegativeConeT(2 * m + K)]
-        return [clarabel.NonnegativeConeT(2 * m)] + [clarabel.SecondOrderConeT(m + 2)] * K
-
-    def _run(self, kind: str, u_nom, a0, a, G):
-        At, b, q = self._data(kind, u_nom, a0, a, G)
-        solver = self._solvers.get(kind)
-        if solver is None:
-            if kind == "fallback":
-                P = np.diag(np.concatenate([np.full(self.m, self.fallback_regularization), [0.0]]))
+        u_nom = np.asarray(u_nom, dtype=np.float64)
+        a0 = np.asarray(a0, dtype=np.float64)
+        a = np.asarray(a, dtype=np.float64)
+        if u_nom.shape != (m,):
+            u_nom = u_nom.ravel()
+            if u_nom.shape != (m,):
+                raise ValueError(f"u_nom must have shape ({m},). Got: {u_nom.shape}")
+        if a0.ndim != 1:
+            a0 = a0.ravel()
+        k = a0.size
+        if a.shape != (k, m):
+            if a.size != k * m:
+                raise ValueError(
+                    f"a must have shape ({k}, {m}) for {k} constraints. Got: {a.shape}"
+                )
+            a = a.reshape(k, m)
+        if G is not None:
+            G = np.asarray(G, dtype=np.float64)
+            if G.shape != (k, m + 1, m + 1):
+                if G.size != k * (m + 1) ** 2:
+                    raise ValueError(
+                        f"G must have shape ({k}, {m + 1}, {m + 1}) or be None. Got: {G.shape}"
+                    )
+                G = G.reshape(k, m + 1, m + 1)
+            if not G.any():  # no cone (or NaN, caught below by the margins)
+                G = None
+        uc = u_nom.clip(self.low, self.high)
+        marg = self.margins(uc, a0, a, G)
+        # any NaN/inf in the data makes a margin (or u_nom's sum) non-finite
+        if not math.isfinite(float(marg.sum()) + float(u_nom.sum())):
+            return self._invalid(u_nom, a0, a, G, t0, backup)
+        if k == 0 or float(marg.min()) >= 0.0:  # the filter is inactive
+            return SOCPResult(uc, True, "inactive", marg, time.perf_counter() - t0)
+        tol = fastpath.Tolerance(a0, a, G, self.bound_norm)
+        if self.fast_path:
+            try:
+                found = self._fast(u_nom, a0, a, G, marg, tol)
+            except Exception:  # an uncertified case: clarabel decides
+                found = None
+            if found == "infeasible":  # certified: no clarabel solve to confirm it
+                return self._fallback("infeasible", u_nom, uc, a0, a, G, None, t0, backup)
+            if found is not None:
+                u, path, marg = found
+                return SOCPResult(u, True, f"certified:{path}", marg, time.perf_counter() - t0)
+        try:
+            if G is None and self.qp_solver is not None:
+                x, status = self._run_qpsolvers(u_nom, a0, a)
             else:
-                P = np.eye(self.m)
-            A_pattern = sp.csc_matrix(np.ones_like(At.T))
-            A_pattern.data[:] = At.ravel()
-            solver = clarabel.DefaultSolver(
-                sp.csc_matrix(np.triu(P)), q, A_pattern, b, self._cones(kind), _settings(self.tol)
-            )
-            self._solvers[kind] = solver
+                x, status = self.programs.solve("qp" if G is None else "socp", u_nom, a0, a, G)
+            u = x[:m]
+            if status in SOLVED and math.isfinite(float(u.sum())):
+                u = u.clip(self.low, self.high)
+                marg = self.margins(u, a0, a, G)
+                if float(marg.min()) >= 0.0 or float(
+                    (marg + tol.array() * (FEASIBILITY_TOL / fastpath.FEAS_TOL)).min()
+                ) >= 0.0:
+                    return SOCPResult(u, True, status, marg, time.perf_counter() - t0)
+                status = "constraint_violated"
+        except Exception as exc:  # never raise in the control loop
+            status = f"error:{type(exc).__name__}"
+        return self._fallback(status, u_nom, uc, a0, a, G, None, t0, backup)
+
+    # ------------------------------------------------------------------ internals
+    def _fast(self, u_nom, a0, a, G, marg, tol):
+        """``(u, path, margins at u)`` from a certified fast path, ``"infeasible"`` (a Farkas
+        certificate of the QP), or None."""
+        low, high = self.low, self.high
+        violated = np.flatnonzero(marg < 0.0)
+        if G is None:
+            if violated.size == 1:
+                i = int(violated[0])
+                sol = fastpath.project_halfspace_box(u_nom, float(a0[i]), a[i], low, high)
+                if sol is not None:
+                    u, lam = sol
+                    c = a @ u + a0
+                    if fastpath.certify(u, u_nom, c, tol, violated, np.array([lam]),
+                                        a[violated], low, high):
+                        return u, "halfspace", c
+            sol = fastpath.project_polyhedron_box(u_nom, a0, a, low, high)
+            if sol is None or sol == "infeasible":
+                return sol
+            u, lam = sol
+            c = a @ u + a0
+            act = np.flatnonzero(lam)
+            if fastpath.certify(u, u_nom, c, tol, act, lam[act], a[act], low, high):
+                return u, "polyhedron", c
+            return None
+        # one constraint at a time: the most violated relative to its scale first, then
+        # the most violated at that answer (only when few are violated: with more, several
+        # cones are usually active at the optimum)
+        if violated.size > CONE_MAX_VIOLATED:
+            return None
+        if violated.size == 1:
+            i = int(violated[0])
         else:
-            solver.update(q=q, b=b, A=At.ravel())
-        sol = solver.solve()
-        return np.asarray(sol.x, dtype=np.float64), str(sol.status)
+            i = int(violated[np.argmin(marg[violated] / tol.at(violated))])
+        tried = []
+        for _ in range(CONE_ATTEMPTS):
+            tried.append(i)
+            if G[i].any():
+                sol = fastpath.project_cone_box(u_nom, float(a0[i]), a[i], G[i], low, high)
+                path = "cone"
+            else:
+                sol = fastpath.project_halfspace_box(u_nom, float(a0[i]), a[i], low, high)
+                path = "halfspace"
+            if sol is None:
+                return None
+            u, lam = sol
+            ci, grad = fastpath.cone_margin_gradient(u, float(a0[i]), a[i], G[i])
+            c = np.array([ci]) if a0.size == 1 else self.margins(u, a0, a, G)
+            if lam == 0.0:
+                grad = a[i]
+            elif grad is None:
+                return None
+            if fastpath.certify(u, u_nom, c, tol, np.array([i]), np.array([lam]),
+                                grad[None], low, high):
+                return u, path, c
+            c = c / tol.array()
+            c[tried] = np.inf
+            i = int(np.argmin(c))
+            if not c[i] < 0.0:
+                return None  # feasible but not certified: leave it to clarabel
+        return None
 
     def _run_qpsolvers(self, u_nom, a0, a):
         import qpsolvers
+        import scipy.sparse as sp
 
         x = qpsolvers.solve_qp(
-            sp.csc_matrix(np.eye(self.m)),
+            sp.identity(self.m, format="csc"),
             -u_nom,
             sp.csc_matrix(-a),
             a0,
@@ -216,94 +322,21 @@ class SOCPFilter:
             return np.full(self.m, np.nan), "Failed"
         return np.asarray(x, dtype=np.float64), "Solved"
 
-    # ------------------------------------------------------------------ public
-    def margins(self, u, a0, a, G=None) -> np.ndarray:
-        """``a0 + a @ u - ||G ubar||`` for every barrier."""
-        out = np.asarray(a0, dtype=np.float64) + np.asarray(a, dtype=np.float64) @ u
+    def _invalid(self, u_nom, a0, a, G, t0, backup) -> SOCPResult:
+        """Non-finite data: invalid constraints become vacuous, a non-finite proposal the box
+        centre; then the flagged backup/fallback."""
+        valid = np.isfinite(a0) & np.all(np.isfinite(a), axis=1)
         if G is not None:
-            G = np.asarray(G, dtype=np.float64)
-            Gu = G[:, :, 0] + G[:, :, 1:] @ u
-            out = out - np.sqrt(np.einsum("ki,ki->k", Gu, Gu))
-        return out
-
-    def solve(self, u_nom, a0, a, G=None, backup=None) -> SOCPResult:
-        """Filter ``u_nom`` (never raises for finite-shaped inputs; NaN -> flagged fallback).
-
-        Parameters
-        ----------
-        u_nom : array_like of shape (m,)
-        a0 : array_like of shape (K,)
-            Action-free part of each constraint.
-        a : array_like of shape (K, m)
-            Action coefficients.
-        G : array_like of shape (K, m+1, m+1) or None
-            Cone matrices ``beta L'``; None (or all zero) gives the plain QP.
-        backup : array_like of shape (m,), zero-argument callable returning one, or None
-            Action applied (clipped to the bounds, status ``"backup:..."``) when the program is
-            infeasible or fails; the callable is only evaluated then. None, or a backup that
-            is not finite, has the wrong shape or raises: the max-worst-margin fallback.
-        """
-        t0 = time.perf_counter()
-        m, K = self.m, self.n_constraints
-        u_nom = np.asarray(u_nom, dtype=np.float64).ravel()
-        a0 = np.asarray(a0, dtype=np.float64).ravel()
-        a = np.asarray(a, dtype=np.float64).reshape(K, m)
-        G = None if G is None else np.asarray(G, dtype=np.float64).reshape(K, m + 1, m + 1)
-        if u_nom.shape != (m,) or a0.shape != (K,):
-            raise ValueError(f"u_nom must have shape ({m},) and a0 ({K},)")
-
-        # sanitise: invalid constraints become vacuous, a NaN nominal becomes the box centre
-        total = u_nom.sum() + a0.sum() + a.sum() + (0.0 if G is None else G.sum())
-        if np.isfinite(total):
-            valid = np.ones(K, dtype=bool)
-            nom_ok = True
-        else:
-            valid = np.isfinite(a0) & np.all(np.isfinite(a), axis=1)
-            if G is not None:
-                valid &= np.all(np.isfinite(G), axis=(1, 2))
-            nom_ok = bool(np.all(np.isfinite(u_nom)))
-        invalid = not (nom_ok and np.all(valid))
-        if not nom_ok:
-            u_nom = np.clip(np.zeros(m), self.low, self.high)
-        u_nom_c = np.clip(u_nom, self.low, self.high)
-        if not np.all(valid):
-            a0 = np.where(valid, a0, 1.0)
-            a = np.where(valid[:, None], a, 0.0)
-            if G is not None:
-                G = np.where(valid[:, None, None], G, 0.0)
-
-        if not invalid:
-            marg = self.margins(u_nom_c, a0, a, G)
-            return self.solve_checked(u_nom, u_nom_c, a0, a, G, marg, t0, backup)
-        return self._fallback("invalid_input", u_nom, u_nom_c, a0, a, G, valid, t0, backup)
-
-    def solve_checked(
-        self, u_nom, u_nom_c, a0, a, G, marg, t0: float, backup=None
-    ) -> SOCPResult:
-        """:meth:`solve` after validation: every input finite and of the right shape (float64),
-        ``u_nom_c`` the clipped ``u_nom`` and ``marg = margins(u_nom_c, a0, a, G)``; ``t0``
-        the ``perf_counter`` start. Lets a caller that already checked its data skip the
-        checks; identical results."""
-        m = self.m
-        if bool((marg >= 0.0).all()):  # the (clipped) nominal action is safe: inactive filter
-            return SOCPResult(u_nom_c, True, "inactive", marg, time.perf_counter() - t0)
-        use_qp = G is None or not G.any()
-        Gz = np.zeros((self.n_constraints, m + 1, m + 1)) if G is None else G
-        try:
-            if use_qp and self.qp_solver is not None:
-                x, status = self._run_qpsolvers(u_nom, a0, a)
-            else:
-                x, status = self._run("qp" if use_qp else "socp", u_nom, a0, a, Gz)
-            u = x[:m]
-            if status in _SOLVED and math.isfinite(float(u.sum())):
-                u = np.clip(u, self.low, self.high)
-                marg = self.margins(u, a0, a, G)
-                if bool((marg >= -1e-6 * (1.0 + np.abs(a0))).all()):
-                    return SOCPResult(u, True, status, marg, time.perf_counter() - t0)
-                status = "constraint_violated"
-        except Exception as exc:  # never raise in the control loop
-            status = f"error:{type(exc).__name__}"
-        return self._fallback(status, u_nom, u_nom_c, a0, a, G, None, t0, backup)
+            valid &= np.all(np.isfinite(G), axis=(1, 2))
+            G = np.where(valid[:, None, None], G, 0.0)
+            if not G.any():
+                G = None
+        a0 = np.where(valid, a0, 1.0)
+        a = np.where(valid[:, None], a, 0.0)
+        if not np.all(np.isfinite(u_nom)):
+            u_nom = 0.5 * (self.low + self.high)
+        uc = np.clip(u_nom, self.low, self.high)
+        return self._fallback("invalid_input", u_nom, uc, a0, a, G, valid, t0, backup)
 
     def _backup_action(self, backup) -> np.ndarray | None:
         """The clipped backup action, or None if there is none usable."""
@@ -317,18 +350,19 @@ class SOCPFilter:
             return None
         return np.clip(ub, self.low, self.high)
 
-    def _fallback(self, status, u_nom, u_nom_c, a0, a, G, valid, t0, backup=None) -> SOCPResult:
-        m = self.m
+    def _fallback(self, status, u_nom, uc, a0, a, G, valid, t0, backup=None) -> SOCPResult:
         u = self._backup_action(backup)
         if u is not None:
             status = f"backup:{status}"
+        elif a0.size == 0:
+            u = uc
         else:  # maximise the worst margin within the bounds
-            u = u_nom_c
-            Gz = np.zeros((self.n_constraints, m + 1, m + 1)) if G is None else G
+            u = uc
+            kind = "fallback_qp" if G is None else "fallback_socp"
             try:
-                x, fb_status = self._run("fallback", u_nom, a0, a, Gz)
-                if fb_status in _SOLVED and np.all(np.isfinite(x[:m])):
-                    u = np.clip(x[:m], self.low, self.high)
+                x, fb_status = self.programs.solve(kind, u_nom, a0, a, G)
+                if fb_status in SOLVED and np.all(np.isfinite(x[: self.m])):
+                    u = np.clip(x[: self.m], self.low, self.high)
                 status = f"fallback:{status}" if status != "invalid_input" else status
             except Exception as exc:
                 status = f"fallback_failed:{type(exc).__name__}"

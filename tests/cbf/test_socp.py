@@ -1,4 +1,5 @@
-"""Chance-constrained SOCP against an independent solver (scipy SLSQP) and a dense grid."""
+"""Chance-constrained SOCP filter against independent references (scipy SLSQP, a dense grid,
+closed forms), with any number of constraints per call, bad and non-finite input."""
 
 import numpy as np
 import pytest
@@ -9,15 +10,16 @@ from afvsgp_gym.cbf import SOCPFilter
 
 def _margins(u, a0, a, G):
     ubar = np.concatenate([[1.0], u])
-    return a0 + a @ u - np.linalg.norm(G @ ubar, axis=-1)
+    out = a0 + a @ u
+    return out if G is None else out - np.linalg.norm(G @ ubar, axis=-1)
 
 
-def _random_instance(rng, m, K, feasible=True):
+def _random_instance(rng, m, K, feasible=True, cone=True):
     low, high = -rng.uniform(0.5, 2, m), rng.uniform(0.5, 2, m)
     a = rng.normal(size=(K, m))
-    G = rng.normal(scale=0.3, size=(K, m + 1, m + 1))
+    G = rng.normal(scale=0.3, size=(K, m + 1, m + 1)) if cone else None
     u_star = rng.uniform(low, high)
-    base = a @ u_star - np.linalg.norm(G @ np.concatenate([[1.0], u_star]), axis=-1)
+    base = _margins(u_star, np.zeros(K), a, G)
     slack = rng.uniform(0.05, 0.5, K) if feasible else -rng.uniform(5, 10, K)
     a0 = -base + slack
     u_nom = rng.uniform(2 * low, 2 * high)
@@ -25,10 +27,13 @@ def _random_instance(rng, m, K, feasible=True):
 
 
 def _slsqp(u_nom, a0, a, G, low, high):
+    """Independent reference: SLSQP from two starts, the best feasible answer."""
     cons = [
         {
             "type": "ineq",
-            "fun": lambda u, k=k: _margins(u, a0[k : k + 1], a[k : k + 1], G[k : k + 1])[0],
+            "fun": lambda u, k=k: _margins(
+                u, a0[k : k + 1], a[k : k + 1], None if G is None else G[k : k + 1]
+            )[0],
         }
         for k in range(len(a0))
     ]
@@ -41,37 +46,40 @@ def _slsqp(u_nom, a0, a, G, low, high):
             bounds=list(zip(low, high, strict=True)),
             constraints=cons,
             method="SLSQP",
-            options={"ftol": 1e-14, "maxiter": 500},
+            options={"ftol": 1e-15, "maxiter": 1000},
         )
-        ok = np.all(_margins(r.x, a0, a, G) >= -1e-8)
+        ok = np.all(_margins(r.x, a0, a, G) >= -1e-9) and np.all(r.x >= low - 1e-12)
         if ok and (best is None or r.fun < best.fun):
             best = r
     return best
 
 
+@pytest.mark.parametrize("fast_path", [True, False])
+@pytest.mark.parametrize("cone", [True, False])
 @pytest.mark.parametrize("seed", range(12))
-def test_random_instances_match_slsqp(seed):
+def test_random_instances_match_slsqp(seed, cone, fast_path):
     rng = np.random.default_rng(seed)
-    m, K = int(rng.integers(2, 5)), int(rng.integers(1, 4))
-    low, high, u_nom, a0, a, G = _random_instance(rng, m, K)
-    f = SOCPFilter(low, high, K)
+    m, K = int(rng.integers(2, 8)), int(rng.integers(1, 5))
+    low, high, u_nom, a0, a, G = _random_instance(rng, m, K, cone=cone)
+    f = SOCPFilter(low, high, fast_path=fast_path)
     res = f.solve(u_nom, a0, a, G)
     assert res.feasible
     assert np.all(res.u >= low) and np.all(res.u <= high)
-    assert np.all(_margins(res.u, a0, a, G) >= -1e-6)
+    scale = np.abs(a0) + np.abs(a) @ np.abs(res.u) + 1.0
+    assert np.all(_margins(res.u, a0, a, G) >= -1e-8 * scale)
     ref = _slsqp(u_nom, a0, a, G, low, high)
     assert ref is not None
     f_ours = 0.5 * np.sum((res.u - u_nom) ** 2)
-    assert f_ours <= ref.fun + 1e-6
-    np.testing.assert_allclose(res.u, ref.x, atol=1e-4)
-    # the solver object is reused: a second instance of the same size through the same filter
-    _, _, u_nom2, a02, a2, G2 = _random_instance(rng, m, K)
-    a02 = a02 + 1.0
-    res2 = f.solve(np.clip(u_nom2, low, high), a02, a2, G2)
-    ref2 = _slsqp(np.clip(u_nom2, low, high), a02, a2, G2, low, high)
+    assert f_ours <= ref.fun + 1e-7
+    # strong convexity: |u - u*|^2 / 2 <= f(u_ref) - f(u*) for the feasible reference
+    assert 0.5 * np.sum((res.u - ref.x) ** 2) <= ref.fun - f_ours + 1e-7
+    # the solver objects are reused: another instance of the same size through the filter
+    _, _, u_nom2, a02, a2, G2 = _random_instance(rng, m, K, cone=cone)
+    res2 = f.solve(np.clip(u_nom2, low, high), a02 + 1.0, a2, G2)
+    ref2 = _slsqp(np.clip(u_nom2, low, high), a02 + 1.0, a2, G2, low, high)
     if ref2 is not None:
         assert res2.feasible
-        assert 0.5 * np.sum((res2.u - np.clip(u_nom2, low, high)) ** 2) <= ref2.fun + 1e-6
+        assert 0.5 * np.sum((res2.u - np.clip(u_nom2, low, high)) ** 2) <= ref2.fun + 1e-7
 
 
 def test_matches_dense_grid_in_2d():
@@ -80,15 +88,16 @@ def test_matches_dense_grid_in_2d():
     a0, a = np.array([-0.3]), np.array([[1.0, 0.5]])
     G = rng.normal(scale=0.2, size=(1, 3, 3))
     u_nom = np.array([-0.8, -0.6])
-    res = SOCPFilter(low, high, 1).solve(u_nom, a0, a, G)
     g = np.linspace(-1, 1, 801)
     U = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
     ubar = np.hstack([np.ones((len(U), 1)), U])
     marg = a0[0] + U @ a[0] - np.linalg.norm(ubar @ G[0].T, axis=1)
     cost = 0.5 * np.sum((U - u_nom) ** 2, axis=1)
     best = cost[marg >= 0].min()
-    ours = 0.5 * np.sum((res.u - u_nom) ** 2)
-    assert res.feasible and ours <= best + 1e-9 and ours >= best - 5e-3
+    for fast_path in (True, False):
+        res = SOCPFilter(low, high, fast_path=fast_path).solve(u_nom, a0, a, G)
+        ours = 0.5 * np.sum((res.u - u_nom) ** 2)
+        assert res.feasible and best - 5e-3 <= ours <= best + 1e-9
 
 
 @pytest.mark.parametrize("seed", range(5))
@@ -96,31 +105,60 @@ def test_zero_sigma_equals_cbf_qp(seed):
     rng = np.random.default_rng(100 + seed)
     m, K = 3, 2
     low, high, u_nom, a0, a, G = _random_instance(rng, m, K)
-    f = SOCPFilter(low, high, K)
+    f = SOCPFilter(low, high)
     r_cone = f.solve(u_nom, a0, a, np.zeros_like(G))
     r_qp = f.solve(u_nom, a0, a, None)
-    r_qpsolvers = SOCPFilter(low, high, K, qp_solver="clarabel").solve(u_nom, a0, a, None)
-    ref = _slsqp(u_nom, a0, a, np.zeros_like(G), low, high)
-    for r in (r_cone, r_qp, r_qpsolvers):
+    r_clarabel = SOCPFilter(low, high, fast_path=False).solve(u_nom, a0, a, None)
+    r_qpsolvers = SOCPFilter(low, high, qp_solver="clarabel", fast_path=False).solve(
+        u_nom, a0, a, None
+    )
+    ref = _slsqp(u_nom, a0, a, None, low, high)
+    for r in (r_cone, r_qp, r_clarabel, r_qpsolvers):
         assert r.feasible
         np.testing.assert_allclose(0.5 * np.sum((r.u - u_nom) ** 2), ref.fun, atol=1e-6)
         np.testing.assert_allclose(r.u, ref.x, atol=1e-4)
+    np.testing.assert_array_equal(r_cone.u, r_qp.u)  # G = 0 is the QP, same path
 
 
 def test_single_constraint_closed_form():
-    # projection onto a half-space, inside the box: u = u_nom + max(0, -(a0 + a u_nom)) a / |a|^2
+    # projection onto a half-space inside the box: u = u_nom + max(0, -(a0 + a u_nom)) a / |a|^2
     a0, a = np.array([-0.5]), np.array([[1.0, 2.0]])
-    u_nom = np.array([0.0, 0.0])
-    res = SOCPFilter(-10 * np.ones(2), 10 * np.ones(2), 1).solve(u_nom, a0, a)
-    np.testing.assert_allclose(res.u, 0.5 * a[0] / 5.0, atol=1e-7)
-    assert res.active if hasattr(res, "active") else res.status != "inactive"
+    res = SOCPFilter(-10 * np.ones(2), 10 * np.ones(2)).solve(np.zeros(2), a0, a)
+    assert res.status == "certified:halfspace"
+    np.testing.assert_allclose(res.u, 0.5 * a[0] / 5.0, rtol=1e-15)
 
 
 def test_inactive_returns_clipped_nominal_exactly():
-    f = SOCPFilter(-np.ones(2), np.ones(2), 1)
+    f = SOCPFilter(-np.ones(2), np.ones(2))
     res = f.solve(np.array([3.0, 0.2]), [1.0], [[0.0, 1.0]], np.zeros((1, 3, 3)))
     assert res.status == "inactive" and res.feasible
     np.testing.assert_array_equal(res.u, [1.0, 0.2])
+
+
+def test_any_number_of_constraints_per_call():
+    """k varies from call to call (0, 1, 7, 40, 2, 100, 0) through one filter; k = 0 returns
+    the clipped proposal; every answer matches a fresh filter's and the reference's."""
+    rng = np.random.default_rng(7)
+    m = 7
+    low, high = -np.ones(m), np.ones(m)
+    f = SOCPFilter(low, high)
+    for k in (0, 1, 7, 40, 2, 100, 0, 7):
+        u_nom = rng.uniform(-1.5, 1.5, m)
+        a = rng.normal(size=(k, m))
+        a0 = -(a @ np.clip(u_nom, low, high)) + rng.uniform(-0.5, 3.0, k)
+        for G in (None, 0.05 * rng.normal(size=(k, m + 1, m + 1))):
+            res = f.solve(u_nom, a0, a, G)
+            assert res.margins.shape == (k,)
+            if k == 0:
+                assert res.status == "inactive"
+                np.testing.assert_array_equal(res.u, np.clip(u_nom, low, high))
+                continue
+            fresh = SOCPFilter(low, high).solve(u_nom, a0, a, G)
+            assert res.feasible == fresh.feasible
+            np.testing.assert_allclose(res.u, fresh.u, atol=1e-6)
+            if res.feasible:
+                ref = SOCPFilter(low, high, fast_path=False, tol=1e-11).solve(u_nom, a0, a, G)
+                np.testing.assert_allclose(res.u, ref.u, atol=1e-5)
 
 
 @pytest.mark.parametrize("seed", range(5))
@@ -128,43 +166,97 @@ def test_infeasible_gives_flagged_max_margin_fallback(seed):
     rng = np.random.default_rng(200 + seed)
     m, K = 2, 2
     low, high, u_nom, a0, a, G = _random_instance(rng, m, K, feasible=False)
-    res = SOCPFilter(low, high, K).solve(u_nom, a0, a, G)
-    assert not res.feasible and res.status.startswith("fallback")
-    assert np.all(np.isfinite(res.u)) and np.all(res.u >= low) and np.all(res.u <= high)
-    g0 = np.linspace(low[0], high[0], 401)
-    g1 = np.linspace(low[1], high[1], 401)
-    U = np.stack(np.meshgrid(g0, g1), -1).reshape(-1, 2)
-    worst = np.min([_margins_batch(U, a0[k], a[k], G[k]) for k in range(K)], axis=0)
-    ours = np.min(_margins(res.u, a0, a, G))
-    assert ours >= worst.max() - 1e-3
+    for G_case in (G, None):
+        res = SOCPFilter(low, high).solve(u_nom, a0, a, G_case)
+        assert not res.feasible and res.status.startswith("fallback")
+        assert np.all(np.isfinite(res.u)) and np.all(res.u >= low) and np.all(res.u <= high)
+        g0 = np.linspace(low[0], high[0], 401)
+        g1 = np.linspace(low[1], high[1], 401)
+        U = np.stack(np.meshgrid(g0, g1), -1).reshape(-1, 2)
+        worst = np.min([_margins_batch(U, a0[k], a[k], None if G_case is None else G_case[k])
+                        for k in range(K)], axis=0)
+        assert np.min(_margins(res.u, a0, a, G_case)) >= worst.max() - 1e-3
 
 
 def _margins_batch(U, a0, a, G):
+    out = a0 + U @ a
+    if G is None:
+        return out
     ubar = np.hstack([np.ones((len(U), 1)), U])
-    return a0 + U @ a - np.linalg.norm(ubar @ G.T, axis=1)
+    return out - np.linalg.norm(ubar @ G.T, axis=1)
 
 
+@pytest.mark.parametrize("seed", range(20))
+def test_farkas_infeasibility_agrees_with_clarabel(seed):
+    """A QP the fast path declares infeasible (Farkas certificate) is infeasible for clarabel
+    too; a feasible one with a margin of 1e-6 is never declared infeasible."""
+    rng = np.random.default_rng(300 + seed)
+    m, k = 7, int(rng.integers(2, 30))
+    low, high = -np.ones(m), np.ones(m)
+    a = rng.normal(size=(k, m))
+    u_star = rng.uniform(-1, 1, m)
+    u_nom = rng.uniform(-1.5, 1.5, m)
+    for shift in (-rng.uniform(0.5, 3.0), 1e-6):
+        a0 = -(a @ u_star) + shift + np.where(np.arange(k) < 2, 0.0, 5.0)
+        res = SOCPFilter(low, high).solve(u_nom, a0, a)
+        ref = SOCPFilter(low, high, fast_path=False).solve(u_nom, a0, a)
+        if res.status == "fallback:infeasible":
+            assert ref.status.startswith("fallback:") and not ref.feasible
+        if shift > 0:
+            assert res.feasible and res.status != "fallback:infeasible"
+
+
+def test_backup_only_evaluated_when_infeasible():
+    calls = []
+
+    def backup():
+        calls.append(1)
+        return np.array([0.3, -0.2])
+
+    f = SOCPFilter(-np.ones(2), np.ones(2))
+    feasible = f.solve(np.array([0.9, 0.9]), [-0.5], [[1.0, 0.0]], None, backup)
+    assert feasible.feasible and not calls
+    res = f.solve(np.zeros(2), [-5.0], [[1.0, 0.0]], None, backup)  # needs u0 >= 5
+    assert calls == [1] and not res.feasible and res.status.startswith("backup:")
+    np.testing.assert_array_equal(res.u, [0.3, -0.2])
+    bad = f.solve(np.zeros(2), [-5.0], [[1.0, 0.0]], None, lambda: [np.nan, 0.0])
+    assert bad.status.startswith("fallback:") and np.all(np.isfinite(bad.u))
+
+
+@pytest.mark.parametrize("value", [np.nan, np.inf, -np.inf])
 @pytest.mark.parametrize("where", ["u_nom", "a0", "a", "G"])
-def test_nan_inputs_give_finite_flagged_action(where):
+def test_non_finite_inputs_give_finite_flagged_action(where, value):
     low, high = -np.ones(3), np.ones(3)
     args = {
         "u_nom": np.array([0.5, -0.2, 0.1]),
-        "a0": np.array([0.1]),
-        "a": np.array([[1.0, 0.0, 0.0]]),
-        "G": 0.1 * np.eye(4)[None],
+        "a0": np.array([-0.1, 0.2]),
+        "a": np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]),
+        "G": np.stack([0.1 * np.eye(4)] * 2),
     }
-    args[where] = np.full_like(args[where], np.nan)
-    res = SOCPFilter(low, high, 1).solve(**args)
+    args[where] = args[where].copy()
+    args[where].flat[0] = value
+    res = SOCPFilter(low, high).solve(**args)
     assert not res.feasible and res.status == "invalid_input"
     assert np.all(np.isfinite(res.u)) and np.all(res.u >= low) and np.all(res.u <= high)
+    if where != "u_nom":  # the invalid constraint is left out, its margin is NaN
+        assert np.isnan(res.margins[0]) and np.isfinite(res.margins[1])
 
 
-def test_bad_construction():
+def test_bad_shapes_and_construction():
+    f = SOCPFilter(-np.ones(2), np.ones(2))
+    with pytest.raises(ValueError, match="u_nom"):
+        f.solve(np.zeros(3), [0.0], [[1.0, 0.0]])
+    with pytest.raises(ValueError, match="a must have shape"):
+        f.solve(np.zeros(2), [0.0, 1.0], [[1.0, 0.0]])
+    with pytest.raises(ValueError, match="G must have shape"):
+        f.solve(np.zeros(2), [0.0], [[1.0, 0.0]], np.zeros((1, 2, 2)))
     with pytest.raises(ValueError, match="action bounds"):
         SOCPFilter([1.0], [0.0])
     with pytest.raises(ValueError, match="same non-empty shape"):
         SOCPFilter([0.0, 0.0], [1.0])
     with pytest.raises(ValueError, match="n_constraints"):
-        SOCPFilter([0.0], [1.0], 0)
+        SOCPFilter([0.0], [1.0], -1)
     with pytest.raises(ValueError, match="qp_solver"):
         SOCPFilter([0.0], [1.0], qp_solver="no_such_solver")
+    with pytest.raises(ValueError, match="tol"):
+        SOCPFilter([0.0], [1.0], tol=0.0)

@@ -1,0 +1,504 @@
+"""Exact solutions of the safety filter's common cases, each checked by a KKT certificate.
+
+Every function here solves (part of) the filter program of paper eq. 05,
+
+    minimise 1/2 ||u - u_nom||^2   s.t.   c_i(u) = a0_i + a_i @ u - ||G_i ubar|| >= 0,
+                                           low <= u <= high,
+
+and returns ``None`` when it cannot: :class:`afvsgp_gym.cbf.SOCPFilter` then solves the cone
+program with clarabel. An answer is used only after :func:`certify` accepted it.
+
+- :func:`project_halfspace_box`: one half-space and the box, exact (piecewise-linear root of
+  the multiplier, ``u = clip(u_nom + lam a)``).
+- :func:`project_polyhedron_box`: any number of half-spaces and the box (the least-distance
+  program as a non-negative least-squares problem, Lawson and Hanson 1974, ch. 23).
+- :func:`project_cone_box`: one second-order cone and the box (a scalar root of the cone's
+  multiplier on a set of box faces, the faces chosen by a primal-dual active set).
+
+Small arrays (m ~ 7) make numpy's per-call cost dominate: the code calls LAPACK directly
+(``dsyev``) and keeps scalars as Python floats.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.linalg.lapack import dsyev
+from scipy.optimize import nnls
+
+#: Margin of a certified point: ``c_i(u) >= -FEAS_TOL * scale_i`` (rounding of ``c_i``).
+FEAS_TOL = 1e-12
+#: A certified point is within ``DIST_TOL * (1 + max|u|)`` of the optimum (:func:`certify`).
+DIST_TOL = 1e-9
+
+
+def constraint_scales(a0, a, G, bound_norm: float) -> np.ndarray:
+    """Size of the terms of ``c_i(u)`` anywhere in the box (``||u|| <= bound_norm``):
+    ``|a0_i| + ||a_i|| bound_norm + ||G_i||_F sqrt(1 + bound_norm^2)``. Margins are compared
+    with tolerances relative to it (the rounding error of ``c_i`` is a multiple of it)."""
+    s = np.abs(a0) + np.sqrt(np.einsum("ij,ij->i", a, a)) * bound_norm
+    if G is not None:
+        s += np.sqrt(np.einsum("ijk,ijk->i", G, G)) * math.sqrt(1.0 + bound_norm**2)
+    return s
+
+
+def cone_margin_gradient(u, a0: float, a, G):
+    """``(c(u), grad c(u))`` of one cone constraint: ``c = a0 + a u - ||v||``,
+    ``grad c = a - G[:, 1:]' v / ||v||`` with ``v = G ubar`` (gradient None at the apex)."""
+    ubar = np.empty(u.size + 1)
+    ubar[0] = 1.0
+    ubar[1:] = u
+    v = G @ ubar
+    nv = math.sqrt(float(v @ v))
+    c = a0 + float(a @ u) - nv
+    if nv == 0.0:
+        return c, None
+    return c, a - (G[:, 1:].T @ v) / nv
+
+
+class Tolerance:
+    """``FEAS_TOL * constraint_scales(a0, a, G, bound_norm)``, computed when first needed
+    (:meth:`array`) or only for some constraints (:meth:`at`): most calls need none or one."""
+
+    def __init__(self, a0, a, G, bound_norm: float):
+        self._args = (a0, a, G, bound_norm)
+        self._tol: np.ndarray | None = None
+
+    def array(self) -> np.ndarray:
+        if self._tol is None:
+            self._tol = FEAS_TOL * constraint_scales(*self._args)
+        return self._tol
+
+    def at(self, idx) -> np.ndarray:
+        if self._tol is not None:
+            return self._tol[idx]
+        a0, a, G, bound_norm = self._args
+        out = []
+        for i in idx.tolist():
+            s = abs(float(a0[i])) + math.sqrt(float(a[i] @ a[i])) * bound_norm
+            if G is not None:
+                g = G[i].ravel()
+                s += math.sqrt(float(g @ g)) * math.sqrt(1.0 + bound_norm**2)
+            out.append(FEAS_TOL * s)
+        return np.array(out)
+
+
+def certify(u, u_nom, margins, tol: Tolerance, active, lam, grads, low, high) -> bool:
+    """KKT certificate of ``u`` (inside the box) for the whole program.
+
+    ``margins`` = ``c_i(u)`` for every constraint and ``tol`` their tolerances, ``active``
+    the indices with a multiplier ``lam`` (>= 0) and ``grads`` their gradients at ``u``
+    (rows). Accepted when every margin is ``>= -tol`` and the distance to the optimum ``u*``
+    is provably below ``DIST_TOL (1 + max|u|)``: with the box multipliers taken from
+    ``w = u - u_nom - grads' lam`` (positive part at a lower face, negative part at an upper
+    face) the Lagrangian is 1-strongly convex, its gradient at ``u`` is the residual ``rho``
+    and, for feasible ``u``,
+
+        1/2 ||u* - u||^2 <= lam @ c_active + ||rho|| ||u* - u||
+        =>  ||u* - u|| <= ||rho|| + sqrt(||rho||^2 + 2 lam @ c_active).
+
+    Margins within ``tol`` of zero count as zero there: the bound is then the one of the
+    program whose ``a0`` differ from the given ones by at most that much (a backward error
+    at the rounding level of ``c``).
+    """
+    lowest = float(margins.min())
+    if not lowest >= 0.0:  # only the negative margins need their tolerance
+        if lowest != lowest:  # NaN
+            return False
+        neg = np.flatnonzero(margins < 0.0)
+        if not float((margins[neg] + tol.at(neg)).min()) >= 0.0:
+            return False
+    lam_l = lam.tolist()
+    if not min(lam_l, default=0.0) >= 0.0:
+        return False
+    comp = 0.0
+    for li, ci, ti in zip(lam_l, margins[active].tolist(), tol.at(active).tolist(), strict=True):
+        if ci > ti:
+            comp += li * ci
+    w = (u - u_nom - lam @ grads).tolist()
+    r2, umax = 0.0, 0.0
+    for wj, uj, lj, hj in zip(w, u.tolist(), low.tolist(), high.tolist(), strict=True):
+        if uj <= lj:
+            wj = min(wj, 0.0)
+        elif uj >= hj:
+            wj = max(wj, 0.0)
+        r2 += wj * wj
+        umax = max(umax, abs(uj))
+    r = math.sqrt(r2)
+    return r + math.sqrt(r2 + 2.0 * comp) <= DIST_TOL * (1.0 + umax)
+
+
+def snap_to_box(u, low, high) -> np.ndarray:
+    """``u`` clipped to the box, with coordinates within ``1e-13 (high - low)`` of a face
+    put on it (so that the face's multiplier is recognised by :func:`certify`)."""
+    out = []
+    for x, lj, hj in zip(u.tolist(), low.tolist(), high.tolist(), strict=True):
+        tol = 1e-13 * (hj - lj)
+        out.append(lj if x - lj <= tol else hj if hj - x <= tol else x)
+    return np.array(out)
+
+
+def project_halfspace_box(u_nom, a0: float, a, low, high):
+    """``(u, lam)``: projection of ``u_nom`` onto ``{a0 + a @ u >= 0} ∩ [low, high]``.
+
+    ``u(lam) = clip(u_nom + lam a)`` and ``phi(lam) = a0 + a @ u(lam)`` is piecewise linear
+    and non-decreasing: coordinate j moves with slope ``a_j^2`` between the values of
+    ``lam`` where it enters and leaves the box. The segments are swept in order of ``lam``
+    up to the one where ``phi`` reaches 0 (exact root). ``lam = 0`` if the clipped ``u_nom``
+    satisfies the half-space; None if no point of the box does.
+    """
+    un, av, lo, hi = u_nom.tolist(), a.tolist(), low.tolist(), high.tolist()
+    phi, slope, events = a0, 0.0, []
+    for x, aj, lj, hj in zip(un, av, lo, hi, strict=True):
+        phi += aj * min(max(x, lj), hj)
+        if aj == 0.0:
+            continue
+        enter, leave = ((lj - x) / aj, (hj - x) / aj) if aj > 0.0 else ((hj - x) / aj,
+                                                                          (lj - x) / aj)
+        if leave <= 0.0:
+            continue  # at (or past) the face it moves towards
+        a2 = aj * aj
+        if enter <= 0.0:
+            slope += a2
+        else:
+            events.append((enter, a2))
+        events.append((leave, -a2))
+    if phi >= 0.0:
+        return u_nom.clip(low, high), 0.0
+    events.sort()
+    lam = 0.0
+    for at, change in events:
+        if slope > 0.0 and phi + slope * (at - lam) >= 0.0:
+            break  # the root is on this segment
+        phi += slope * (at - lam)
+        lam = at
+        slope += change
+    else:
+        return None  # even the best point of the box violates the half-space
+    lam -= phi / slope
+    return (u_nom + lam * a).clip(low, high), lam
+
+
+_M_TEMPLATES: dict[tuple[int, int], np.ndarray] = {}
+
+
+def _public_nnls(A, b, maxiter):
+    return nnls(A, b, maxiter=maxiter)[0]
+
+
+def _pick_nnls():
+    """scipy's compiled Lawson-Hanson routine without the public wrapper's input checks
+    (our data are finite float64 C arrays; the wrapper costs about as much as the solve for
+    8 x 30 problems) when this scipy has it and it agrees with ``scipy.optimize.nnls`` on a
+    test problem; else the public function."""
+    try:
+        from scipy.optimize._slsqplib import nnls as raw
+
+        A = np.array([[1.0, 0.0, 2.0], [1.0, 1.0, -1.0], [0.0, 1.0, 1.0]])
+        b = np.array([2.0, -1.0, 1.0])
+        x, _, info = raw(A, b, 30)
+        if info == 1 and np.allclose(x, nnls(A, b)[0], rtol=0.0, atol=1e-14):
+
+            def fast(A, b, maxiter):
+                x, _, info = raw(A, b, maxiter)
+                if info != 1:
+                    raise RuntimeError(f"nnls returned info {info}")
+                return x
+
+            return fast
+    except Exception:  # another scipy: the public function
+        pass
+    return _public_nnls
+
+
+_nnls = _pick_nnls()
+
+
+def project_polyhedron_box(u_nom, a0, a, low, high):
+    """``(u, lam)``: projection of ``u_nom`` onto ``{a0 + a u >= 0} ∩ [low, high]``, any k.
+
+    With ``x = u - u_nom`` this is the least-distance program ``min ||x|| s.t. E x >= f``
+    (rows of ``a`` normalised, the box as ``x >= low - u_nom``, ``-x >= u_nom - high``),
+    solved through the non-negative least squares ``min ||[E'; f'] y - e_{m+1}||, y >= 0``:
+    ``r = [E'; f'] y - e``, ``x = -r[:m] / r[m]`` and the multipliers are ``y / -r[m]``
+    (Lawson and Hanson, ch. 23). ``"infeasible"`` when ``r[m] = 0`` and ``y`` is a Farkas
+    certificate: ``y >= 0``, ``f'y = 1 - r[m] > 0`` and ``|E'y| R < f'y`` for the largest
+    ``|x| = R`` in the box, so ``y'(Ex - f) < 0`` for every ``x`` there (no point satisfies
+    ``Ex >= f``). None if the solver fails or neither holds.
+    """
+    k, m = a.shape
+    tpl = _M_TEMPLATES.get((k, m))
+    if tpl is None:
+        tpl = np.zeros((m + 1, k + 2 * m))
+        tpl[:m, k : k + m] = np.eye(m)
+        tpl[:m, k + m :] = -np.eye(m)
+        tpl = _M_TEMPLATES[(k, m)] = tpl
+    M = tpl.copy()
+    norms = np.sqrt(np.einsum("ij,ij->i", a, a))
+    norms[norms == 0.0] = 1.0
+    an = a / norms[:, None]
+    M[:m, :k] = an.T
+    M[m, :k] = -(an @ u_nom + a0 / norms)
+    M[m, k : k + m] = low - u_nom
+    M[m, k + m :] = u_nom - high
+    e = np.zeros(m + 1)
+    e[m] = 1.0
+    try:
+        y = _nnls(M, e, 10 * (k + 2 * m))
+    except (RuntimeError, ValueError):
+        return None
+    r = M @ y
+    den = 1.0 - float(r[m])
+    if not den > 1e-12:
+        reach = math.sqrt(float(np.maximum((high - u_nom) ** 2, (low - u_nom) ** 2).sum()))
+        if math.sqrt(float(r[:m] @ r[:m])) * reach < float(r[m]):
+            return "infeasible"
+        return None
+    return snap_to_box(u_nom + r[:m] / den, low, high), y[:k] / (den * norms)
+
+
+class _Secular:
+    """The quadric ``phi(eta) = ubar' W ubar`` along the stationarity path of
+    :func:`project_cone_box`, in the eigenbasis of ``W_FF = V diag(d) V'``:
+    ``y = (p + eta s) / (1 - eta d)``, ``phi = W00 + sum (2 s + d y) y``,
+    ``t(eta) = t0 + alpha . y``. ``phi`` has a double pole at ``1 / max(d)`` (W has one
+    positive eigenvalue); the root search uses ``h = (1 - eta max(d))^2 phi``, which is
+    smooth there and has the same roots. Plain floats: m is small."""
+
+    def __init__(self, W00: float, s, d, p, t0: float, alpha):
+        self.W00, self.t0 = W00, t0
+        self.terms = list(zip(s.tolist(), d.tolist(), p.tolist(), alpha.tolist(), strict=True))
+        self.dmax = max(max(d.tolist(), default=0.0), 0.0)
+
+    def __call__(self, eta: float) -> tuple[float, float]:
+        """``(h, h')`` at ``eta``."""
+        q = 1.0 - eta * self.dmax
+        phi, dphi = self.W00, 0.0
+        for s, d, p, _ in self.terms:
+            den = 1.0 - eta * d
+            y = (p + eta * s) / den
+            g = s + d * y
+            phi += (s + g) * y
+            dphi += g * g / den
+        return q * q * phi, q * (2.0 * q * dphi - 2.0 * self.dmax * phi)
+
+    def size_and_t(self, eta: float) -> tuple[float, float]:
+        """Sum of the absolute terms of ``h`` (its rounding scale) and ``t`` at ``eta``."""
+        q = 1.0 - eta * self.dmax
+        size, t = abs(self.W00), self.t0
+        for s, d, p, al in self.terms:
+            y = (p + eta * s) / (1.0 - eta * d)
+            size += abs((2.0 * s + d * y) * y)
+            t += al * y
+        return q * q * size, t
+
+    def root(self, neg: float, pos: float, start: float, max_iter: int = 60):
+        """``(eta, t)`` with ``h(eta) = 0`` between ``neg`` (h < 0; ``inf`` if not known yet)
+        and ``pos`` (h > 0): Newton's method from ``start``, bisection (doubling towards an
+        unknown ``neg``) when a step leaves the bracket."""
+        eta = start if min(neg, pos) <= start < max(neg, pos) else 0.5 * (neg + pos)
+        size = self.size_and_t(eta)[0]
+        for _ in range(max_iter):
+            h, dh = self(eta)
+            if abs(h) <= 1e-14 * size:
+                break
+            if h < 0.0:
+                neg = eta
+            else:
+                pos = eta
+            nxt = eta - h / dh if dh != 0.0 else math.nan
+            if abs(nxt - eta) <= 1e-9 * abs(eta) and min(neg, pos) < nxt < max(neg, pos):
+                eta = nxt  # quadratic convergence: this step is exact to rounding
+                break
+            if abs(pos - neg) <= 1e-16 * abs(pos):
+                break
+            if not min(neg, pos) < nxt < max(neg, pos):
+                if neg == math.inf and eta > 1e6 * pos:
+                    return None  # no sign change found this far: give up
+                nxt = 0.5 * (neg + pos) if neg < math.inf else 2.0 * max(pos, eta)
+            eta = nxt
+        else:
+            return None
+        return eta, self.size_and_t(eta)[1]
+
+    def boundary_point(self, start: float):
+        """``(eta, t)`` of a root with ``eta >= 0`` and ``t > 0`` (the cone's boundary, not
+        the other nappe): ``h`` rises from ``h(0)`` to ``h(1 / max(d)) >= 0``; the root on that
+        interval, else one beyond it (beyond it first when ``t(0) < 0``). None if there is
+        none."""
+        h0, t0 = self.W00, self.t0  # at eta = 0, y = p
+        for s, d, p, al in self.terms:
+            h0 += (2.0 * s + d * p) * p
+            t0 += al * p
+        if h0 >= 0.0 and t0 >= 0.0:
+            return 0.0, t0
+        dmax = self.dmax
+        pole = 1.0 / dmax if dmax > 0.0 else math.inf
+        if t0 < 0.0 and pole < math.inf:
+            # u_nom on the far side (t < 0): the root with t > 0 is usually beyond the pole
+            found = self.root_beyond_pole(pole)
+            if found is not None and found[1] > 0.0:
+                return found
+        if h0 < 0.0 and pole < math.inf:  # h(pole) >= 0 (a square times max(d))
+            found = self.root(0.0, pole, start)
+            if found is not None and found[1] > 0.0:
+                return found
+        elif h0 < 0.0:
+            hi = max(1.0, 2.0 * start)
+            for _ in range(60):  # no pole: a point with h > 0
+                if self(hi)[0] > 0.0:
+                    found = self.root(0.0, hi, start)
+                    return found if found is not None and found[1] > 0.0 else None
+                hi *= 2.0
+        if pole == math.inf:
+            return None
+        found = self.root_beyond_pole(pole)
+        if found is None:  # phi not of that shape: plain Newton on h from the pole
+            found = self.root(math.inf, pole, pole * (1.0 + 1e-9))
+        return found if found is not None and found[1] > 0.0 else None
+
+    def root_beyond_pole(self, pole: float, max_iter: int = 60):
+        """``(eta, t)`` of the root right of the pole, where ``phi`` falls from ``+inf`` to
+        ``phi_inf = W00 - sum s^2 / d``. Near and far from the pole ``phi - phi_inf`` behaves
+        like ``C / (1 - eta max(d))^2``, so Newton's method on
+        ``(phi - phi_inf)^(-1/2) = (-phi_inf)^(-1/2)`` (nearly linear in ``eta``; the
+        secular-equation device of More and Sorensen 1983) converges in a few steps;
+        bisection keeps it in the bracket. None if ``phi_inf >= 0`` (no root there)."""
+        if any(d == 0.0 and s != 0.0 for s, d, _, _ in self.terms):
+            return None  # phi grows linearly in eta: not of that shape
+        c = self.W00 - sum(s * s / d for s, d, _, _ in self.terms if d != 0.0)
+        if not c < 0.0:
+            return None
+        target = 1.0 / math.sqrt(-c)
+        pos, neg = pole, math.inf
+        eta = 2.0 * pole
+        size = self.size_and_t(eta)[0]
+        for _ in range(max_iter):
+            h, dh = self(eta)
+            q = 1.0 - eta * self.dmax
+            phi = h / (q * q)
+            dphi = (dh + 2.0 * self.dmax * q * phi) / (q * q)
+            if abs(h) <= 1e-14 * size:
+                break
+            if phi < 0.0:
+                neg = eta
+            else:
+                pos = eta
+            r = phi - c
+            nxt = math.nan
+            if r > 0.0 and dphi != 0.0:
+                g = 1.0 / math.sqrt(r)
+                nxt = eta - (g - target) / (-0.5 * g * g * g * dphi)
+            if abs(nxt - eta) <= 1e-9 * abs(eta) and pos < nxt < neg:
+                eta = nxt  # quadratic convergence: this step is exact to rounding
+                break
+            if abs(neg - pos) <= 1e-16 * abs(pos):
+                break
+            if not pos < nxt < neg:
+                nxt = 0.5 * (neg + pos) if neg < math.inf else 2.0 * max(pos, eta)
+            eta = nxt
+        else:
+            return None
+        return eta, self.size_and_t(eta)[1]
+
+
+def project_cone_box(u_nom, a0: float, a, G, low, high, max_rounds: int = 16):
+    """``(u, lam)``: projection of ``u_nom`` onto ``{a0 + a u >= ||G ubar||} ∩ [low, high]``.
+
+    On the boundary ``t = a0 + a u = ||v||``, ``v = G ubar``, the cone's multiplier is
+    ``lam = eta t`` and stationarity reads ``u - u_nom = eta (W10 + W11 u)`` with
+    ``W = abar abar' - G'G``, ``abar = [a0, a]`` (the gradient of ``(t^2 - ||v||^2) / 2``): for a
+    fixed ``eta`` a linear system. With some coordinates fixed at box faces, ``W_FF = V
+    diag(d) V'`` makes ``ubar' W ubar`` a secular function of ``eta`` whose root
+    (:class:`_Secular`) gives ``u``. The faces change one at a time (fix the coordinate
+    farthest outside the box, else release the face whose multiplier has the wrong sign),
+    starting with none; if that does not settle, once more from the faces (and multiplier)
+    of the projection onto the constraint linearised at the clipped ``u_nom``. None when
+    neither settles, the root is on the cone's other nappe (``t < 0``) or at its apex
+    (``v = 0``: not differentiable; clarabel solves those).
+    """
+    GtG = G.T @ G
+    W11 = np.outer(a, a)
+    W11 -= GtG[1:, 1:]
+    W10 = a0 * a - GtG[1:, 0]
+    W00 = a0 * a0 - float(GtG[0, 0])
+    m = a.size
+    found = _cone_faces(u_nom, a0, a, low, high, W00, W10, W11, np.zeros(m, dtype=bool),
+                        u_nom.clip(low, high), 0.0, max_rounds)
+    if found is not None:
+        return found
+    uc = u_nom.clip(low, high)
+    c_uc, grad = cone_margin_gradient(uc, a0, a, G)
+    if grad is None:
+        return None
+    lin = project_halfspace_box(u_nom, c_uc - float(grad @ uc), grad, low, high)
+    if lin is None:
+        return None
+    u, lam = lin
+    t = a0 + float(a @ u)
+    return _cone_faces(u_nom, a0, a, low, high, W00, W10, W11, u != u_nom + lam * grad, u,
+                       lam / t if t > 0.0 else 0.0, max_rounds)
+
+
+def _cone_faces(u_nom, a0, a, low, high, W00, W10, W11, fixed, u, eta, max_rounds):
+    """The face iteration of :func:`project_cone_box` from the faces ``fixed`` (at the
+    values of ``u``) and the multiplier estimate ``eta``."""
+    lo_l, hi_l = low.tolist(), high.tolist()
+    seen = set()
+    for _ in range(max_rounds):
+        key = fixed.tobytes()
+        if key in seen:
+            return None
+        seen.add(key)
+        if fixed.any():
+            F = ~fixed
+            if not F.any():
+                return None
+            uB = np.where(fixed, u, 0.0)
+            wb = W10 + W11 @ uB  # linear term on the free coordinates (fixed part)
+            c00 = W00 + float((W10 + wb) @ uB)
+            d, V, info = dsyev(W11[np.ix_(F, F)])
+            wbF, unF, aF, t0 = wb[F], u_nom[F], a[F], a0 + float(a @ uB)
+        else:
+            F = None
+            d, V, info = dsyev(W11)
+            wbF, unF, aF, t0, c00 = W10, u_nom, a, a0, W00
+        if info != 0:
+            return None
+        p = V.T @ unF
+        s = V.T @ wbF
+        sec = _Secular(c00, s, d, p, t0, V.T @ aF)
+        found = sec.boundary_point(eta)
+        if found is None:
+            return None
+        eta = found[0]
+        uF = V @ np.array([(pi + eta * si) / (1.0 - eta * di) for si, di, pi, _ in sec.terms])
+        if F is None:
+            u = uF
+        else:
+            u = uB
+            u[F] = uF
+        # primal: fix the coordinate farthest outside the box
+        j, worst = -1, 0.0
+        for jj, (x, lj, hj) in enumerate(zip(u.tolist(), lo_l, hi_l, strict=True)):
+            e = max(lj - x, x - hj)
+            if e > worst:
+                j, worst = jj, e
+        if j >= 0:
+            u = u.clip(low, high)
+            fixed[j] = True
+            continue
+        if F is not None:
+            # dual: a face's multiplier w = u - u_nom - eta (W10 + W11 u) must push inwards
+            w = u - u_nom - eta * (W10 + W11 @ u)
+            wrong = np.where(fixed & (u <= low), -w, 0.0) + np.where(fixed & (u >= high), w, 0.0)
+            j = int(wrong.argmax())
+            if wrong[j] > 0.0:
+                fixed[j] = False
+                continue
+        t = a0 + float(a @ u)
+        if not t > 0.0:
+            return None
+        return snap_to_box(u, low, high), eta * t
+    return None
