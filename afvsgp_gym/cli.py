@@ -136,6 +136,18 @@ def _positive(text: str) -> int:
     return v
 
 
+def _executor(parser: argparse.ArgumentParser, workers: int | None, ray: str | None,
+              inline_single: bool) -> Any:
+    from afvsgp_gym.sweep.executors import make_executor, require_ray
+
+    if ray:
+        try:
+            require_ray()
+        except ImportError as exc:
+            parser.exit(3, f"{parser.prog}: error: {exc}\n")
+    return make_executor(workers, ray, inline_single=inline_single)
+
+
 # ----------------------------------------------------------------------------- subcommands
 
 
@@ -157,9 +169,11 @@ def _cmd_evaluate(args: argparse.Namespace, parser: argparse.ArgumentParser) -> 
     env_kwargs = _json_arg(parser, args.env_kwargs, "--env-kwargs")
     _check_agent_fits(parser, args.agent, args.env, env_kwargs)
     filter_kwargs = _json_arg(parser, args.filter_kwargs, "--filter-kwargs")
-    result = evaluate(args.env, agent=args.agent, learners=learners, episodes=args.episodes,
-                      seed=args.seed, max_steps=args.max_steps, env_kwargs=env_kwargs,
-                      filter_kwargs=filter_kwargs, progress=not args.no_progress)
+    with _executor(parser, args.workers, args.ray, inline_single=True) as executor:
+        result = evaluate(args.env, agent=args.agent, learners=learners,
+                          episodes=args.episodes, seed=args.seed, max_steps=args.max_steps,
+                          env_kwargs=env_kwargs, filter_kwargs=filter_kwargs,
+                          progress=not args.no_progress, executor=executor)
     print(f"env {args.env}, agent {args.agent}, seeds {args.seed}..{args.seed + args.episodes - 1}"
           f" (filter times in microseconds)")
     print(format_table(result))
@@ -300,6 +314,11 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--filter-kwargs", default=None, metavar="JSON",
                     help='SafetyFilter options, e.g. \'{"beta": 1.0}\'')
     ev.add_argument("--no-progress", action="store_true", help="no progress bar")
+    ev.add_argument("--workers", type=_positive, default=1,
+                    help="episodes in parallel worker processes (default 1: this process)")
+    ev.add_argument("--ray", default=None, metavar="ADDRESS",
+                    help="run the episodes as Ray tasks: auto, local or a cluster address "
+                         "(extra 'cluster')")
 
     rp = sub.add_parser("reproduce", help="the paper's Table I, Figs. 2, 4, 6 in simulation")
     rp.add_argument("--quick", action="store_true", help="smaller sizes (< 10 min on 2 cores)")

@@ -3,7 +3,7 @@
 The point mass runs all 20 seeds; the Franka runs seed 0 per learner and scenario here (the
 10-seed sweeps are in ``afvsgp_gym.benchmarks.filter``; measured results and the seeds that
 fail are reported in benchmarks/filter.md). Tracking "away from the obstacle" is |p - r| (m)
-after warm-up at the steps where the reference keeps >= 5 cm outside every obstacle's safe set
+at the steps where the reference keeps >= 5 cm outside every obstacle's safe set
 (``run_episode``); "bounded" is asserted as fixed limits (the unfiltered tracker's own error
 is 3-5 cm; the filtered arm may detour or stop behind the obstacle for a while).
 """
