@@ -491,25 +491,37 @@ def _nan_for_none(v: Any) -> Any:
 
 # ----------------------------------------------------------------------------- rendering
 
-_EPISODE_HEADERS = ("learner", "ep", "seed", "steps", "return", "cost", "viol", "contact",
-                    "min_h", "interv", "infeas", "track", "track_max", "unstable", "t_med_us",
-                    "t_p99_us")
-_SUMMARY_HEADERS = ("learner", "episodes", "w/ cost", "cost<=95%", "w/ viol", "w/ contact",
-                    "cost", "viol", "contact", "min_h", "interv", "infeas", "track",
-                    "track_max", "return", "return_std", "steps", "unstable", "t_med_us",
-                    "t_p99_us")
+#: (key, header) of the printed tables; JSON and CSV hold every field.
+_EPISODE_TABLE = (("learner", "learner"), ("episode", "ep"), ("seed", "seed"),
+                  ("steps", "steps"), ("return", "return"), ("cost_steps", "cost"),
+                  ("violation_steps", "h<0"), ("contact_steps", "contact"), ("min_h", "min_h"),
+                  ("interventions", "interv"), ("infeasible_steps", "backup"),
+                  ("tracking_error_mean", "track"), ("tracking_error_max", "track_max"),
+                  ("filter_time_median_s", "t_med_us"), ("filter_time_p99_s", "t_p99_us"))
+_SUMMARY_TABLE = (("learner", "learner"), ("episodes", "episodes"),
+                  ("episodes_with_cost", "w/ cost"), ("cost_rate_upper", "cost<=95%"),
+                  ("episodes_with_violation", "w/ h<0"), ("episodes_with_contact", "w/ contact"),
+                  ("contact_steps", "contacts"), ("min_h", "min_h"),
+                  ("interventions", "interv"), ("infeasible_steps", "backup"),
+                  ("tracking_error_mean", "track"), ("tracking_error_max", "track_max"),
+                  ("return_mean", "return"), ("filter_time_median_s", "t_med_us"),
+                  ("filter_time_p99_s", "t_p99_us"))
 
 
 def format_table(result: dict) -> str:
     """Per-episode table followed by the per-learner summary (filter times in microseconds)."""
     from afvsgp_gym.tables import format_table as table
 
+    def cols(spec):
+        return [k for k, _ in spec], [h for _, h in spec]
+
     sum_rows = [{"learner": k, **v} for k, v in result["summary"].items()]
-    return ("Episodes\n"
-            + table(result["episodes"], EPISODE_FIELDS, _EPISODE_HEADERS, micro=True)
-            + "\n\nSummary (cost = info['cost'] > 0: h < 0 or contact; cost<=95%: "
-              "Clopper-Pearson 95 % upper bound on the per-episode cost rate)\n"
-            + table(sum_rows, ("learner", *SUMMARY_FIELDS), _SUMMARY_HEADERS, micro=True))
+    return ("Episodes\n" + table(result["episodes"], *cols(_EPISODE_TABLE), micro=True)
+            + "\n\nSummary (cost: steps with info['cost'] > 0, h < 0 or a contact; w/ cost: "
+              "episodes with cost; cost<=95%: exact Clopper-Pearson 95 % upper bound on the "
+              "per-episode cost rate; track: mean tracking error (m) away from the obstacle; "
+              "backup: infeasible steps)\n"
+            + table(sum_rows, *cols(_SUMMARY_TABLE), micro=True))
 
 
 def jsonable(x: Any) -> Any:
