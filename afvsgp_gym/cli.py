@@ -222,14 +222,17 @@ def _cmd_sweep(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int
           f"{type(executor).__name__})", flush=True)
     try:
         with executor:
-            res = run_sweep(episodes, out_path, executor, progress=not args.no_progress)
+            res = run_sweep(episodes, out_path, executor, progress=not args.no_progress,
+                            limit=args.limit)
     except KeyboardInterrupt:
         print(f"interrupted; finished episodes are in {out_path}: re-run the same command to "
               "resume", file=sys.stderr)
         return 130
     except RuntimeError as exc:
         parser.exit(1, f"{parser.prog}: error: {exc}\n")
-    print(f"{res.ran} episodes run, {res.skipped} already finished, {len(res.failed)} failed")
+    left = len(episodes) - res.skipped - res.ran - len(res.failed)
+    print(f"{res.ran} episodes run, {res.skipped} already finished, {len(res.failed)} failed"
+          + (f", {left} left for the next run" if left else ""))
     if res.records:
         _print_report(parser, res.records, None, json_path, png_path)
     if res.failed:
@@ -424,6 +427,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="run on Ray: auto (this machine's cluster), local (a private "
                          "instance) or an address (extra 'cluster')")
     sw.add_argument("--dry-run", action="store_true", help="check CONFIG and count, run nothing")
+    sw.add_argument("--limit", type=_positive, default=None, metavar="N",
+                    help="run at most N of the unfinished episodes (a slice; re-run to go on)")
     sw.add_argument("--json", default=None, metavar="PATH", help="report as JSON")
     sw.add_argument("--png", default=None, metavar="PATH", help="report as a PNG plot")
     sw.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -483,7 +488,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     bn = sub.add_parser("bench", help="speed figures of the GP, env and filter benchmarks")
     bn.add_argument("--quick", action="store_true")
-    bn.add_argument("--only", default=None, metavar="A,B", help="subset of gp,envs,filter")
+    bn.add_argument("--only", default=None, metavar="A,B", help="subset of gp,envs,filter,sweep")
     return p
 
 

@@ -137,9 +137,10 @@ class EpisodeSpec:
         }
 
     def key(self) -> str:
-        """SHA-256 of the canonical JSON of the config and the seed: the episode's identity."""
+        """SHA-256 of the canonical JSON of the config and the seed: the episode's identity
+        (an object JSON cannot hold, e.g. a callable ``backup``, enters by its ``repr``)."""
         text = json.dumps({**self.config(), "seed": int(self.seed)}, sort_keys=True,
-                          separators=(",", ":"), allow_nan=False)
+                          separators=(",", ":"), allow_nan=False, default=repr)
         return hashlib.sha256(text.encode()).hexdigest()
 
     @property

@@ -19,7 +19,7 @@ from afvsgp_gym.benchmarks._machine import machine
 
 __all__ = ["AREAS", "main", "run_all"]
 
-AREAS = ("gp", "envs", "filter")
+AREAS = ("gp", "envs", "filter", "sweep")
 
 
 def _format(key: str, val) -> str:

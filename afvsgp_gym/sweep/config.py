@@ -64,16 +64,17 @@ class Block:
     max_steps: int | None
 
     def specs(self) -> list[EpisodeSpec]:
-        """Every episode of the block, in axis order (seeds vary fastest)."""
+        """Every episode of the block, seed by seed (each seed runs every configuration before
+        the next seed starts, so any prefix of a sweep covers the configurations evenly)."""
         return [
             EpisodeSpec(env, seed, learner=learner, agent=agent, env_kwargs=ekw,
                         filter_kwargs=fkw, max_steps=self.max_steps)
+            for seed in self.seeds
             for env in self.envs
             for ekw in combinations(self.env_kwargs)
             for learner in self.learners
             for fkw in combinations(self.filter_kwargs)
             for agent in self.agents
-            for seed in self.seeds
         ]
 
 

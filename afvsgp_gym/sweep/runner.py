@@ -60,11 +60,13 @@ def run_sweep(
     executor: Any,
     *,
     progress: bool = True,
+    limit: int | None = None,
     log: Callable[[str], None] | None = None,
 ) -> SweepResult:
     """Run the ``(block, spec)`` episodes missing from ``results_path`` on ``executor``.
 
-    Finished episodes (same :meth:`EpisodeSpec.key`) are skipped; each new record gets its
+    Finished episodes (same :meth:`EpisodeSpec.key`) are skipped; ``limit`` runs at most that
+    many of the others (the first in order: a sweep run in slices). Each new record gets its
     ``block`` and is appended as soon as it arrives. A failing episode is reported through
     ``log`` and left out of the file (a re-run retries it). SIGTERM and Ctrl-C stop the
     workers and keep every finished record; re-running the same command resumes.
@@ -78,10 +80,12 @@ def run_sweep(
         todo = [(b, s) for k, (b, s) in wanted.items() if k not in done]
         if done:
             log(f"{results_path}: {len(done)} of {len(wanted)} episodes already finished, "
-                f"running the other {len(todo)}")
+                f"{len(todo)} to run")
+        if limit is not None:
+            todo = todo[:limit]
         with_cost = sum(int(r["cost_steps"]) > 0 for r in done.values())
-        with EpisodeProgress(len(wanted), done=len(done), with_cost=with_cost, desc="sweep",
-                             enabled=progress) as bar:
+        with EpisodeProgress(len(done) + len(todo), done=len(done), with_cost=with_cost,
+                             desc="sweep", enabled=progress) as bar:
             outcomes = executor.map_unordered(_task, [s for _, s in todo])
             with contextlib.closing(outcomes):  # closing stops the workers on an interrupt
                 for res in outcomes:

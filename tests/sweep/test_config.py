@@ -167,3 +167,23 @@ def test_dry_run_counts(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "34 episodes in 2 grid(s)" in out and "a: 32 episodes" in out
     assert not (tmp_path / "r.jsonl").exists()
+
+
+def test_shipped_acceptance_config_is_valid_and_large_enough():
+    from pathlib import Path
+
+    import afvsgp_gym
+
+    path = Path(afvsgp_gym.__file__).resolve().parent.parent / "benchmarks" / "configs" / \
+        "acceptance.toml"
+    sweep = load_config(path)
+    validate(sweep)
+    episodes = [s for _, s in sweep.episodes()]
+    afvsgp = [s for s in episodes if s.learner == "afvsgp"]
+    assert len(afvsgp) >= 1000 and all(s.env_id.startswith("afvsgp_gym/Franka") for s in afvsgp)
+    assert {s.env_id for s in afvsgp} == {f"afvsgp_gym/FrankaObstacle{k}-v0"
+                                          for k in ("Static", "Dynamic", "Random")}
+    assert {s.env_kwargs["nominal_model"] for s in afvsgp} == {"zero", "kinematic", "perturbed"}
+    for kwarg in ("plant_seed", "payload_mass", "friction", "obstacle_speed"):
+        assert len({s.env_kwargs.get(kwarg) for s in afvsgp}) >= 2, kwarg
+    assert {s.learner for s in episodes} == {"afvsgp", "oracle", "none"}

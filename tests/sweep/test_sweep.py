@@ -73,7 +73,7 @@ def test_resume_skips_finished_episodes(tmp_path, capsys):
                                        "seeds": {"start": 0, "count": 6},
                                        "max_steps": 100}]}).episodes()
     path = tmp_path / "r.jsonl"
-    first = run_sweep(episodes[:4], path, InlineExecutor(), progress=False)
+    first = run_sweep(episodes, path, InlineExecutor(), progress=False, limit=4)  # a slice
     before = path.read_bytes()
     second = run_sweep(episodes, path, InlineExecutor(), progress=False)
     assert (first.ran, second.skipped, second.ran) == (4, 4, 2)
@@ -108,7 +108,7 @@ KILL_CONFIG = f"""
 [[grid]]
 envs = ["{PM}"]
 learners = ["afvsgp", "oracle"]
-seeds = {{start = 0, count = 20}}
+seeds = {{start = 0, count = 14}}
 max_steps = 300
 [grid.env_kwargs]
 scenario = ["dynamic"]

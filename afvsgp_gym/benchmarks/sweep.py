@@ -1,0 +1,145 @@
+"""Sweep throughput: Franka episodes per minute with 1 and 2 local workers, and Ray's overhead.
+
+Workload: ``episodes`` Franka episodes (dynamic scenario, AFVSGP filter, nominal "zero",
+``max_steps`` steps each, seeds 0..), run through :func:`afvsgp_gym.sweep.run_sweep` into a
+fresh results file per case, exactly as ``afvsgp-gym sweep`` does. Cases run in interleaved
+rounds (every case once per round) so load changes hit all alike; figures are medians over
+rounds, the speed-up the median of the per-round ratios.
+
+- ``pool1``/``pool2``: :class:`~afvsgp_gym.sweep.LocalExecutor` with 1 and 2 workers, started
+  and warmed (every worker has imported MuJoCo) before the clock starts; their start-up is
+  timed apart (``pool_startup_s``).
+- ``ray2``: :class:`~afvsgp_gym.sweep.RayExecutor` on a local Ray instance with 2 CPUs (when
+  ray is installed), warmed the same way; ``ray_init_s`` is ``ray.init``'s time.
+- Overhead per episode of an executor over the 2-worker pool: ``(T_ray - T_pool2) * 2 / n``
+  (worker-seconds per episode); and the dispatch cost alone, per task, from ``tasks`` trivial
+  tasks (``_noop``) on each executor.
+
+Run: ``python -m afvsgp_gym.benchmarks.sweep [--quick] [--rounds R] [--episodes N]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+from afvsgp_gym.benchmarks._machine import machine
+
+__all__ = ["main", "run"]
+
+ENV = "afvsgp_gym/FrankaObstacleDynamic-v0"
+
+
+def _noop(x: int) -> int:
+    return x
+
+
+def _warm(x: int) -> int:
+    """Import what an episode imports (MuJoCo, the envs, the filter) in a worker."""
+    import afvsgp_gym.envs.franka  # noqa: F401
+    import afvsgp_gym.wrappers  # noqa: F401
+
+    time.sleep(0.2)  # keep this worker busy so the next warm-up task goes to another one
+    return x
+
+
+def _episodes(n: int, max_steps: int):
+    from afvsgp_gym.evaluation import EpisodeSpec
+
+    return [("bench", EpisodeSpec(ENV, seed, learner="afvsgp", max_steps=max_steps))
+            for seed in range(n)]
+
+
+def _timed_sweep(executor, episodes, folder: Path, name: str) -> float:
+    from afvsgp_gym.sweep import run_sweep
+
+    path = folder / f"{name}.jsonl"
+    path.unlink(missing_ok=True)
+    t0 = time.perf_counter()
+    res = run_sweep(episodes, path, executor, progress=False)
+    wall = time.perf_counter() - t0
+    if res.ran != len(episodes) or res.failed:
+        raise RuntimeError(f"{name}: {res.ran} of {len(episodes)} episodes ran")
+    return wall
+
+
+def _dispatch(executor, tasks: int) -> float:
+    """Wall seconds per trivial task (submission, transfer, result) on a warm executor."""
+    t0 = time.perf_counter()
+    n = sum(1 for _ in executor.map_unordered(_noop, range(tasks)))
+    assert n == tasks
+    return (time.perf_counter() - t0) / tasks
+
+
+def run(quick: bool = False, rounds: int | None = None, episodes: int | None = None,
+        max_steps: int = 1000, tasks: int = 200) -> dict[str, float]:
+    """Median figures over interleaved rounds (see the module docstring)."""
+    from afvsgp_gym.sweep import InlineExecutor, LocalExecutor
+
+    rounds = rounds or (1 if quick else 3)
+    n = episodes or (4 if quick else 24)
+    eps = _episodes(n, max_steps)
+    try:
+        import ray
+    except ImportError:
+        ray = None
+    out: dict[str, float] = {"episodes": float(n), "max_steps": float(max_steps)}
+    t0 = time.perf_counter()
+    pools = {w: LocalExecutor(w) for w in (1, 2)}
+    for w, pool in pools.items():
+        list(pool.map_unordered(_warm, range(w)))
+    out["pool_startup_s"] = (time.perf_counter() - t0) / 2
+    executors = {"pool1": pools[1], "pool2": pools[2]}
+    if ray is not None:
+        from afvsgp_gym.sweep import RayExecutor
+
+        t0 = time.perf_counter()
+        ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+        out["ray_init_s"] = time.perf_counter() - t0
+        executors["ray2"] = RayExecutor()
+        list(executors["ray2"].map_unordered(_warm, range(4)))
+    walls: dict[str, list[float]] = {k: [] for k in executors}
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            for _ in range(rounds):
+                for name, ex in executors.items():
+                    walls[name].append(_timed_sweep(ex, eps, Path(tmp), name))
+        for name in executors:
+            out[f"{name}_episodes_per_min"] = 60.0 * n / statistics.median(walls[name])
+        out["speedup_2_over_1"] = statistics.median(
+            a / b for a, b in zip(walls["pool1"], walls["pool2"], strict=True))
+        if "ray2" in executors:
+            out["ray2_over_pool2_overhead_per_episode_s"] = statistics.median(
+                2.0 * (r - p) / n for r, p in zip(walls["ray2"], walls["pool2"], strict=True))
+        out["inline_dispatch_per_task_s"] = _dispatch(InlineExecutor(), tasks)
+        for name, ex in executors.items():
+            out[f"{name}_dispatch_per_task_s"] = _dispatch(ex, tasks)
+    finally:
+        for ex in executors.values():
+            ex.close()
+        if ray is not None:
+            ray.shutdown()
+    return out
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="1 round of 4 episodes")
+    parser.add_argument("--rounds", type=int, default=None)
+    parser.add_argument("--episodes", type=int, default=None)
+    parser.add_argument("--max-steps", type=int, default=1000)
+    args = parser.parse_args(argv)
+    print(f"sweep benchmark on {machine()}", flush=True)
+    res = run(quick=args.quick, rounds=args.rounds, episodes=args.episodes,
+              max_steps=args.max_steps)
+    width = max(len(k) for k in res)
+    for key, val in res.items():
+        shown = f"{val * 1e3:10.3f} ms" if key.endswith("_task_s") else f"{val:10.4g}"
+        print(f"{key:<{width}}  {shown}")
+
+
+if __name__ == "__main__":
+    main()
