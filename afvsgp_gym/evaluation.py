@@ -322,10 +322,10 @@ def run_spec(spec: EpisodeSpec, trace: bool = False) -> tuple[dict, dict | None]
     """Run one episode in a fresh env and filter; returns ``(record, trace)``.
 
     The record (JSON-able) holds ``key``, ``config``, ``seed``, ``code_version``, the counts of
-    :func:`run_episode`, ``wall_s`` (construction and run) and ``host``. This is the task every
-    executor runs.
+    :func:`run_episode`, ``wall_s`` and ``cpu_s`` (construction and run, wall-clock and CPU
+    time of the worker) and ``host``. This is the task every executor runs.
     """
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     env = make_env(spec)
     try:
         policy = make_policy(spec.agent, env, seed=spec.seed)
@@ -339,6 +339,7 @@ def run_spec(spec: EpisodeSpec, trace: bool = False) -> tuple[dict, dict | None]
         "code_version": code_version(),
         **counts,
         "wall_s": time.perf_counter() - t0,
+        "cpu_s": time.process_time() - c0,
         "host": os.uname().nodename if hasattr(os, "uname") else "",
     }
     return jsonable(record), tr

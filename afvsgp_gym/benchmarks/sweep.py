@@ -11,6 +11,10 @@ rounds, the speed-up the median of the per-round ratios.
   timed apart (``pool_startup_s``).
 - ``ray2``: :class:`~afvsgp_gym.sweep.RayExecutor` on a local Ray instance with 2 CPUs (when
   ray is installed), warmed the same way; ``ray_init_s`` is ``ray.init``'s time.
+- ``*_other_busy_cores``: cores kept busy meanwhile by everything but the episodes (the
+  machine's busy time from /proc/stat minus the episodes' CPU time, per wall second): the
+  parent process, Ray's daemons, and other jobs on a shared machine. A speed-up is only
+  meaningful when this stays well below 1.
 - Overhead per episode of an executor over the 2-worker pool: ``(T_ray - T_pool2) * 2 / n``
   (worker-seconds per episode); and the dispatch cost alone, per task, from ``tasks`` trivial
   tasks (``_noop``) on each executor.
@@ -21,6 +25,7 @@ Run: ``python -m afvsgp_gym.benchmarks.sweep [--quick] [--rounds R] [--episodes 
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import tempfile
 import time
@@ -53,17 +58,31 @@ def _episodes(n: int, max_steps: int):
             for seed in range(n)]
 
 
-def _timed_sweep(executor, episodes, folder: Path, name: str) -> float:
+def _busy_cores_s() -> float:
+    """Core-seconds the whole machine spent busy since boot (/proc/stat; NaN elsewhere)."""
+    try:
+        with open("/proc/stat") as fh:
+            f = [int(x) for x in fh.readline().split()[1:]]
+    except OSError:
+        return float("nan")
+    user, nice, system, _idle, _iowait, irq, softirq, steal = (f + [0] * 8)[:8]
+    return (user + nice + system + irq + softirq + steal) / os.sysconf("SC_CLK_TCK")
+
+
+def _timed_sweep(executor, episodes, folder: Path, name: str) -> tuple[float, float]:
+    """(wall seconds, cores kept busy by other processes meanwhile) of one sweep: the
+    machine's busy core-seconds minus the episodes' own CPU time, per wall second."""
     from afvsgp_gym.sweep import run_sweep
 
     path = folder / f"{name}.jsonl"
     path.unlink(missing_ok=True)
-    t0 = time.perf_counter()
+    b0, t0 = _busy_cores_s(), time.perf_counter()
     res = run_sweep(episodes, path, executor, progress=False)
-    wall = time.perf_counter() - t0
+    wall, busy = time.perf_counter() - t0, _busy_cores_s() - b0
     if res.ran != len(episodes) or res.failed:
         raise RuntimeError(f"{name}: {res.ran} of {len(episodes)} episodes ran")
-    return wall
+    own = sum(r["cpu_s"] for r in res.records)
+    return wall, (busy - own) / wall
 
 
 def _dispatch(executor, tasks: int) -> float:
@@ -102,13 +121,17 @@ def run(quick: bool = False, rounds: int | None = None, episodes: int | None = N
         executors["ray2"] = RayExecutor()
         list(executors["ray2"].map_unordered(_warm, range(4)))
     walls: dict[str, list[float]] = {k: [] for k in executors}
+    others: dict[str, list[float]] = {k: [] for k in executors}
     try:
         with tempfile.TemporaryDirectory() as tmp:
             for _ in range(rounds):
                 for name, ex in executors.items():
-                    walls[name].append(_timed_sweep(ex, eps, Path(tmp), name))
+                    wall, other = _timed_sweep(ex, eps, Path(tmp), name)
+                    walls[name].append(wall)
+                    others[name].append(other)
         for name in executors:
             out[f"{name}_episodes_per_min"] = 60.0 * n / statistics.median(walls[name])
+            out[f"{name}_other_busy_cores"] = statistics.median(others[name])
         out["speedup_2_over_1"] = statistics.median(
             a / b for a, b in zip(walls["pool1"], walls["pool2"], strict=True))
         if "ray2" in executors:

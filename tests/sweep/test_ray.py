@@ -10,7 +10,8 @@ from afvsgp_gym.cli import main
 from afvsgp_gym.sweep import InlineExecutor, RayExecutor, parse_config, run_sweep
 
 PM = "afvsgp_gym/PointMassObstacle-v0"
-TIMING = {"filter_time_median_s", "filter_time_p99_s", "filter_time_hist", "wall_s", "host"}
+TIMING = {"filter_time_median_s", "filter_time_p99_s", "filter_time_hist", "wall_s", "cpu_s",
+          "host"}
 
 TINY = {"grid": [{"envs": [PM], "learners": ["afvsgp", "none"], "seeds": [0, 1, 2],
                   "max_steps": 300, "env_kwargs": {"scenario": ["dynamic"]}}]}

@@ -29,7 +29,8 @@ FR = "afvsgp_gym/FrankaObstacleDynamic-v0"
 ROOT = Path(afvsgp_gym.__file__).resolve().parent.parent
 
 #: Record columns that depend on the machine's timing, not on the episode.
-TIMING = {"filter_time_median_s", "filter_time_p99_s", "filter_time_hist", "wall_s", "host"}
+TIMING = {"filter_time_median_s", "filter_time_p99_s", "filter_time_hist", "wall_s", "cpu_s",
+          "host"}
 
 MIXED = {"grid": [
     {"name": "pm", "envs": [PM], "learners": ["afvsgp", "none", "oracle"], "seeds": [0, 1],
