@@ -6,11 +6,14 @@ fresh results file per case, exactly as ``afvsgp-gym sweep`` does. Cases run in 
 rounds (every case once per round) so load changes hit all alike; figures are medians over
 rounds, the speed-up the median of the per-round ratios.
 
-- ``pool1``/``pool2``: :class:`~afvsgp_gym.sweep.LocalExecutor` with 1 and 2 workers, started
-  and warmed (every worker has imported MuJoCo) before the clock starts; their start-up is
-  timed apart (``pool_startup_s``).
-- ``ray2``: :class:`~afvsgp_gym.sweep.RayExecutor` on a local Ray instance with 2 CPUs (when
-  ray is installed), warmed the same way; ``ray_init_s`` is ``ray.init``'s time.
+- Phase 1, ``pool1``/``pool2``: :class:`~afvsgp_gym.sweep.LocalExecutor` with 1 and 2
+  workers, started and warmed (every worker has imported MuJoCo) before the clock starts; their
+  start-up is timed apart (``pool_startup_s``).
+- Phase 2 (when ray is installed), ``ray2`` against ``pool2``:
+  :class:`~afvsgp_gym.sweep.RayExecutor` on a local Ray instance with 2 CPUs, warmed the same
+  way; ``ray_init_s`` is ``ray.init``'s time.
+- ``*_worker_cpu_share``: the episodes' CPU time per worker per wall second (1: every worker
+  had a core of its own throughout).
 - ``*_other_busy_cores``: cores kept busy meanwhile by everything but the episodes (the
   machine's busy time from /proc/stat minus the episodes' CPU time, per wall second): the
   parent process, Ray's daemons, and other jobs on a shared machine. A speed-up is only
@@ -69,9 +72,10 @@ def _busy_cores_s() -> float:
     return (user + nice + system + irq + softirq + steal) / os.sysconf("SC_CLK_TCK")
 
 
-def _timed_sweep(executor, episodes, folder: Path, name: str) -> tuple[float, float]:
-    """(wall seconds, cores kept busy by other processes meanwhile) of one sweep: the
-    machine's busy core-seconds minus the episodes' own CPU time, per wall second."""
+def _timed_sweep(executor, episodes, folder: Path, name: str) -> dict[str, float]:
+    """One sweep: its wall seconds, the cores other processes kept busy meanwhile (the
+    machine's busy core-seconds minus the episodes' own CPU time, per wall second) and the
+    episodes' CPU time per worker per wall second (1: every worker had a core throughout)."""
     from afvsgp_gym.sweep import run_sweep
 
     path = folder / f"{name}.jsonl"
@@ -82,7 +86,21 @@ def _timed_sweep(executor, episodes, folder: Path, name: str) -> tuple[float, fl
     if res.ran != len(episodes) or res.failed:
         raise RuntimeError(f"{name}: {res.ran} of {len(episodes)} episodes ran")
     own = sum(r["cpu_s"] for r in res.records)
-    return wall, (busy - own) / wall
+    return {"wall": wall, "other": (busy - own) / wall,
+            "share": own / (wall * min(executor.workers, len(episodes)))}
+
+
+def _rounds(executors: dict, episodes, rounds: int, folder: Path) -> dict[str, list[dict]]:
+    """Every executor once per round, interleaved."""
+    out: dict[str, list[dict]] = {k: [] for k in executors}
+    for _ in range(rounds):
+        for name, ex in executors.items():
+            out[name].append(_timed_sweep(ex, episodes, folder, f"{name}"))
+    return out
+
+
+def _median(runs: list[dict], key: str) -> float:
+    return statistics.median(r[key] for r in runs)
 
 
 def _dispatch(executor, tasks: int) -> float:
@@ -107,43 +125,45 @@ def run(quick: bool = False, rounds: int | None = None, episodes: int | None = N
         ray = None
     out: dict[str, float] = {"episodes": float(n), "max_steps": float(max_steps)}
     t0 = time.perf_counter()
-    pools = {w: LocalExecutor(w) for w in (1, 2)}
-    for w, pool in pools.items():
-        list(pool.map_unordered(_warm, range(w)))
+    pools = {f"pool{w}": LocalExecutor(w) for w in (1, 2)}
+    for pool in pools.values():
+        list(pool.map_unordered(_warm, range(pool.workers)))
     out["pool_startup_s"] = (time.perf_counter() - t0) / 2
-    executors = {"pool1": pools[1], "pool2": pools[2]}
-    if ray is not None:
-        from afvsgp_gym.sweep import RayExecutor
-
-        t0 = time.perf_counter()
-        ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
-        out["ray_init_s"] = time.perf_counter() - t0
-        executors["ray2"] = RayExecutor()
-        list(executors["ray2"].map_unordered(_warm, range(4)))
-    walls: dict[str, list[float]] = {k: [] for k in executors}
-    others: dict[str, list[float]] = {k: [] for k in executors}
     try:
         with tempfile.TemporaryDirectory() as tmp:
-            for _ in range(rounds):
-                for name, ex in executors.items():
-                    wall, other = _timed_sweep(ex, eps, Path(tmp), name)
-                    walls[name].append(wall)
-                    others[name].append(other)
-        for name in executors:
-            out[f"{name}_episodes_per_min"] = 60.0 * n / statistics.median(walls[name])
-            out[f"{name}_other_busy_cores"] = statistics.median(others[name])
-        out["speedup_2_over_1"] = statistics.median(
-            a / b for a, b in zip(walls["pool1"], walls["pool2"], strict=True))
-        if "ray2" in executors:
-            out["ray2_over_pool2_overhead_per_episode_s"] = statistics.median(
-                2.0 * (r - p) / n for r, p in zip(walls["ray2"], walls["pool2"], strict=True))
-        out["inline_dispatch_per_task_s"] = _dispatch(InlineExecutor(), tasks)
-        for name, ex in executors.items():
-            out[f"{name}_dispatch_per_task_s"] = _dispatch(ex, tasks)
+            # phase 1: 1 against 2 local workers (no Ray daemons running)
+            runs = _rounds(pools, eps, rounds, Path(tmp))
+            for name, rr in runs.items():
+                out[f"{name}_episodes_per_min"] = 60.0 * n / _median(rr, "wall")
+                out[f"{name}_worker_cpu_share"] = _median(rr, "share")
+                out[f"{name}_other_busy_cores"] = _median(rr, "other")
+            out["speedup_2_over_1"] = statistics.median(
+                a["wall"] / b["wall"] for a, b in zip(runs["pool1"], runs["pool2"], strict=True))
+            out["inline_dispatch_per_task_s"] = _dispatch(InlineExecutor(), tasks)
+            out["pool2_dispatch_per_task_s"] = _dispatch(pools["pool2"], tasks)
+            # phase 2: Ray (2 CPUs) against the 2-worker pool
+            if ray is not None:
+                from afvsgp_gym.sweep import RayExecutor
+
+                t0 = time.perf_counter()
+                ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+                out["ray_init_s"] = time.perf_counter() - t0
+                rex = RayExecutor()
+                list(rex.map_unordered(_warm, range(4)))
+                runs = _rounds({"pool2": pools["pool2"], "ray2": rex}, eps, rounds, Path(tmp))
+                out["ray2_episodes_per_min"] = 60.0 * n / _median(runs["ray2"], "wall")
+                out["ray2_worker_cpu_share"] = _median(runs["ray2"], "share")
+                out["ray2_other_busy_cores"] = _median(runs["ray2"], "other")
+                out["pool2_with_ray_up_episodes_per_min"] = (
+                    60.0 * n / _median(runs["pool2"], "wall"))
+                out["ray2_over_pool2_overhead_per_episode_s"] = statistics.median(
+                    2.0 * (r["wall"] - p["wall"]) / n
+                    for r, p in zip(runs["ray2"], runs["pool2"], strict=True))
+                out["ray2_dispatch_per_task_s"] = _dispatch(rex, tasks)
     finally:
-        for ex in executors.values():
+        for ex in pools.values():
             ex.close()
-        if ray is not None:
+        if ray is not None and ray.is_initialized():
             ray.shutdown()
     return out
 

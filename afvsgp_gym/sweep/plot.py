@@ -1,9 +1,11 @@
 """PNG summary of a sweep report: one row per group, three panels.
 
 1. Episodes with cost: the observed rate ``k / n`` (dot; an open dot at the axis' left end when
-   ``k = 0``) and the Clopper-Pearson upper bound (bar), on a log axis, with ``k/n`` written.
+   ``k = 0``) and the Clopper-Pearson upper bound (bar), on a log axis; ``[k/n]`` in the
+   row's label.
 2. min h of every episode (dots, jittered) with ``h = 0`` marked.
-3. Mean tracking error away from the obstacle of every episode (dots).
+3. Mean tracking error of every episode over the steps whose reference keeps clear of the
+   obstacles (dots).
 
 Uses matplotlib's object API with the Agg canvas (no pyplot state touched).
 """
@@ -62,8 +64,6 @@ def plot_report(rep: Mapping[str, Any], groups: Sequence[Sequence[Mapping[str, A
             ax_cost.plot(k / m, yi, "o", color="tab:red")
         else:
             ax_cost.plot(left, yi, "o", mfc="white", color="tab:red")
-        ax_cost.annotate(f"{k}/{m}", (1.0, yi), xytext=(-3, 0), textcoords="offset points",
-                         ha="right", va="center", fontsize=7)
         jitter = rng.uniform(-0.25, 0.25, len(recs))
         ax_h.plot(_values(recs, "min_h"), yi + jitter, ".", ms=3, color="tab:blue", alpha=0.6)
         ax_track.plot(_values(recs, "tracking_error_mean"), yi + jitter, ".", ms=3,
@@ -74,8 +74,9 @@ def plot_report(rep: Mapping[str, Any], groups: Sequence[Sequence[Mapping[str, A
     ax_cost.set_xlabel(f"episodes with cost: rate (dot) and {conf:g}% upper bound (bar)")
     ax_h.axvline(0.0, color="k", lw=0.8, ls="--")
     ax_h.set_xlabel("min h per episode (m)")
-    ax_track.set_xlabel("mean tracking error per episode (m), reference clear of obstacles")
-    ax_cost.set_yticks(y, [_label(r, rep["fields"]) for r in rows], fontsize=7)
+    ax_track.set_xlabel("mean tracking error per episode (m)")
+    ax_cost.set_yticks(y, [f"{_label(r, rep['fields'])}  [{r['episodes_with_cost']}/"
+                           f"{r['episodes']}]" for r in rows], fontsize=7)
     ax_cost.set_ylim(-0.7, n - 0.3)
     for ax in (ax_cost, ax_h, ax_track):
         ax.grid(True, axis="x", alpha=0.3)

@@ -76,7 +76,8 @@ def dedupe(records: Sequence[Mapping[str, Any]]) -> tuple[list[dict], int]:
 
 def group(records: Sequence[Mapping[str, Any]],
           by: Sequence[str] | None = None) -> tuple[list[str], list[tuple[dict, list[dict]]]]:
-    """Group records; returns ``(fields, [(field values, records), ...])`` in first-seen order.
+    """Group records; returns ``(fields, [(field values, records), ...])`` sorted by the field
+    values (so the order does not depend on which episode finished first).
 
     ``by=None``: by configuration, showing the fields that vary between configurations (env
     and learner at least). Otherwise by the named fields (``ValueError`` for an unknown one).
@@ -94,7 +95,7 @@ def group(records: Sequence[Mapping[str, Any]],
     for f, r in zip(flat, records, strict=True):
         values = tuple(f.get(k) for k in fields)
         groups.setdefault(values, ({k: f.get(k) for k in fields}, []))[1].append(dict(r))
-    result = list(groups.values())
+    result = [groups[k] for k in sorted(groups, key=lambda t: tuple(map(str, t)))]
     if by is None:  # show what tells the configurations apart
         shown = [k for k in fields
                  if len({g[0].get(k) for g in result}) > 1 or k in ("env", "learner")]
