@@ -13,7 +13,9 @@ rounds, the speed-up the median of the per-round ratios.
   :class:`~afvsgp_gym.sweep.RayExecutor` on a local Ray instance with 2 CPUs, warmed the same
   way; ``ray_init_s`` is ``ray.init``'s time.
 - ``*_worker_cpu_share``: the episodes' CPU time per worker per wall second (1: every worker
-  had a core of its own throughout).
+  had a core of its own throughout); ``*_cpu_per_episode_s``: CPU seconds per episode (equal
+  for 1 and 2 workers when running side by side costs nothing extra, e.g. no shared-cache or
+  memory-bandwidth contention).
 - ``*_other_busy_cores``: cores kept busy meanwhile by everything but the episodes (the
   machine's busy time from /proc/stat minus the episodes' CPU time, per wall second): the
   parent process, Ray's daemons, and other jobs on a shared machine. A speed-up is only
@@ -87,7 +89,8 @@ def _timed_sweep(executor, episodes, folder: Path, name: str) -> dict[str, float
         raise RuntimeError(f"{name}: {res.ran} of {len(episodes)} episodes ran")
     own = sum(r["cpu_s"] for r in res.records)
     return {"wall": wall, "other": (busy - own) / wall,
-            "share": own / (wall * min(executor.workers, len(episodes)))}
+            "share": own / (wall * min(executor.workers, len(episodes))),
+            "cpu": own / len(episodes)}
 
 
 def _rounds(executors: dict, episodes, rounds: int, folder: Path) -> dict[str, list[dict]]:
@@ -137,6 +140,7 @@ def run(quick: bool = False, rounds: int | None = None, episodes: int | None = N
                 out[f"{name}_episodes_per_min"] = 60.0 * n / _median(rr, "wall")
                 out[f"{name}_worker_cpu_share"] = _median(rr, "share")
                 out[f"{name}_other_busy_cores"] = _median(rr, "other")
+                out[f"{name}_cpu_per_episode_s"] = _median(rr, "cpu")
             out["speedup_2_over_1"] = statistics.median(
                 a["wall"] / b["wall"] for a, b in zip(runs["pool1"], runs["pool2"], strict=True))
             out["inline_dispatch_per_task_s"] = _dispatch(InlineExecutor(), tasks)
