@@ -461,6 +461,8 @@ def evaluate(
     try:
         with EpisodeProgress(len(specs), desc="evaluate", enabled=progress) as bar:
             for out in executor.map_unordered(task, specs):
+                if out.exception is not None:  # the worker's exception, as raised there
+                    raise out.exception
                 if out.error is not None:
                     raise RuntimeError(f"episode {specs[out.index]} failed:\n{out.error}")
                 outcomes[out.index] = out.value

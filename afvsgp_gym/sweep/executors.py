@@ -42,11 +42,13 @@ ONE_BLAS_THREAD = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM
 
 @dataclass
 class Outcome:
-    """The result of task ``index``: its ``value``, or ``error`` (a formatted traceback)."""
+    """The result of task ``index``: its ``value``, or ``error`` (a formatted traceback) and
+    the ``exception`` itself (as raised in the worker, where the executor can carry it)."""
 
     index: int
     value: Any = None
     error: str | None = None
+    exception: BaseException | None = None
 
 
 def available_cpus() -> int:
@@ -77,7 +79,7 @@ class InlineExecutor:
             try:
                 value = fn(task)
             except Exception as exc:
-                yield Outcome(i, error=_format(exc))
+                yield Outcome(i, error=_format(exc), exception=exc)
             else:
                 yield Outcome(i, value)
 
@@ -146,7 +148,10 @@ class LocalExecutor:
                         raise RuntimeError(
                             "a worker process died (killed, out of memory or crashed); the "
                             f"pool is unusable: {exc}") from exc
-                    yield Outcome(i, error=_format(exc)) if exc else Outcome(i, fut.result())
+                    if exc is None:
+                        yield Outcome(i, fut.result())
+                    else:
+                        yield Outcome(i, error=_format(exc), exception=exc)
         finally:
             if pending:  # interrupted or abandoned: stop now rather than finish the queue
                 self._terminate()
@@ -222,7 +227,9 @@ class RayExecutor:
                     try:
                         value = ray.get(ref)
                     except Exception as exc:  # RayTaskError carries the worker's traceback
-                        yield Outcome(i, error=str(exc))
+                        cause = getattr(exc, "cause", None)
+                        yield Outcome(i, error=str(exc),
+                                      exception=cause if isinstance(cause, Exception) else exc)
                     else:
                         yield Outcome(i, value)
         finally:

@@ -214,3 +214,10 @@ def test_evaluate_workers_give_the_same_rows():
         a, b = one["summary"][name], two["summary"][name]
         assert {k: v for k, v in a.items() if not k.startswith("filter_time")} == \
             {k: v for k, v in b.items() if not k.startswith("filter_time")}
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_evaluate_raises_the_episode_error_as_it_was(workers):
+    with pytest.raises(ValueError, match="mass"):
+        evaluate(PM, learners=["none"], episodes=2, max_steps=5, env_kwargs={"mass": -1.0},
+                 workers=workers)
