@@ -1,10 +1,12 @@
-"""``afvsgp-gym`` console script: evaluate, reproduce, plot, video, train, bench.
+"""``afvsgp-gym`` console script: evaluate, sweep, report, reproduce, plot, video, train, bench.
 
 Each subcommand validates its arguments (unknown env ids, agents and learners list the valid
 choices and exit with status 2; output paths are checked for writability before any work
 starts) and then calls one library function:
 
 - ``evaluate``  -> :func:`afvsgp_gym.evaluation.evaluate`
+- ``sweep``     -> :func:`afvsgp_gym.sweep.run_sweep` (after :func:`afvsgp_gym.sweep.validate`)
+- ``report``    -> :func:`afvsgp_gym.sweep.report`
 - ``reproduce`` -> :func:`afvsgp_gym.reproduce.reproduce`
 - ``plot``      -> :func:`afvsgp_gym.reproduce.render_figures`
 - ``video``     -> :func:`afvsgp_gym.video.record_video`
@@ -136,6 +138,24 @@ def _positive(text: str) -> int:
     return v
 
 
+def _require_ray(parser: argparse.ArgumentParser) -> None:
+    from afvsgp_gym.sweep.executors import require_ray
+
+    try:
+        require_ray()
+    except ImportError as exc:
+        parser.exit(3, f"{parser.prog}: error: {exc}\n")
+
+
+def _executor(parser: argparse.ArgumentParser, workers: int | None, ray: str | None,
+              inline_single: bool) -> Any:
+    from afvsgp_gym.sweep.executors import make_executor
+
+    if ray:
+        _require_ray(parser)
+    return make_executor(workers, ray, inline_single=inline_single)
+
+
 # ----------------------------------------------------------------------------- subcommands
 
 
@@ -157,9 +177,11 @@ def _cmd_evaluate(args: argparse.Namespace, parser: argparse.ArgumentParser) -> 
     env_kwargs = _json_arg(parser, args.env_kwargs, "--env-kwargs")
     _check_agent_fits(parser, args.agent, args.env, env_kwargs)
     filter_kwargs = _json_arg(parser, args.filter_kwargs, "--filter-kwargs")
-    result = evaluate(args.env, agent=args.agent, learners=learners, episodes=args.episodes,
-                      seed=args.seed, max_steps=args.max_steps, env_kwargs=env_kwargs,
-                      filter_kwargs=filter_kwargs, progress=not args.no_progress)
+    with _executor(parser, args.workers, args.ray, inline_single=True) as executor:
+        result = evaluate(args.env, agent=args.agent, learners=learners,
+                          episodes=args.episodes, seed=args.seed, max_steps=args.max_steps,
+                          env_kwargs=env_kwargs, filter_kwargs=filter_kwargs,
+                          progress=not args.no_progress, executor=executor)
     print(f"env {args.env}, agent {args.agent}, seeds {args.seed}..{args.seed + args.episodes - 1}"
           f" (filter times in microseconds)")
     print(format_table(result))
@@ -169,6 +191,89 @@ def _cmd_evaluate(args: argparse.Namespace, parser: argparse.ArgumentParser) -> 
     if csv_path is not None:
         write_csv(result, csv_path)
         print(f"wrote {csv_path}")
+    return 0
+
+
+def _cmd_sweep(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
+    from afvsgp_gym.sweep import ConfigError, load_config, run_sweep, validate
+
+    if args.ray:
+        _require_ray(parser)
+    out = args.out or str(Path(args.config).with_suffix(".results.jsonl").name)
+    out_path = _check_out(parser, out, "--out")
+    json_path = _check_out(parser, args.json, "--json")
+    png_path = _check_out(parser, args.png, "--png")
+    try:
+        sweep = load_config(args.config)
+        episodes = sweep.episodes()
+        print(f"{args.config}: {len(episodes)} episodes in {len(sweep.blocks)} grid(s)"
+              + (f" ({sweep.size() - len(episodes)} repeated across grids, run once)"
+                 if sweep.size() > len(episodes) else ""), flush=True)
+        validate(sweep)
+    except ConfigError as exc:
+        parser.error(str(exc))
+    if args.dry_run:
+        for block in sweep.blocks:
+            print(f"  {block.name}: {len(block.specs())} episodes")
+        print("configuration valid; nothing run (--dry-run)")
+        return 0
+    executor = _executor(parser, args.workers, args.ray, inline_single=False)
+    print(f"results -> {out_path} ({executor.workers} worker(s), "
+          f"{type(executor).__name__})", flush=True)
+    try:
+        with executor:
+            res = run_sweep(episodes, out_path, executor, progress=not args.no_progress,
+                            limit=args.limit)
+    except KeyboardInterrupt:
+        print(f"interrupted; finished episodes are in {out_path}: re-run the same command to "
+              "resume", file=sys.stderr)
+        return 130
+    except RuntimeError as exc:
+        parser.exit(1, f"{parser.prog}: error: {exc}\n")
+    left = len(episodes) - res.skipped - res.ran - len(res.failed)
+    print(f"{res.ran} episodes run, {res.skipped} already finished, {len(res.failed)} failed"
+          + (f", {left} left for the next run" if left else ""))
+    if res.records:
+        _print_report(parser, res.records, None, json_path, png_path)
+    if res.failed:
+        print(f"{len(res.failed)} episode(s) failed (tracebacks above); re-run to retry them",
+              file=sys.stderr)
+        return 1
+    return 0
+
+
+def _print_report(parser: argparse.ArgumentParser, records: list, by: list | None,
+                  json_path: Path | None, png_path: Path | None, confidence: float = 0.95,
+                  markdown: bool = False) -> None:
+    from afvsgp_gym.sweep.plot import plot_report
+    from afvsgp_gym.sweep.report import format_report, report, write_report_json
+
+    try:
+        rep, groups = report(records, by, confidence)
+    except ValueError as exc:
+        parser.error(str(exc))
+    print(format_report(rep, markdown=markdown))
+    if json_path is not None:
+        print(f"wrote {write_report_json(rep, json_path)}")
+    if png_path is not None:
+        print(f"wrote {plot_report(rep, groups, png_path)}")
+
+
+def _cmd_report(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
+    from afvsgp_gym.sweep.results import read_records
+
+    json_path = _check_out(parser, args.json, "--json")
+    png_path = _check_out(parser, args.png, "--png")
+    if not 0.0 < args.confidence < 1.0:
+        parser.error(f"--confidence must be in (0, 1), got {args.confidence}")
+    try:
+        records = read_records(args.results)
+    except ValueError as exc:
+        parser.error(str(exc))
+    if not records:
+        parser.error(f"{args.results} holds no finished episode")
+    by = [s.strip() for s in args.by.split(",") if s.strip()] if args.by else None
+    _print_report(parser, records, by, json_path, png_path, args.confidence, args.markdown)
     return 0
 
 
@@ -300,6 +405,47 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--filter-kwargs", default=None, metavar="JSON",
                     help='SafetyFilter options, e.g. \'{"beta": 1.0}\'')
     ev.add_argument("--no-progress", action="store_true", help="no progress bar")
+    ev.add_argument("--workers", type=_positive, default=1,
+                    help="episodes in parallel worker processes (default 1: this process)")
+    ev.add_argument("--ray", default=None, metavar="ADDRESS",
+                    help="run the episodes as Ray tasks: auto, local or a cluster address "
+                         "(extra 'cluster')")
+
+    sw = sub.add_parser("sweep", help="a seeded grid of episodes in parallel, resumable",
+                        description="Run every episode of CONFIG (TOML, JSON or YAML: grids of "
+                                    "envs x env kwargs x learners x filter kwargs x agents x "
+                                    "seeds) on a local process pool or Ray, appending one JSON "
+                                    "line per finished episode to --out; re-running the same "
+                                    "command skips finished episodes. See "
+                                    "afvsgp_gym/sweep/config.py for the format.")
+    sw.add_argument("config", metavar="CONFIG")
+    sw.add_argument("--out", default=None, metavar="RESULTS.jsonl",
+                    help="results file (default CONFIG_NAME.results.jsonl here)")
+    sw.add_argument("--workers", type=_positive, default=None,
+                    help="worker processes (default: every core), or CPUs with --ray local")
+    sw.add_argument("--ray", default=None, metavar="ADDRESS",
+                    help="run on Ray: auto (this machine's cluster), local (a private "
+                         "instance) or an address (extra 'cluster')")
+    sw.add_argument("--dry-run", action="store_true", help="check CONFIG and count, run nothing")
+    sw.add_argument("--limit", type=_positive, default=None, metavar="N",
+                    help="run at most N of the unfinished episodes (a slice; re-run to go on)")
+    sw.add_argument("--json", default=None, metavar="PATH", help="report as JSON")
+    sw.add_argument("--png", default=None, metavar="PATH", help="report as a PNG plot")
+    sw.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+    rr = sub.add_parser("report", help="per-configuration safety report of sweep results",
+                        description="Per configuration: episodes, episodes with cost and the "
+                                    "exact Clopper-Pearson upper bound on the per-episode cost "
+                                    "rate, min h, contacts, tracking error, backup steps, "
+                                    "filter time median and p99.")
+    rr.add_argument("results", metavar="RESULTS", help="a results file written by sweep")
+    rr.add_argument("--by", default=None, metavar="F1,F2",
+                    help="group by these fields, pooling the others (e.g. learner or "
+                         "env,learner,env.nominal_model; default: the full configuration)")
+    rr.add_argument("--confidence", type=float, default=0.95)
+    rr.add_argument("--json", default=None, metavar="PATH")
+    rr.add_argument("--png", default=None, metavar="PATH")
+    rr.add_argument("--markdown", action="store_true", help="a markdown table")
 
     rp = sub.add_parser("reproduce", help="the paper's Table I, Figs. 2, 4, 6 in simulation")
     rp.add_argument("--quick", action="store_true", help="smaller sizes (< 10 min on 2 cores)")
@@ -342,12 +488,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     bn = sub.add_parser("bench", help="speed figures of the GP, env and filter benchmarks")
     bn.add_argument("--quick", action="store_true")
-    bn.add_argument("--only", default=None, metavar="A,B", help="subset of gp,envs,filter")
+    bn.add_argument("--only", default=None, metavar="A,B", help="subset of gp,envs,filter,sweep")
     return p
 
 
 _COMMANDS = {
     "evaluate": _cmd_evaluate,
+    "sweep": _cmd_sweep,
+    "report": _cmd_report,
     "reproduce": _cmd_reproduce,
     "plot": _cmd_plot,
     "video": _cmd_video,

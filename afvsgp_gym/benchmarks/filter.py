@@ -5,11 +5,11 @@
     python -m afvsgp_gym.benchmarks.filter [--quick] [--no-sweeps]
 
 Timing is per call on the current process (pin it to one core, e.g. ``taskset -c 0``, with
-``OMP_NUM_THREADS=1``). Tracking error "away from the obstacle" is ``|p - r|`` (m, the env's
-``-reward_tracking / tracking_weight``) after warm-up at the steps where the reference itself
-keeps at least ``clearance`` (5 cm) outside every obstacle's safe set, i.e. where an ideal
-tracker has no reason to deviate; it is reported next to the same figure for the unfiltered
-nominal controller on the same seed.
+``OMP_NUM_THREADS=1``). Episodes are counted by :mod:`afvsgp_gym.evaluation` (the CLI's
+runner): tracking error "away from the obstacle" is ``|p - r|`` (m) at the steps where the
+reference's sphere keeps at least 5 cm from every obstacle (``info["reference_h"] >= 0.05``),
+i.e. where an ideal tracker has no reason to deviate; it is reported next to the same figure
+for the unfiltered nominal controller on the same seed.
 """
 
 from __future__ import annotations
@@ -29,75 +29,59 @@ SCENARIOS = {
 }
 
 
-def _reference_clearance(base) -> float:
-    """Signed distance of the reference to the nearest obstacle's safe-set boundary."""
-    r = base.reference.state(base.time)[0]
-    radius = getattr(base, "ee_radius", getattr(base, "agent_radius", 0.0))
-    out = np.inf
-    for ob in base.obstacles:
-        po = ob.state(base.time)[0]
-        out = min(out, float(np.linalg.norm(r - po)) - ob.radius - radius)
-    return out
-
-
 def run_episode(
     scenario: str,
     learner: str | None,
     seed: int,
     env_kwargs: dict | None = None,
-    clearance: float = 0.05,
     probe: Callable[[Any], dict] | None = None,
     **filter_options: Any,
 ) -> dict[str, float]:
     """One seeded episode with the nominal tracker; ``learner=None`` runs it unfiltered.
 
-    The counting is :func:`afvsgp_gym.evaluation.run_episode`'s (the CLI's); this adds the
-    tracking error away from the obstacle. Returns violations (steps with h < 0), min h,
+    Built and counted as :func:`afvsgp_gym.evaluation.run_spec` does (the CLI's episode
+    runner). Returns violations (steps with h < 0), cost steps, contact steps, min h,
     fallbacks (backup or max-margin steps), interventions, mean/max tracking error away from
     the obstacle, filter time median/p99 (s) and wall time (s). ``probe(controller)`` (with a
     learner) is called once, right after the warm-up fit; its dict is merged into the result.
     """
-    import gymnasium as gym
-
-    import afvsgp_gym  # noqa: F401
-    from afvsgp_gym.agents import NominalController
-    from afvsgp_gym.evaluation import run_episode as run_counted_episode
-    from afvsgp_gym.wrappers import SafetyFilter
+    from afvsgp_gym.evaluation import EpisodeSpec, make_env, make_policy
+    from afvsgp_gym.evaluation import run_episode as run_counted
 
     env_id, kw = SCENARIOS[scenario]
-    env = gym.make(env_id, **{**kw, **(env_kwargs or {})})
-    if learner is not None:
-        env = SafetyFilter(env, learner=learner, seed=seed, **filter_options)
-    base = env.unwrapped
-    errs, away = [], []
+    spec = EpisodeSpec(env_id, seed, learner=learner, env_kwargs={**kw, **(env_kwargs or {})},
+                       filter_kwargs=filter_options)
     probed: dict = {}
 
-    def track(info: dict) -> None:
-        if base.time > base.warmup_steps * base.dt:
-            errs.append(-info["reward_tracking"] / base.tracking_weight)
-            away.append(_reference_clearance(base) > clearance)
+    def on_step(info: dict) -> None:
         if probe is not None and learner is not None and not probed \
                 and not env.controller.warming_up:
             probed.update(probe(env.controller) or {"probed": True})
 
     t0 = time.perf_counter()
+    env = make_env(spec)
     try:
-        rec, _ = run_counted_episode(env, NominalController(env), seed, on_step=track)
+        rec, _ = run_counted(env, make_policy(spec.agent, env, seed=seed), seed, on_step=on_step)
     finally:
         env.close()
-    errs, away = np.array(errs), np.array(away, dtype=bool)
-    e = errs[away] if away.any() else np.array([np.nan])
+    wall = time.perf_counter() - t0
+
+    def num(key: str) -> float:
+        return np.nan if rec[key] is None else float(rec[key])
+
     return {
-        "violations": float(rec["violation_steps"]),
-        "min_h": float(rec["min_h"]),
-        "fallbacks": float(rec["infeasible_steps"]),
-        "interventions": float(rec["interventions"]),
-        "track_mean": float(np.mean(e)),
-        "track_max": float(np.max(e)),
-        "filter_median_s": rec["filter_time_median_s"],
-        "filter_p99_s": rec["filter_time_p99_s"],
-        "steps": float(rec["steps"]),
-        "wall_s": time.perf_counter() - t0,
+        "violations": num("violation_steps"),
+        "cost_steps": num("cost_steps"),
+        "contacts": num("contact_steps"),
+        "min_h": num("min_h"),
+        "fallbacks": num("infeasible_steps"),
+        "interventions": num("interventions"),
+        "track_mean": num("tracking_error_mean"),
+        "track_max": num("tracking_error_max"),
+        "filter_median_s": num("filter_time_median_s"),
+        "filter_p99_s": num("filter_time_p99_s"),
+        "steps": num("steps"),
+        "wall_s": wall,
         **probed,
     }
 
@@ -110,27 +94,29 @@ def sweep(scenario: str, learners, seeds, **filter_options) -> dict[str, dict[st
         out[str(learner)] = {
             "episodes": float(len(rows)),
             "episodes_violating": float(sum(r["violations"] > 0 for r in rows)),
+            "episodes_with_cost": float(sum(r["cost_steps"] > 0 for r in rows)),
             "violation_steps": float(sum(r["violations"] for r in rows)),
+            "contact_steps": float(sum(r["contacts"] for r in rows)),
             "min_h": float(min(r["min_h"] for r in rows)),
             "fallbacks": float(sum(r["fallbacks"] for r in rows)),
-            "track_mean": float(np.mean([r["track_mean"] for r in rows])),
-            "track_max": float(max(r["track_max"] for r in rows)),
+            "track_mean": float(np.nanmean([r["track_mean"] for r in rows])),
+            "track_max": float(np.nanmax([r["track_max"] for r in rows])),
             "wall_s": float(sum(r["wall_s"] for r in rows)),
         }
     return out
 
 
 # ---------------------------------------------------------------------- timing
-def time_socp(n: int = 2000, m: int = 7, n_obstacles: int = 1, seed: int = 0) -> np.ndarray:
+def time_socp(n: int = 2000, m: int = 7, n_barriers: int = 1, seed: int = 0) -> np.ndarray:
     """Per-solve times (s) of the chance-constrained SOCP alone on random active instances."""
     from afvsgp_gym.cbf import SOCPFilter
 
     rng = np.random.default_rng(seed)
-    f = SOCPFilter(-np.ones(m), np.ones(m), n_obstacles)
+    f = SOCPFilter(-np.ones(m), np.ones(m))
     out = np.empty(n)
     for i in range(n):
-        a = rng.normal(size=(n_obstacles, m))
-        G = 0.2 * rng.normal(size=(n_obstacles, m + 1, m + 1))
+        a = rng.normal(size=(n_barriers, m))
+        G = 0.2 * rng.normal(size=(n_barriers, m + 1, m + 1))
         u_nom = rng.uniform(-1, 1, m)
         a0 = -(a @ u_nom) - 0.3  # the nominal action violates: the cone program runs
         t0 = time.perf_counter()

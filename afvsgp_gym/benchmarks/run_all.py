@@ -19,7 +19,7 @@ from afvsgp_gym.benchmarks._machine import machine
 
 __all__ = ["AREAS", "main", "run_all"]
 
-AREAS = ("gp", "envs", "filter", "solver")
+AREAS = ("gp", "envs", "filter", "arm", "solver", "sweep")
 
 
 def _format(key: str, val) -> str:

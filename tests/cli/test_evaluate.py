@@ -18,25 +18,38 @@ PM = "afvsgp_gym/PointMassObstacle-v0"
 STEPS = 400
 
 
+def _reference_clearance(base) -> float:
+    """Independent of evaluation: clearance of the reference's agent sphere from the obstacles."""
+    r = base.reference.state(base.time)[0]
+    return min(np.linalg.norm(r - ob.state(base.time)[0]) - ob.radius - base.agent_radius
+               for ob in base.obstacles)
+
+
 def _hand_count(learner: str, seed: int) -> dict:
     env = SafetyFilter(gym.make(PM), learner=learner, seed=seed, backup=None)
     policy = NominalController(env)
     obs, _ = env.reset(seed=seed)
-    ret, hs, coll, active, infeasible = 0.0, [], 0, 0, 0
-    for _ in range(STEPS):
+    base = env.unwrapped
+    ret, hs, cost, coll, active, infeasible, track = 0.0, [], 0, 0, 0, 0, []
+    for step in range(1, STEPS + 1):
         obs, reward, terminated, truncated, info = env.step(policy(obs))
         ret += reward
         hs.append(info["h"])
+        cost += info["cost"] > 0
         coll += bool(info["collision"])
         active += bool(info["filter_active"])
         infeasible += not info["filter_feasible"]
+        if step > base.warmup_steps and info["reference_h"] >= 0.05:
+            r = base.reference.state(base.time)[0]
+            track.append(float(np.linalg.norm(base._p - r)))  # the plant's float64 state
         if terminated or truncated:
             break
     env.close()
     hs = np.array(hs)
-    return {"steps": len(hs), "return": ret, "violation_steps": int((hs < 0).sum()),
-            "min_h": float(hs.min()), "collisions": coll, "interventions": active,
-            "infeasible_steps": infeasible}
+    return {"steps": len(hs), "return": ret, "cost_steps": cost,
+            "violation_steps": int((hs < 0).sum()), "min_h": float(hs.min()),
+            "contact_steps": coll, "interventions": active, "infeasible_steps": infeasible,
+            "tracking_error_mean": float(np.mean(track)), "tracking_error_max": max(track)}
 
 
 def test_json_and_csv_match_a_hand_counted_loop(tmp_path, capsys):
@@ -55,17 +68,20 @@ def test_json_and_csv_match_a_hand_counted_loop(tmp_path, capsys):
         got = [r for r in data["episodes"] if r["learner"] == learner]
         for i, (e, g) in enumerate(zip(expected, got, strict=True)):
             assert g["episode"] == i and g["seed"] == 3 + i
-            for key in ("steps", "violation_steps", "collisions", "interventions",
-                        "infeasible_steps"):
+            for key in ("steps", "cost_steps", "violation_steps", "contact_steps",
+                        "interventions", "infeasible_steps"):
                 assert g[key] == e[key], (learner, i, key)
-            assert g["return"] == pytest.approx(e["return"], rel=1e-9)
-            assert g["min_h"] == pytest.approx(e["min_h"], rel=1e-9)
+            for key in ("return", "min_h", "tracking_error_mean", "tracking_error_max"):
+                assert g[key] == pytest.approx(e[key], rel=1e-9), (learner, i, key)
             assert g["filter_time_median_s"] > 0 and g["filter_time_p99_s"] >= \
                 g["filter_time_median_s"]
         s = data["summary"][learner]
         assert s["episodes"] == 2
         assert s["violation_steps"] == sum(e["violation_steps"] for e in expected)
-        assert s["episodes_with_violations"] == sum(e["violation_steps"] > 0 for e in expected)
+        assert s["episodes_with_cost"] == sum(e["cost_steps"] > 0 for e in expected)
+        assert s["episodes_with_violation"] == sum(e["violation_steps"] > 0 for e in expected)
+        assert s["tracking_error_mean"] == pytest.approx(
+            np.mean([e["tracking_error_mean"] for e in expected]))
         assert s["min_h"] == pytest.approx(min(e["min_h"] for e in expected))
         assert s["return_mean"] == pytest.approx(np.mean([e["return"] for e in expected]))
     # nominal-only filter with the zero model (and no brake backup) violates; the oracle not
