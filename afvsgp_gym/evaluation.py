@@ -67,6 +67,8 @@ COUNT_FIELDS = (
     "tracking_error_mean",
     "tracking_error_max",
     "unstable",
+    "safe_proposals",
+    "safe_proposals_kept",
     "filter_time_median_s",
     "filter_time_p99_s",
 )
@@ -93,9 +95,14 @@ SUMMARY_FIELDS = (
     "return_std",
     "steps",
     "unstable_episodes",
+    "minimal_intervention",
     "filter_time_median_s",
     "filter_time_p99_s",
 )
+
+#: m/s^2; a proposal is "safe with margin" when its true HOCBF constraint value exceeds this
+#: for every barrier (``info["proposal_true_margin"]``, the minimal-intervention count).
+SAFE_MARGIN = 2.0
 
 BUILTIN_AGENTS = ("nominal", "random")
 
@@ -255,6 +262,7 @@ def run_episode(
     warmup_steps = int(getattr(base, "warmup_steps", 0) or 0)
     ret = 0.0
     steps = cost = violations = contacts = interventions = infeasible = 0
+    safe = kept = 0
     unstable = False
     min_h = math.inf
     times: list[float] = []
@@ -274,6 +282,10 @@ def run_episode(
         interventions += int(bool(info.get("filter_active", False)))
         infeasible += int(not bool(info.get("filter_feasible", True)))
         unstable |= bool(info.get("unstable", False))
+        if not info.get("warmup", True) and info.get("proposal_true_margin", -1.0) > SAFE_MARGIN:
+            safe += 1
+            kept += bool(np.array_equal(info["action_applied"], np.asarray(
+                info["action_proposed"]).astype(np.asarray(info["action_applied"]).dtype)))
         if "filter_time_s" in info:
             times.append(float(info["filter_time_s"]))
         err, ref_h = _tracking(base, info)
@@ -300,6 +312,8 @@ def run_episode(
         "tracking_error_mean": float(np.mean(track)) if track else math.nan,
         "tracking_error_max": float(np.max(track)) if track else math.nan,
         "unstable": unstable,
+        "safe_proposals": safe,
+        "safe_proposals_kept": kept,
         "filter_time_median_s": float(np.median(times)) if times else math.nan,
         "filter_time_p99_s": float(np.percentile(times, 99)) if times else math.nan,
         "filter_time_hist": time_histogram(times),
@@ -359,8 +373,10 @@ def summarize(records: Iterable[Mapping[str, Any]], confidence: float = 0.95) ->
     Counts are summed over episodes; ``episodes_with_cost`` is the headline with
     ``cost_rate_upper`` its exact one-sided Clopper-Pearson ``confidence`` bound;
     ``tracking_error_mean`` is the mean of the episode means (episodes without a counted step
-    left out), ``min_h`` and ``tracking_error_max`` the extremes; filter times are quantiles of
-    every step pooled (from the records' histograms when present).
+    left out), ``min_h`` and ``tracking_error_max`` the extremes; ``minimal_intervention`` the
+    share of the proposals that were safe with margin (true HOCBF constraint above
+    :data:`SAFE_MARGIN` after warm-up) and passed the filter unchanged; filter times are
+    quantiles of every step pooled (from the records' histograms when present).
     """
     from afvsgp_gym.stats import clopper_pearson_upper, histogram_quantile, merge_histograms
 
@@ -372,6 +388,8 @@ def summarize(records: Iterable[Mapping[str, Any]], confidence: float = 0.95) ->
     track = np.array([_num(r["tracking_error_mean"]) for r in records])
     track_max = np.array([_num(r["tracking_error_max"]) for r in records])
     with_cost = sum(int(r["cost_steps"]) > 0 for r in records)
+    safe_total = sum(int(r.get("safe_proposals") or 0) for r in records)
+    kept_total = sum(int(r.get("safe_proposals_kept") or 0) for r in records)
     hists = [r.get("filter_time_hist") for r in records]
     if all(h is not None for h in hists):
         hist = merge_histograms(hists)
@@ -399,6 +417,7 @@ def summarize(records: Iterable[Mapping[str, Any]], confidence: float = 0.95) ->
         "return_std": float(returns.std()),
         "steps": int(sum(int(r["steps"]) for r in records)),
         "unstable_episodes": int(sum(bool(r["unstable"]) for r in records)),
+        "minimal_intervention": (kept_total / safe_total) if safe_total else math.nan,
         "filter_time_median_s": t_med,
         "filter_time_p99_s": t_p99,
     }
@@ -509,8 +528,8 @@ _SUMMARY_TABLE = (("learner", "learner"), ("episodes", "episodes"),
                   ("contact_steps", "contacts"), ("min_h", "min_h"),
                   ("interventions", "interv"), ("infeasible_steps", "backup"),
                   ("tracking_error_mean", "track"), ("tracking_error_max", "track_max"),
-                  ("return_mean", "return"), ("filter_time_median_s", "t_med_us"),
-                  ("filter_time_p99_s", "t_p99_us"))
+                  ("minimal_intervention", "kept"), ("return_mean", "return"),
+                  ("filter_time_median_s", "t_med_us"), ("filter_time_p99_s", "t_p99_us"))
 
 
 def format_table(result: dict) -> str:
@@ -525,7 +544,8 @@ def format_table(result: dict) -> str:
             + "\n\nSummary (cost: steps with info['cost'] > 0, h < 0 or a contact; w/ cost: "
               "episodes with cost; cost<=95%: exact Clopper-Pearson 95 % upper bound on the "
               "per-episode cost rate; track: mean tracking error (m) away from the obstacle; "
-              "backup: infeasible steps)\n"
+              "backup: infeasible steps; kept: share of the proposals safe with margin that "
+              "passed unchanged)\n"
             + table(sum_rows, *cols(_SUMMARY_TABLE), micro=True))
 
 

@@ -52,10 +52,10 @@ class FilterConfig:
         Std of the noise added after warm-up (same units), for persistent excitation, at the
         steps where it is needed (see ``exploration_threshold``).
     exploration_threshold : float
-        After warm-up the proposal is excited only when some barrier in the program has a
-        predicted standard deviation of ``Delta B`` at the proposal above this many of its
-        learner's noise standard deviations (the model is uncertain there); otherwise a safe
-        proposal passes unchanged. 0 excites every step.
+        After warm-up the proposal is excited only when, for some barrier in the program, the
+        predicted standard deviation of ``Delta B`` at the proposal is above this many of its
+        learner's noise standard deviations and the mean margin is below ``2 beta`` of them
+        (the uncertainty decides the action); otherwise the proposal passes unchanged.
     residual_correction : float
         Weight ``w`` in [0, 1) of the residual observer (see
         :class:`~afvsgp_gym.cbf.residuals.ResidualObserver`); 0 disables it.

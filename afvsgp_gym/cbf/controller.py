@@ -283,12 +283,12 @@ class SafetyController:
         if len(pred_rows):
             try:
                 bvec, sig = self.bank.predict_affine(bset.xi[pred_rows], pred_rows)
-                u_nom = self._excite(u_nom, pred_rows, sig)
                 where = np.searchsorted(rows, pred_rows)
                 a0 = a0.copy()
                 a0[where] += bvec[:, 0] + self.residuals.bias[pred_rows]
                 a = a + 0.0
                 a[where] += bvec[:, 1:]
+                u_nom = self._excite(u_nom, pred_rows, sig, a0[where], a[where])
                 if self.config.beta > 0:
                     G = np.zeros((len(rows), m + 1, m + 1))
                     for j, s in zip(where, sig, strict=True):
@@ -327,16 +327,23 @@ class SafetyController:
             n_active=len(rows),
         )
 
-    def _excite(self, u_nom: np.ndarray, rows: np.ndarray, sig: np.ndarray) -> np.ndarray:
-        """Online exploration only where it is needed (identifiability): when the predicted
-        standard deviation of ``Delta B`` at the proposal exceeds ``exploration_threshold``
-        noise standard deviations for some barrier in the program."""
+    def _excite(self, u_nom: np.ndarray, rows: np.ndarray, sig: np.ndarray, a0: np.ndarray,
+                a: np.ndarray) -> np.ndarray:
+        """Online exploration only where it is needed: for some barrier in the program the
+        model is uncertain at the proposal (predicted standard deviation of ``Delta B`` above
+        ``exploration_threshold`` noise standard deviations) and that uncertainty decides
+        the action (the mean margin ``a0 + a @ u`` is below ``2 beta`` standard deviations:
+        the chance constraint binds or nearly does). A proposal that is safe with margin, or
+        with a confident model, passes unchanged."""
         if self.exploration.online_noise <= 0 or not np.all(np.isfinite(u_nom)):
             return u_nom
-        ubar = np.concatenate([[1.0], np.clip(u_nom, self.low, self.high)])
-        var = ((sig @ ubar) * ubar).sum(axis=1)
-        noise = self.bank.noise_variance(rows)
-        if np.any(var > self.config.exploration_threshold**2 * noise):
+        u = np.clip(u_nom, self.low, self.high)
+        ubar = np.concatenate([[1.0], u])
+        std = np.sqrt(np.maximum(((sig @ ubar) * ubar).sum(axis=1), 0.0))
+        noise = np.sqrt(self.bank.noise_variance(rows))
+        uncertain = std > self.config.exploration_threshold * noise
+        deciding = a0 + a @ u < 2.0 * max(self.config.beta, 1.0) * std
+        if np.any(uncertain & deciding):
             return self.exploration.perturb(u_nom, warm=False)
         return u_nom
 

@@ -36,6 +36,7 @@ REPORT_COLUMNS = (
     ("tracking_error_mean", "track"),
     ("tracking_error_max", "track_max"),
     ("infeasible_steps", "backup"),
+    ("minimal_intervention", "kept"),
     ("filter_time_median_s", "t_med_us"),
     ("filter_time_p99_s", "t_p99_us"),
 )

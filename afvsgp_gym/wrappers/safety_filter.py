@@ -9,6 +9,7 @@ import numpy as np
 
 from afvsgp_gym.cbf import SafetyController
 from afvsgp_gym.cbf.learners import check_learner_name
+from afvsgp_gym.types import BarrierSet
 
 __all__ = ["SafetyFilter"]
 
@@ -54,8 +55,10 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
     info keys added at every step: ``"action_proposed"``, ``"action_applied"``,
     ``"filter_active"``, ``"filter_feasible"``, ``"filter_status"``, ``"delta_b_mean"``,
     ``"delta_b_std"`` (per barrier, NaN where not predicted), ``"filter_n_active"`` (barriers
-    in the cone program), ``"filter_time_s"``, ``"warmup"``; ``"delta_b_true"`` comes from the
-    env. ``filter_fallbacks`` counts infeasible steps since the last reset.
+    in the cone program), ``"filter_time_s"``, ``"warmup"``, ``"proposal_true_margin"`` (the
+    proposal's smallest true HOCBF constraint value, ground truth for evaluation only);
+    ``"delta_b_true"`` comes from the env. ``filter_fallbacks`` counts infeasible steps since
+    the last reset.
 
     Example:
         >>> import gymnasium as gym
@@ -147,6 +150,7 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
         )
         res = self.controller.filter(proposed, terms, true_terms, self._backup)
         applied = res.u.astype(self._dtype)
+        true_margin = self._true_margin(base, proposed)
         obs, reward, terminated, truncated, info = self.env.step(applied)
         self._last_obs = obs
         self.controller.observe(
@@ -166,5 +170,17 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
             filter_n_active=int(res.n_active),
             filter_time_s=float(res.solve_time_s),
             warmup=bool(res.warmup),
+            proposal_true_margin=true_margin,
         )
         return obs, reward, terminated, truncated, info
+
+    def _true_margin(self, base, proposed: np.ndarray) -> float:
+        """Ground truth for evaluation (the filter never sees it): the smallest HOCBF
+        constraint value (eq. 44, m/s^2 for the provided envs) of the proposal under the true
+        model, over all barriers; NaN where the env has no true terms."""
+        try:
+            c0, c = self.controller.hocbf.constraints(BarrierSet.stack(base.barrier_terms("true")))
+        except (ValueError, TypeError):
+            return float("nan")
+        u = np.clip(proposed, self.controller.low, self.controller.high)
+        return float(np.min(c0 + c @ u))

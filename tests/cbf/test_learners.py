@@ -91,20 +91,27 @@ def test_frozen_learning_keeps_model():
     assert ctrl.warming_up  # warm-up still collects: learning=False only freezes online updates
 
 
-def test_online_exploration_only_perturbs_when_enabled(disc):
-    rng = np.random.default_rng(2)
+def test_online_exploration_only_where_the_uncertainty_decides(disc):
+    """After warm-up a proposal with no barrier near (or a confident model) passes unchanged;
+    near a barrier where the model is uncertain and the margin small, it is excited."""
+    ctrls = {}
     for noise in (0.0, 0.05):
         ctrl = SafetyController(
-            -np.ones(2),
-            np.ones(2),
-            learner="afvsgp",
-            warmup_samples=30,
-            online_exploration=noise,
+            -np.ones(2), np.ones(2), learner="afvsgp", warmup_samples=30, seed=0,
+            online_exploration=noise, activation_distance=0.5,
             learner_kwargs={"num_inducing": 10},
         )
-        _drive(disc, ctrl, 31, rng)
-        far = disc().terms()[0]
-        far = type(far)(np.array([5.0, 0.0]), 0.0, np.zeros(2), far.xi)  # h = 5: inactive
-        res = ctrl.filter(np.array([0.3, -0.2]), [far])
-        assert not res.warmup
-        assert np.array_equal(res.u, [0.3, -0.2]) == (noise == 0.0)
+        _drive(disc, ctrl, 31, np.random.default_rng(2))
+        ctrls[noise] = ctrl
+    template = disc().terms()[0]
+    far = type(template)(np.array([5.0, 0.0]), 0.0, np.zeros(2), template.xi)
+    unseen = 40.0 * np.ones_like(template.xi)  # far from every sample: prior uncertainty
+    near = type(template)(np.array([0.05, -0.1]), 0.0, np.zeros(2), unseen)
+    u = np.array([0.3, -0.2])
+    for ctrl in ctrls.values():
+        res = ctrl.filter(u, [far])
+        assert not res.warmup and res.n_active == 0
+        np.testing.assert_array_equal(res.u, u)  # nothing near: untouched either way
+    quiet, excited = ctrls[0.0].filter(u, [near]), ctrls[0.05].filter(u, [near])
+    assert quiet.n_active == excited.n_active == 1
+    assert not np.allclose(quiet.u, excited.u)  # the noisy proposal was filtered instead
