@@ -229,8 +229,7 @@ def _table1(cfg: ReproduceConfig, train: dict, stream: dict, log: Callable[[str]
                                train["z"][:n_fit], action_dim)
         fit_s = time.perf_counter() - t0
         online = name != "gp"
-        # a second learner with the same hyperparameters for the real-time pass (refitted:
-        # a deep copy of a fitted AFVSGP does not keep its internal buffer views)
+        # a second learner with the same hyperparameters for the real-time pass
         learner_rt = _refit(learner, train["xi_mid"][:n_fit], train["u"][:n_fit],
                             train["z"][:n_fit]) if online else None
         res = _predict_then_update(learner, stream, online)

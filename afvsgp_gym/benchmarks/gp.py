@@ -9,8 +9,7 @@ unaffected by other processes on a shared machine); ``afvsgp_step_wall_*`` is wa
   filter's step: ``predict_affine(xi_t[None])`` at the current state, then ``update`` with the
   eq. 48 sample, whose feature is the midpoint ``(xi_t + xi_{t+1}) / 2``
   (afvsgp_gym/cbf/measurement.py), a different point, so the update computes its own kernel
-  row. ``afvsgp_step_reuse_*`` updates at the predicted point instead (the kernel-row reuse
-  path, which the filter does not take).
+  row. The learner is an ``AFVSGPBank`` of one (the filter stacks one per barrier).
 - VSGP with N=2000 samples seen (O(N M^2) refresh per update) and SOGP (Bui 2017, default
   batch size): per-update median / p99 (updates at the eq. 48 midpoints).
 
@@ -162,17 +161,6 @@ def run(quick: bool = False) -> dict:
         out[f"afvsgp_step_median_at_{n_early}_s"] = early
         out[f"afvsgp_step_median_at_{n_stream}_s"] = late
         out["afvsgp_flatness_ratio"] = late / early
-        # secondary: the update at the point just predicted reuses the prediction's kernel row
-        n_re = 1000 if quick else 5000
-        re = np.empty(n_re)
-        base = WINDOW + n_stream - n_re - 2
-        for i in range(n_re):
-            j = base + i
-            t0 = clock()
-            gp.predict_affine(xi[j:j + 1])
-            gp.update(xi[j], u[j], z[j])
-            re[i] = clock() - t0
-        _stats("afvsgp_step_reuse", re * 1e-9, out)
         # inducing-set events: a stream from a new region of the feature space (drift)
         xd, ud, zd = make_stream(3000, seed=2)
         xd = np.tanh(2.0 * xd + 0.5)
@@ -199,8 +187,6 @@ def run(quick: bool = False) -> dict:
         out["batch_recompute_median_s"] = float(np.median(bt))
         out["afvsgp_speedup_vs_batch"] = out["batch_recompute_median_s"] / out[
             "afvsgp_step_median_s"]
-        out["afvsgp_speedup_vs_batch_reuse"] = out["batch_recompute_median_s"] / out[
-            "afvsgp_step_reuse_median_s"]
         # VSGP with N = 2000 samples seen
         n_v = 2000
         xv, uv, zv = make_stream(n_v + 501, seed=1)

@@ -134,7 +134,7 @@ class AFVSGPLearnerBank(LoopBank):
         from afvsgp_gym.gp.afvsgp_bank import AFVSGPBank
 
         super().fit(datasets, learn_hyperparameters)
-        self.bank = AFVSGPBank.from_learners(self.learners, max_inducing_changes=1)
+        self.bank = AFVSGPBank.from_learners(self.learners, max_inducing_candidates=1)
         self.learners = []  # the bank holds the state from here on
 
     def predict_affine(self, xi, rows):

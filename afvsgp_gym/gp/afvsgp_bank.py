@@ -13,15 +13,18 @@ a learner with fewer is padded with inert slots (identity block in ``K_oo``, zer
 columns), which leaves every posterior quantity unchanged. The rare inducing-set changes
 (eqs. 27-30: add, and replace by the eq. 28 score) run per learner.
 
-Build it from fitted learners (:meth:`AFVSGPBank.from_learners`), then call
-:meth:`update` with the K samples of a step and :meth:`predict_affine` for the learners whose
-prediction is needed (e.g. the barriers near an obstacle).
+:class:`~afvsgp_gym.gp.AFVSGP` is a bank of one learner with scikit-learn style ``fit`` /
+``update`` / ``predict``; :meth:`AFVSGPBank.from_learners` stacks fitted ones, then
+:meth:`update` takes the K samples of a step and :meth:`predict_affine` predicts for the
+learners whose prediction is needed (e.g. the barriers near an obstacle).
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.linalg import solve_triangular
@@ -29,13 +32,63 @@ from scipy.linalg.blas import dtrsm
 from scipy.linalg.lapack import dpotrf, dtrtri
 
 from afvsgp_gym.gp._linalg import jittered_cholesky
-from afvsgp_gym.gp.afvsgp import AFVSGP
+from afvsgp_gym.gp.kernels import ADPKernel
 
-__all__ = ["AFVSGPBank"]
+if TYPE_CHECKING:
+    from afvsgp_gym.gp.afvsgp import AFVSGP
+
+__all__ = ["AFVSGPBank", "BankSettings", "FittedState"]
+
+
+@dataclass(frozen=True)
+class BankSettings:
+    """The AFVSGP settings every learner of a bank shares (see :class:`~afvsgp_gym.gp.AFVSGP`)."""
+
+    window: int
+    forgetting: float
+    num_inducing: int
+    add_threshold: float
+    swap_margin: float
+    refresh_every: int | None
+    adapt_inducing: bool
+
+
+@dataclass(frozen=True)
+class FittedState:
+    """One learner right after its offline fit: hyperparameters, absolute jitter on ``K_oo``,
+    inducing set ``(xi_o, ub_o)`` and the window samples ``(xi, ub, z)`` oldest first."""
+
+    kernel: ADPKernel
+    noise_variance: float
+    jitter: float
+    xi_o: np.ndarray
+    ub_o: np.ndarray
+    xi: np.ndarray
+    ub: np.ndarray
+    z: np.ndarray
+
+
+#: Per-learner arrays (leading axis K), concatenated by :meth:`AFVSGPBank.stack`.
+_STACKED = ("inv_ls2", "var", "log_var", "noise_variance", "jitter", "n_inducing_", "_ind_xi",
+            "_ind_ub", "_amat", "_ubt", "_koo", "_l_oo", "_koo_inv", "_l_oo_invt", "_stats",
+            "_scale", "_wz", "_wk", "_wx", "_wub", "_head", "_count", "_sig_chol", "_rs2",
+            "_fresh", "n_seen_", "n_added_", "n_removed_")
 
 
 class AFVSGPBank:
     """K AFVSGP learners in stacked arrays (see the module docstring).
+
+    Parameters
+    ----------
+    settings : BankSettings
+    states : sequence of FittedState
+        One per learner (same input and action dimensions).
+    max_inducing_candidates : int or None
+        Bound on the learners whose new sample is examined as an inducing point in one
+        :meth:`update` (eqs. 27-30, O(P M) each; the candidates with the largest relative eq.
+        27 residual go first, the others are considered again with their next samples): it
+        bounds the worst-case step time. None examines every candidate, exactly as K
+        separate learners do.
 
     Attributes
     ----------
@@ -45,47 +98,25 @@ class AFVSGPBank:
     n_seen_, n_added_, n_removed_ : ndarray of int, shape (K,)
     """
 
-    def __init__(self, learners: Sequence[AFVSGP], max_inducing_changes: int | None = None):
-        if max_inducing_changes is not None and int(max_inducing_changes) < 1:
-            raise ValueError(f"max_inducing_changes must be >= 1 or None, got "
-                             f"{max_inducing_changes}")
-        self.max_inducing_changes = max_inducing_changes
-        if not learners:
-            raise ValueError("learners must hold at least one fitted AFVSGP")
-        first = learners[0]
-        for k, lr in enumerate(learners):
-            if not isinstance(lr, AFVSGP) or not hasattr(lr, "kernel_"):
-                raise ValueError(f"learners[{k}] must be a fitted AFVSGP")
-            for attr in ("window", "forgetting", "num_inducing", "add_threshold",
-                         "swap_margin", "refresh_every", "adapt_inducing"):
-                if getattr(lr, attr) != getattr(first, attr):
-                    raise ValueError(f"learners[{k}].{attr} differs from learners[0]'s")
-            if (lr.kernel_.input_dim, lr.kernel_.action_dim) != (
-                    first.kernel_.input_dim, first.kernel_.action_dim):
-                raise ValueError(f"learners[{k}] has other input/action dimensions")
-        self.n_learners = K = len(learners)
-        self.window = P = int(first.window)
-        self.forgetting = phi = float(first.forgetting)
-        self.num_inducing = int(first.num_inducing)
-        self.add_threshold = float(first.add_threshold)
-        self.swap_margin = float(first.swap_margin)
-        self.adapt_inducing = bool(first.adapt_inducing)
-        self._refresh_every = P if first.refresh_every is None else int(first.refresh_every)
-        self.input_dim = b = first.kernel_.input_dim
-        self.action_dim = first.kernel_.action_dim
-        c = self.action_dim + 1
-        self._c = c
-        mp = max(self.num_inducing, max(len(lr.inducing_xi_) for lr in learners))
-        self._mp = mp
-        self._phi, self._phi_p, self._inv_phi = phi, phi ** P, 1.0 / phi
-        self._pow = phi ** np.arange(P, dtype=float)
+    def __init__(self, settings: BankSettings, states: Sequence[FittedState],
+                 max_inducing_candidates: int | None = None):
+        if not states:
+            raise ValueError("states must hold at least one fitted learner state")
+        self._set_settings(settings, states[0].kernel, max_inducing_candidates)
+        K, P, b, c, mp = len(states), self.window, self.input_dim, self._c, self._mp
+        self.n_learners = K
+        for k, st in enumerate(states):
+            if (st.kernel.input_dim, st.kernel.action_dim) != (b, c - 1):
+                raise ValueError(f"states[{k}] has other input/action dimensions")
+            if len(st.xi_o) > mp:
+                raise ValueError(f"states[{k}] has more than num_inducing={mp} inducing points")
         # hyperparameters
-        self.inv_ls2 = np.array([lr.kernel_._inv_ls ** 2 for lr in learners])  # (K, c, b)
-        self.var = np.array([lr.kernel_._var for lr in learners])  # (K, c)
+        self.inv_ls2 = np.array([st.kernel._inv_ls ** 2 for st in states])  # (K, c, b)
+        self.var = np.array([st.kernel._var for st in states])  # (K, c)
         self.log_var = np.log(self.var)
-        self.noise_variance = np.array([lr.noise_variance_ for lr in learners])
-        self.jitter = np.array([lr.jitter_ for lr in learners])
-        self.kernels = [lr.kernel_.clone() for lr in learners]
+        self.noise_variance = np.array([float(st.noise_variance) for st in states])
+        self.jitter = np.array([float(st.jitter) for st in states])
+        self.kernels = [st.kernel.clone() for st in states]
         # inducing sets (padded)
         self.n_inducing_ = np.zeros(K, dtype=int)
         self._ind_xi = np.zeros((K, mp, b))
@@ -112,36 +143,86 @@ class AFVSGPBank:
         self.n_seen_ = np.zeros(K, dtype=int)
         self.n_added_ = np.zeros(K, dtype=int)
         self.n_removed_ = np.zeros(K, dtype=int)
-        for k, lr in enumerate(learners):
-            xi, u, z, _ = lr.window_samples()
-            n = len(z)
-            ub = np.concatenate([np.ones((n, 1)), u], axis=1)
+        for k, st in enumerate(states):
+            n = min(len(st.z), P)
+            xi, ub, z = st.xi[-n:], st.ub[-n:], st.z[-n:]
             self._wz[k, :n] = z
             self._wx[k, :n, :b] = xi
             self._wx[k, :n, b:] = xi * xi
             self._wub[k, :n] = ub
             self._count[k], self._head[k] = n, n - 1
-            self.n_seen_[k] = lr.n_seen_
-            xo, uo = lr.inducing_xi_, lr.inducing_u_
-            ubo = np.concatenate([np.ones((len(xo), 1)), uo], axis=1)
-            koo = lr.kernel_._gram(xo, ubo)
+            self.n_seen_[k] = n
+            koo = st.kernel._gram(st.xi_o, st.ub_o)
             koo[np.diag_indices_from(koo)] += self.jitter[k]
-            self._set_inducing(k, xo, ubo, koo, jittered_cholesky(koo, name="K_oo"))
-            self._wk[k, :n, : len(xo)] = lr.kernel_._gram(xi, ub, xo, ubo)
+            self._set_inducing(k, st.xi_o, st.ub_o, koo, jittered_cholesky(koo, name="K_oo"))
+            self._wk[k, :n, : len(st.xi_o)] = st.kernel._gram(xi, ub, st.xi_o, st.ub_o)
             self._rebuild_stats(k)
-        # stagger the periodic rebuilds so that at most a few learners rebuild in one step
+        self._stagger()
+
+    def _set_settings(self, settings: BankSettings, kernel: ADPKernel,
+                      max_inducing_candidates: int | None) -> None:
+        if max_inducing_candidates is not None and int(max_inducing_candidates) < 1:
+            raise ValueError(f"max_inducing_candidates must be >= 1 or None, got "
+                             f"{max_inducing_candidates}")
+        self.settings = settings
+        self.max_inducing_candidates = max_inducing_candidates
+        self.window = P = int(settings.window)
+        self.forgetting = phi = float(settings.forgetting)
+        self.num_inducing = int(settings.num_inducing)
+        self.add_threshold = float(settings.add_threshold)
+        self.swap_margin = float(settings.swap_margin)
+        self.adapt_inducing = bool(settings.adapt_inducing)
+        self._refresh_every = P if settings.refresh_every is None else int(settings.refresh_every)
+        self.input_dim = kernel.input_dim
+        self.action_dim = kernel.action_dim
+        self._c = self.action_dim + 1
+        self._mp = self.num_inducing
+        self._phi, self._phi_p, self._inv_phi = phi, phi ** P, 1.0 / phi
+        self._pow = phi ** np.arange(P, dtype=float)
+
+    def _stagger(self) -> None:
+        """Spread the periodic rebuilds so that at most a few learners rebuild in one step."""
+        K = self.n_learners
         self._since_refresh = (np.arange(K) * self._refresh_every) // K
 
     @classmethod
-    def from_learners(cls, learners: Sequence[AFVSGP],
-                      max_inducing_changes: int | None = None) -> AFVSGPBank:
-        """Bank holding copies of the state of fitted AFVSGP ``learners`` (same settings).
+    def stack(cls, banks: Sequence[AFVSGPBank],
+              max_inducing_candidates: int | None = None) -> AFVSGPBank:
+        """One bank holding copies of the learners of ``banks`` (equal settings), in order."""
+        if not banks:
+            raise ValueError("banks must hold at least one AFVSGPBank")
+        first = banks[0]
+        for i, bk in enumerate(banks):
+            if bk.settings != first.settings:
+                raise ValueError(f"banks[{i}] has other settings than banks[0]: "
+                                 f"{bk.settings} != {first.settings}")
+            if (bk.input_dim, bk.action_dim) != (first.input_dim, first.action_dim):
+                raise ValueError(f"banks[{i}] has other input/action dimensions")
+        out = cls.__new__(cls)
+        out._set_settings(first.settings, first.kernels[0], max_inducing_candidates)
+        for name in _STACKED:
+            setattr(out, name, np.concatenate([getattr(bk, name) for bk in banks]))
+        out.kernels = [k.clone() for bk in banks for k in bk.kernels]
+        out.n_learners = len(out.kernels)
+        out._stagger()
+        return out
 
-        ``max_inducing_changes`` bounds the inducing-set changes per :meth:`update` (the
-        candidates with the largest relative eq. 27 residual go first; the others are
-        considered again with their next samples), which bounds the worst-case step time;
-        None considers every candidate, exactly as K separate AFVSGP learners do."""
-        return cls(learners, max_inducing_changes)
+    @classmethod
+    def from_learners(cls, learners: Sequence[AFVSGP],
+                      max_inducing_candidates: int | None = None) -> AFVSGPBank:
+        """One bank holding copies of the state of fitted AFVSGP ``learners`` (equal
+        settings; see ``max_inducing_candidates`` in the class docstring)."""
+        from afvsgp_gym.gp.afvsgp import AFVSGP
+
+        if not learners:
+            raise ValueError("learners must hold at least one fitted AFVSGP")
+        for k, lr in enumerate(learners):
+            if not isinstance(lr, AFVSGP) or not hasattr(lr, "_bank"):
+                raise ValueError(f"learners[{k}] must be a fitted AFVSGP")
+        try:
+            return cls.stack([lr._bank for lr in learners], max_inducing_candidates)
+        except ValueError as exc:
+            raise ValueError(f"learners: {exc}") from None
 
     # ------------------------------------------------------------------ per-learner state
     def _set_inducing(self, k: int, xo: np.ndarray, ubo: np.ndarray, koo: np.ndarray,
@@ -217,8 +298,20 @@ class AFVSGPBank:
         feat[:, 2 * b, 0] = 1.0
         amat = self._amat if rows is None else self._amat[rows]
         e = np.matmul(amat, feat).reshape(n, self._c, self._mp)
+        if not math.isfinite(float(e.sum())):  # huge |xi|: x^2 overflows in the expansion
+            idx = np.arange(self.n_learners) if rows is None else np.asarray(rows)
+            e = self._exponent_direct(idx, xi)
         np.exp(e, out=e)
         e *= self._ubt if rows is None else self._ubt[rows]
+        return e
+
+    def _exponent_direct(self, rows: np.ndarray, xi: np.ndarray) -> np.ndarray:
+        """``log k_i(xi_j, o)`` (n, m+1, Mp) from the differences, for points so far out that
+        the expansion overflows (the kernel underflows to 0 there)."""
+        with np.errstate(over="ignore"):
+            d = xi[:, None, :] - self._ind_xi[rows]  # (n, Mp, b)
+            e = self.log_var[rows][:, :, None] - 0.5 * np.einsum(
+                "jmd,jid->jim", d * d, self.inv_ls2[rows])
         return e
 
     # ------------------------------------------------------------------ prediction
@@ -261,6 +354,37 @@ class AFVSGPBank:
         i = np.arange(c)
         sig[:, i, i] += self.var[idx]
         return ff[:, :c, c].copy(), sig
+
+    def predict_points(self, k: int, xi: np.ndarray):
+        """``b`` (N, m+1) and ``Sigma`` (N, m+1, m+1) of learner ``k`` at N finite points
+        ``xi`` (N, b) (eq. 20): one kernel product, two triangular solves for all points."""
+        xi = np.asarray(xi, dtype=np.float64)
+        n, b = xi.shape
+        c, mp = self._c, self._mp
+        feat = np.empty((n, 2 * b + 1))
+        feat[:, :b] = xi
+        feat[:, b:2 * b] = xi * xi
+        feat[:, 2 * b] = 1.0
+        e = (feat @ self._amat[k].T).reshape(n, c, mp)
+        if not math.isfinite(float(e.sum())):  # huge |xi|: x^2 overflows in the expansion
+            e = np.concatenate([self._exponent_direct(np.array([k]), x[None]) for x in xi])
+        kt = np.exp(e)
+        kt *= self._ubt[k]
+        if not self._fresh[k]:
+            self._refresh(np.array([k]))
+        rhs = np.empty((mp, n * c + 1), order="F")
+        rhs[:, : n * c] = kt.reshape(n * c, mp).T
+        rhs[:, n * c] = self._rs2[k]
+        f = dtrsm(1.0, self._sig_chol[k], rhs, 0, 1, 0, 0, 0)  # L^-1 [Kt', r/s2]
+        fk = f[:, : n * c].T.reshape(n, c, mp)
+        mean = fk @ f[:, n * c]
+        g = kt @ self._l_oo_invt[k]
+        sig = np.matmul(fk, fk.transpose(0, 2, 1)) - np.matmul(g, g.transpose(0, 2, 1))
+        sig += sig.transpose(0, 2, 1)
+        sig *= 0.5
+        i = np.arange(c)
+        sig[:, i, i] += self.var[k]
+        return mean, sig
 
     # ------------------------------------------------------------------ update
     def update(self, xi: np.ndarray, u: np.ndarray, z: np.ndarray) -> np.ndarray:
@@ -337,15 +461,11 @@ class AFVSGPBank:
                 d > 1e-6 * kss)
             if cand.any():
                 order = np.flatnonzero(cand)
-                if self.max_inducing_changes is not None:
+                if self.max_inducing_candidates is not None:
                     order = order[np.argsort(-d[order] / kss[order])]
-                changes = 0
+                    order = order[: self.max_inducing_candidates]
                 for j in order:
-                    changes += self._consider_add(int(idx[j]), xi[j], ub, float(kss[j]),
-                                                  k_new[j])
-                    if self.max_inducing_changes is not None and (
-                            changes >= self.max_inducing_changes):
-                        break
+                    self._consider_add(int(idx[j]), xi[j], ub, float(kss[j]), k_new[j])
         return ok
 
     # ------------------------------------------------------------------ inducing set

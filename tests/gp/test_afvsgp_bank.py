@@ -130,12 +130,12 @@ def test_learners_with_different_settings_are_refused():
 
 
 def test_at_most_one_inducing_change_per_step_keeps_the_posterior_exact():
-    """With ``max_inducing_changes=1`` at most one learner changes its inducing set in a step,
+    """With ``max_inducing_candidates=1`` at most one learner changes its inducing set in a step,
     and each learner still equals the batch weighted posterior on its own inducing set."""
     n = P + 6 * P
     streams = _streams(n)
     u = streams[0][1]
-    bank = AFVSGPBank.from_learners(_learners(streams, u), max_inducing_changes=1)
+    bank = AFVSGPBank.from_learners(_learners(streams, u), max_inducing_candidates=1)
     for i in range(P, n):
         before = bank.n_added_.copy()
         xi, z = _rows(streams, i)
@@ -153,5 +153,5 @@ def test_at_most_one_inducing_change_per_step_keeps_the_posterior_exact():
             u[n - P : n], z[n - P : n], w, bank._ind_xi[k, :m], bank._ind_ub[k, :m, 1:],
             xs[k : k + 1], jitter=bank.jitter[k])
         assert _rel(b[k], bref[0]) < 1e-7 and _rel(s[k], sref[0]) < 1e-7
-    with pytest.raises(ValueError, match="max_inducing_changes"):
-        AFVSGPBank.from_learners(_learners(streams[:1], u), max_inducing_changes=0)
+    with pytest.raises(ValueError, match="max_inducing_candidates"):
+        AFVSGPBank.from_learners(_learners(streams[:1], u), max_inducing_candidates=0)

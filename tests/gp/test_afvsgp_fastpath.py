@@ -1,6 +1,6 @@
-"""AFVSGP per-step fast path: the one-point ``predict_affine`` and the update that reuses its
-kernel row, checked against the independent batch formula and against the general paths.
-Tolerances: tests/gp/tolerances.py (first-order rounding bounds)."""
+"""AFVSGP per-step path: the one-point ``predict_affine`` and the update, checked against the
+independent batch formula and against the many-point path; interleaving predictions with
+updates (at the next update's point or elsewhere) never changes the state."""
 
 import numpy as np
 import pytest
@@ -32,10 +32,10 @@ def _batch(gp, xi, u, z, xs):
     return ref, sparse_affine_tolerance(gp, xs, (xi[-p:], u[-p:], z[-p:], w))
 
 
-@pytest.mark.parametrize("reuse", [True, False])
-def test_one_point_predictions_equal_batch_formula_through_inducing_events(reuse):
-    """Stream with a prediction each step (at the next update's xi, so the update reuses the
-    kernel row, or at another point); every one-point prediction at checkpoints equals the
+@pytest.mark.parametrize("at_next", [True, False])
+def test_one_point_predictions_equal_batch_formula_through_inducing_events(at_next):
+    """Stream with a prediction each step (at the next update's xi, or at another point);
+    every one-point prediction at checkpoints equals the
     batch weighted Titsias posterior, also right after add/remove events."""
     rng = np.random.default_rng(11)
     p = 40
@@ -48,9 +48,9 @@ def test_one_point_predictions_equal_batch_formula_through_inducing_events(reuse
         before = gp.n_added_
         gp.update(xi[i], u[i], z[i])
         if i + 1 < n:
-            bvec, sig = gp.predict_affine(xi[i + 1:i + 2] if reuse else other)
+            bvec, sig = gp.predict_affine(xi[i + 1:i + 2] if at_next else other)
         if i % 23 == 0 or gp.n_added_ != before:
-            xs = xi[i + 1:i + 2] if (reuse and i + 1 < n) else other
+            xs = xi[i + 1:i + 2] if (at_next and i + 1 < n) else other
             b1, s1 = gp.predict_affine(xs)
             (bref, sref), (tol_b, tol_s) = _batch(gp, xi[: i + 1], u[: i + 1], z[: i + 1], xs)
             assert_within(b1, bref, tol_b, "b")
@@ -85,9 +85,9 @@ def test_one_point_path_equals_general_path():
     np.testing.assert_array_equal(s1, keep[1])
 
 
-def test_row_reuse_gives_the_same_state_as_a_fresh_kernel_row():
-    """Predicting at each next xi (kernel row reused by the update) or not at all gives
-    identical learners: same statistics, inducing set and predictions."""
+def test_predicting_at_the_next_point_leaves_the_state_unchanged():
+    """Predicting at each next xi or not at all gives identical learners: same statistics,
+    inducing set and predictions."""
     rng = np.random.default_rng(13)
     p = 40
     xi, u, z, _ = synthetic(rng, 500, noise_std=0.05)
@@ -106,9 +106,8 @@ def test_row_reuse_gives_the_same_state_as_a_fresh_kernel_row():
         np.testing.assert_array_equal(got, ref)
 
 
-def test_update_at_a_point_other_than_the_prediction_does_not_reuse_its_row():
-    """predict at x1, update at x0 (no reuse), update at x1: the row of x1 is stale by then
-    (the scratch row holds x0) and must be recomputed."""
+def test_update_at_a_point_other_than_the_prediction():
+    """predict at x1, update at x0, update at x1 gives the learner that never predicted."""
     rng = np.random.default_rng(14)
     p = 30
     xi, u, z, _ = synthetic(rng, 200)

@@ -179,8 +179,10 @@ def test_shipped_acceptance_config_is_valid_and_large_enough():
     sweep = load_config(path)
     validate(sweep)
     episodes = [s for _, s in sweep.episodes()]
-    afvsgp = [s for s in episodes if s.learner == "afvsgp"]
-    assert len(afvsgp) >= 1000 and all(s.env_id.startswith("afvsgp_gym/Franka") for s in afvsgp)
+    afvsgp = [s for s in episodes if s.learner == "afvsgp"
+              and s.env_id.startswith("afvsgp_gym/Franka")
+              and s.env_kwargs.get("safety_spheres", "arm") == "arm"]  # whole-arm Franka
+    assert len(afvsgp) >= 1000
     assert {s.env_id for s in afvsgp} == {f"afvsgp_gym/FrankaObstacle{k}-v0"
                                           for k in ("Static", "Dynamic", "Random")}
     assert {s.env_kwargs["nominal_model"] for s in afvsgp} == {"zero", "kinematic", "perturbed"}
