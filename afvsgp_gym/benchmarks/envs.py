@@ -17,7 +17,6 @@ Run: ``python -m afvsgp_gym.benchmarks.envs [--quick]``.
 
 from __future__ import annotations
 
-import sys
 import time
 from collections.abc import Callable
 
@@ -102,10 +101,13 @@ def run(quick: bool = False, rounds: int | None = None) -> dict[str, float]:
 
 
 def main(argv: list[str] | None = None) -> None:
-    argv = sys.argv[1:] if argv is None else argv
+    import argparse
+
     import mujoco
 
-    res = run(quick="--quick" in argv)
+    parser = argparse.ArgumentParser(description="Franka env step rates against Ant-v5")
+    parser.add_argument("--quick", action="store_true", help="fewer steps and rounds")
+    res = run(quick=parser.parse_args(argv).quick)
     print(f"machine: {machine()}, mujoco {mujoco.__version__}, gymnasium {gym.__version__}")
     print(f"{'case':45s} {'value':>12s}")
     for k, v in res.items():

@@ -68,8 +68,11 @@ def run_all(quick: bool = False, areas: Sequence[str] | None = None,
 
 
 def main(argv: list[str] | None = None) -> None:
-    argv = sys.argv[1:] if argv is None else argv
-    run_all(quick="--quick" in argv)
+    import argparse
+
+    parser = argparse.ArgumentParser(description="every benchmark area's figures")
+    parser.add_argument("--quick", action="store_true", help="smaller runs")
+    run_all(quick=parser.parse_args(argv).quick)
 
 
 if __name__ == "__main__":

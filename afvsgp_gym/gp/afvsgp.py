@@ -5,7 +5,7 @@ over the last ``window`` samples with weights ``forgetting**age`` (newest 1):
 
     S = K_ox Lambda K_xo,   r = K_ox Lambda z,   B = (K_oo + S / s2)^-1        (eq. 20)
 
-Per step (DESIGN's corrected eqs. 25-26), with ``k`` the sample's row of K_xo:
+Per step (eqs. 25-26 as corrected in docs/equations.md), with ``k`` the sample's row of K_xo:
 
     S <- phi S + k_new k_new' - phi^P k_old k_old',   r <- phi r + z_new k_new - phi^P z_old k_old
 

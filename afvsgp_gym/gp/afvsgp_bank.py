@@ -414,7 +414,7 @@ class AFVSGPBank:
         kt = self._kt(rows, xi)  # (k, c, Mp)
         k_new = np.matmul(ub, kt)  # (k, Mp)
         kss = self.var[sel] @ (ub * ub)
-        # sliding window with forgetting (DESIGN eqs. 25-26); phi S is folded into the scale
+        # sliding window with forgetting (eqs. 25-26, docs/equations.md); phi S in the scale
         scale = self._scale[sel] * self._inv_phi
         self._scale[sel] = scale
         cnt = self._count[sel]

@@ -7,13 +7,11 @@
 - :func:`fit_with_restarts`: one learner; L-BFGS-B on the collapsed bound sometimes stops at
   its initial point (a failed first line search), so it restarts from a smaller noise, doubled
   lengthscales and the learner's own data heuristic until the optimiser moves.
-- :func:`fit_shared`: K learners (one per barrier) with one hyperparameter fit: on the
-  barrier whose samples have the largest mean square (default), or on the samples of all
-  barriers pooled (each divided by its root mean square; measured worse: the pool's fit put
-  everything into the noise). Each barrier's learner gets the kernel and noise rescaled to
-  its own mean square (variances and noise times ``rms_k^2``: the same prior shape, the
-  barrier's own output scale) with its own inducing set and posterior. The cost is one fit
-  plus K posteriors instead of K fits.
+- :func:`fit_shared`: K learners (one per barrier) with one hyperparameter fit, on the
+  barrier whose samples have the largest mean square. Each barrier's learner gets that
+  kernel and noise rescaled to its own mean square (variances and noise times
+  ``(rms_k / rms_ref)^2``: the same prior shape, the barrier's own output scale) with its own
+  inducing set and posterior. The cost is one fit plus K posteriors instead of K fits.
 """
 
 from __future__ import annotations
@@ -69,40 +67,19 @@ def fit_with_restarts(make: LearnerFactory, xi, u, z, learn_hyperparameters: boo
     return best
 
 
-def _pool(datasets: Sequence[tuple], max_points: int):
-    """Time-ordered pool of the datasets, each barrier's z divided by its rms."""
-    n = min(len(d[2]) for d in datasets)
-    per = max(1, max_points // len(datasets))
-    take = np.unique(np.linspace(0, n - 1, min(per, n)).round().astype(int))
-    rms = np.array([np.sqrt(np.mean(d[2] ** 2)) for d in datasets])
-    rms = np.where(rms > 1e-12, rms, 1.0)
-    xs, us, zs = [], [], []
-    for t in take:  # interleave barriers at each time: forgetting weights follow time
-        for (xi, u, z), s in zip(datasets, rms, strict=True):
-            xs.append(xi[t])
-            us.append(u[t])
-            zs.append(z[t] / s)
-    return np.array(xs), np.array(us), np.array(zs), rms
-
-
 def fit_shared(make: LearnerFactory, datasets: Sequence[tuple],
-               learn_hyperparameters: bool = True, user_kernel: bool = False,
-               max_points: int = 400, pooled: bool = False) -> list:
-    """One learner per dataset ``(xi, u, z)`` with hyperparameters learned once (see the
-    module docstring): on the dataset with the largest mean square (``pooled=False``) or on
-    the pooled data. Datasets with fewer than 2 samples fail."""
+               learn_hyperparameters: bool = True, user_kernel: bool = False) -> list:
+    """One learner per dataset ``(xi, u, z)`` with hyperparameters learned once, on the
+    dataset with the largest mean square (see the module docstring)."""
     if len(datasets) == 1 or not learn_hyperparameters or user_kernel:
         return [fit_with_restarts(make, *d, learn_hyperparameters, user_kernel) for d in datasets]
-    xp, up, zp, rms = _pool(datasets, max_points)
-    if pooled:
-        ref = fit_with_restarts(make, xp, up, zp, True)
-        kernel, noise = ref.kernel_, float(ref.noise_variance_)
-    else:
-        k_ref = int(np.argmax(rms))
-        ref = fit_with_restarts(make, *datasets[k_ref], True)
-        s = 1.0 / rms[k_ref] ** 2  # to the pool's unit-rms scale
-        kernel = ADPKernel(ref.kernel_.lengthscales, ref.kernel_.variances * s)
-        noise = float(ref.noise_variance_) * s
+    rms = np.array([np.sqrt(np.mean(d[2] ** 2)) if len(d[2]) else 0.0 for d in datasets])
+    rms = np.where(rms > 1e-12, rms, 1.0)
+    k_ref = int(np.argmax(rms))
+    ref = fit_with_restarts(make, *datasets[k_ref], True)
+    s = 1.0 / rms[k_ref] ** 2  # to unit rms, then each barrier's own below
+    kernel = ADPKernel(ref.kernel_.lengthscales, ref.kernel_.variances * s)
+    noise = float(ref.noise_variance_) * s
     out = []
     for (xi, u, z), s in zip(datasets, rms, strict=True):
         k = ADPKernel(kernel.lengthscales, kernel.variances * s * s)
