@@ -24,7 +24,6 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.linalg import solve_triangular
@@ -33,9 +32,6 @@ from scipy.linalg.lapack import dpotrf, dtrtri
 
 from afvsgp_gym.gp._linalg import jittered_cholesky
 from afvsgp_gym.gp.kernels import ADPKernel
-
-if TYPE_CHECKING:
-    from afvsgp_gym.gp.afvsgp import AFVSGP
 
 __all__ = ["AFVSGPBank", "BankSettings", "FittedState"]
 
@@ -208,16 +204,15 @@ class AFVSGPBank:
         return out
 
     @classmethod
-    def from_learners(cls, learners: Sequence[AFVSGP],
-                      max_inducing_candidates: int | None = None) -> AFVSGPBank:
-        """One bank holding copies of the state of fitted AFVSGP ``learners`` (equal
-        settings; see ``max_inducing_candidates`` in the class docstring)."""
-        from afvsgp_gym.gp.afvsgp import AFVSGP
-
+    def from_learners(cls, learners: Sequence, max_inducing_candidates: int | None = None
+                      ) -> AFVSGPBank:
+        """One bank holding copies of the state of fitted :class:`~afvsgp_gym.gp.AFVSGP`
+        ``learners`` (each a bank of one; equal settings; see ``max_inducing_candidates`` in
+        the class docstring)."""
         if not learners:
             raise ValueError("learners must hold at least one fitted AFVSGP")
         for k, lr in enumerate(learners):
-            if not isinstance(lr, AFVSGP) or not hasattr(lr, "_bank"):
+            if not isinstance(getattr(lr, "_bank", None), AFVSGPBank):
                 raise ValueError(f"learners[{k}] must be a fitted AFVSGP")
         try:
             return cls.stack([lr._bank for lr in learners], max_inducing_candidates)
