@@ -139,7 +139,7 @@ def _positive(text: str) -> int:
 
 
 def _require_ray(parser: argparse.ArgumentParser) -> None:
-    from afvsgp_gym.sweep.executors import require_ray
+    from afvsgp_gym.executors import require_ray
 
     try:
         require_ray()
@@ -149,7 +149,7 @@ def _require_ray(parser: argparse.ArgumentParser) -> None:
 
 def _executor(parser: argparse.ArgumentParser, workers: int | None, ray: str | None,
               inline_single: bool) -> Any:
-    from afvsgp_gym.sweep.executors import make_executor
+    from afvsgp_gym.executors import make_executor
 
     if ray:
         _require_ray(parser)

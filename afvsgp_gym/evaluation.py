@@ -5,7 +5,7 @@ seed, step cap); :func:`run_spec` builds a fresh env and filter, runs it with
 :func:`run_episode` and returns a JSON-able record, deterministic given the spec whatever the
 process it runs in (the env is reset with the seed and the filter's exploration noise is seeded
 with it). ``evaluate`` and ``afvsgp-gym sweep`` both run episodes this way, through the
-executors of :mod:`afvsgp_gym.sweep.executors` (in-process, a local process pool, or Ray).
+executors of :mod:`afvsgp_gym.executors` (in-process, a local process pool, or Ray).
 
 Per episode (see :data:`EPISODE_FIELDS`): ``cost_steps`` (``info["cost"] > 0``: some barrier
 ``h < 0`` or an arm contact), ``violation_steps`` (``info["h"] < 0``), ``contact_steps``
@@ -455,15 +455,15 @@ def evaluate(
     progress : a tqdm bar over episodes on stderr, with the running count of episodes with cost.
     traces : also return per-step traces under ``"traces"`` (``{learner: [trace, ...]}``).
     workers : episodes run in this process (1) or in a pool of ``workers`` processes.
-    executor : an executor of :mod:`afvsgp_gym.sweep.executors` (overrides ``workers``).
+    executor : an executor of :mod:`afvsgp_gym.executors` (overrides ``workers``).
 
     Returns
     -------
     dict ``{"episodes": [row, ...], "summary": {learner: {...}}}`` (plus ``"traces"``); rows
     have the keys of :data:`EPISODE_FIELDS`, summaries those of :data:`SUMMARY_FIELDS`.
     """
-    from afvsgp_gym.sweep.executors import make_executor
-    from afvsgp_gym.sweep.progress import EpisodeProgress
+    from afvsgp_gym.executors import make_executor
+    from afvsgp_gym.progress import EpisodeProgress
 
     if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 1:
         raise ValueError(f"episodes must be a positive integer, got {episodes!r}")

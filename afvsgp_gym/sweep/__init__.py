@@ -5,17 +5,17 @@ Clopper-Pearson bounds on the per-episode cost rate.
 - :func:`~afvsgp_gym.sweep.config.load_config` -> :class:`~afvsgp_gym.sweep.config.Sweep`
 - :func:`~afvsgp_gym.sweep.validate.validate` (before anything runs)
 - :func:`~afvsgp_gym.sweep.runner.run_sweep` with an executor of
-  :mod:`afvsgp_gym.sweep.executors`
+  :mod:`afvsgp_gym.executors`
 - :func:`~afvsgp_gym.sweep.report.report`, :func:`~afvsgp_gym.sweep.plot.plot_report`
 """
 
-from afvsgp_gym.sweep.config import ConfigError, Sweep, load_config, parse_config
-from afvsgp_gym.sweep.executors import (
+from afvsgp_gym.executors import (
     InlineExecutor,
     LocalExecutor,
     RayExecutor,
     make_executor,
 )
+from afvsgp_gym.sweep.config import ConfigError, Sweep, load_config, parse_config
 from afvsgp_gym.sweep.report import format_report, report, write_report_json
 from afvsgp_gym.sweep.results import ResultsLog, read_records
 from afvsgp_gym.sweep.runner import SweepResult, run_sweep

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from afvsgp_gym.evaluation import EpisodeSpec, code_version, run_spec
-from afvsgp_gym.sweep.progress import EpisodeProgress
+from afvsgp_gym.progress import EpisodeProgress
 from afvsgp_gym.sweep.results import ResultsLog
 
 __all__ = ["SweepResult", "run_sweep"]
