@@ -25,13 +25,17 @@ One public function, :func:`reproduce`, over private steps:
    learners ``none``, ``sogp``, ``afvsgp`` and ``oracle``: steps with ``h < 0`` and min ``h``.
 4. **Conservatism margin / Fig. 6**: min ``h`` of AFVSGP against the oracle (the model-based
    filter) on the same episodes.
+5. **Whole arm** (beyond the paper): the dynamic episodes again with the default whole-arm
+   safety spheres (one barrier per sphere), learners ``arm_learners``: episodes with cost
+   (some h < 0 or an arm contact), contact steps, min ``h`` over every barrier.
 
 JSON (``reproduce.json``)::
 
     {"table1": {"afvsgp": {"mse": x, "update_time_s": y, ...}, "vsgp": ..., "gp": ...,
                 "sogp": ...},
      "dynamic": {"afvsgp": {"violations": n, "min_h": x, ...}, "sogp": ..., ...},
-     "margin": {"afvsgp_min_h": x, "oracle_min_h": y, "conservatism": x - y, ...}}
+     "margin": {"afvsgp_min_h": x, "oracle_min_h": y, "conservatism": x - y, ...},
+     "dynamic_arm": {"afvsgp": {"episodes_with_cost": n, "contact_steps": n, ...}, ...}}
 """
 
 from __future__ import annotations
@@ -90,6 +94,7 @@ class ReproduceConfig:
     stream_end: int | None = None
     dynamic_learners: tuple[str, ...] = ("none", "sogp", "afvsgp", "oracle")
     dynamic_episodes: int = 3
+    arm_learners: tuple[str, ...] = ("none", "afvsgp", "oracle")
     dynamic_max_steps: int | None = None
     seed: int = 0
 
@@ -267,12 +272,15 @@ def _table1(cfg: ReproduceConfig, train: dict, stream: dict, log: Callable[[str]
 # ----------------------------------------------------------------------------- Figs. 4, 6
 
 
-def _dynamic(cfg: ReproduceConfig, log: Callable[[str], None]):
+def _dynamic(cfg: ReproduceConfig, log: Callable[[str], None], learners=None,
+             env_kwargs: dict | None = None, label: str = "dynamic"):
     from afvsgp_gym.evaluation import evaluate
 
-    res = evaluate(cfg.dynamic_env, agent="nominal", learners=list(cfg.dynamic_learners),
+    kw = {**cfg.env_kwargs, **cfg.dynamic_env_kwargs} if env_kwargs is None else env_kwargs
+    res = evaluate(cfg.dynamic_env, agent="nominal",
+                   learners=list(cfg.dynamic_learners if learners is None else learners),
                    episodes=cfg.dynamic_episodes, seed=cfg.seed, max_steps=cfg.dynamic_max_steps,
-                   env_kwargs={**cfg.env_kwargs, **cfg.dynamic_env_kwargs}, traces=True)
+                   env_kwargs=kw, traces=True)
     rows = {}
     for name, s in res["summary"].items():
         rows[name] = {
@@ -280,6 +288,9 @@ def _dynamic(cfg: ReproduceConfig, log: Callable[[str], None]):
             "min_h": s["min_h"],
             "episodes": s["episodes"],
             "episodes_with_violations": s["episodes_with_violation"],
+            "episodes_with_cost": s["episodes_with_cost"],
+            "cost_steps": s["cost_steps"],
+            "tracking_error_mean": s["tracking_error_mean"],
             "collisions": s["contact_steps"],
             "interventions": s["interventions"],
             "infeasible_steps": s["infeasible_steps"],
@@ -289,7 +300,8 @@ def _dynamic(cfg: ReproduceConfig, log: Callable[[str], None]):
             "violations_per_episode": [r["violation_steps"] for r in res["episodes"]
                                        if r["learner"] == name],
         }
-        log(f"dynamic {name:6s} violations={s['violation_steps']} min_h={s['min_h']:.4f}")
+        log(f"{label} {name:6s} violations={s['violation_steps']} "
+            f"contacts={s['contact_steps']} min_h={s['min_h']:.4f}")
     traces = {name: tr[0] for name, tr in res["traces"].items()}  # first episode per learner
     return rows, traces
 
@@ -355,6 +367,10 @@ def reproduce(
     table1, series = _table1(cfg, train, stream, log)
     dynamic, h_traces = _dynamic(cfg, log)
     result = {"table1": table1, "dynamic": dynamic, "margin": _margin(dynamic)}
+    if cfg.arm_learners:
+        arm_kw = {**cfg.env_kwargs, **cfg.dynamic_env_kwargs}
+        arm_kw.pop("safety_spheres", None)  # the env's default: the whole arm
+        result["dynamic_arm"], _ = _dynamic(cfg, log, cfg.arm_learners, arm_kw, "whole-arm")
     protocol = {"config": _jsonable(asdict(cfg)), "train_start": train_start,
                 "stream_start": stream_start, "switch_time_s": float(stream["switch_time"]),
                 "elapsed_s": time.perf_counter() - t_start, "code": _code_version(),
@@ -454,37 +470,50 @@ def _ordered(d: dict, order: Sequence[str]):
 
 
 def table1_markdown(result: dict) -> str:
-    """Markdown tables: Table I next to the paper's numbers, the dynamic case and the margin."""
+    """Markdown tables: Table I next to the paper's numbers, the dynamic case, the margin and
+    the whole-arm episodes."""
+    from afvsgp_gym.tables import format_table, format_value
 
-    def f(x, scale=1.0, fmt="{:.4g}"):
-        return "-" if x is None else fmt.format(x * scale)
+    def ms(x):
+        return None if x is None else 1e3 * x
 
-    lines = ["| Model | MSE (stream) | MSE after switch | mean update time [ms] | "
-             "paper MSE | paper update time [ms] | MSE, real-time loop | samples used, "
-             "real-time |", "|---|---|---|---|---|---|---|---|"]
+    rows = []
     for name in TABLE1_METHODS:
         r = result["table1"].get(name)
         if r is None:
             continue
         p = PAPER["table1"][name]
-        lines.append(f"| {_LABELS[name]} | {f(r['mse'])} | {f(r.get('mse_after_switch'))} | "
-                     f"{f(r['update_time_s'], 1e3, '{:.3g}')} | {p['mse']} | "
-                     f"{f(p['update_time_s'], 1e3, '{:.3g}')} | {f(r.get('mse_realtime'))} | "
-                     f"{r.get('samples_used_realtime', '-')} / {r['n_stream']} |")
-    lines += ["", "| Dynamic obstacle | steps with h < 0 | min h [m] | collisions |",
-              "|---|---|---|---|"]
-    for name, r in result["dynamic"].items():
-        lines.append(f"| {_LABELS.get(name, name)} | {r['violations']} | {f(r['min_h'])} | "
-                     f"{r['collisions']} |")
+        rows.append({"model": _LABELS[name], "mse": r["mse"],
+                     "after": r.get("mse_after_switch"), "upd": ms(r["update_time_s"]),
+                     "paper_mse": p["mse"], "paper_upd": ms(p["update_time_s"]),
+                     "rt": r.get("mse_realtime"),
+                     "used": f"{r.get('samples_used_realtime', '-')} / {r['n_stream']}"})
+    parts = [format_table(rows, ["model", "mse", "after", "upd", "paper_mse", "paper_upd", "rt",
+                                 "used"],
+                          ["Model", "MSE (stream)", "MSE after switch", "mean update time [ms]",
+                           "paper MSE", "paper update time [ms]", "MSE, real-time loop",
+                           "samples used, real-time"], markdown=True)]
+    dyn = [{"name": _LABELS.get(k, k), **v} for k, v in result["dynamic"].items()]
+    parts.append(format_table(dyn, ["name", "violations", "min_h", "collisions"],
+                              ["Dynamic obstacle (end-effector barrier)", "steps with h < 0",
+                               "min h [m]", "arm contact steps"], markdown=True))
     m = result["margin"]
-    lines += ["", f"Conservatism margin (dynamic obstacle): min h AFVSGP = {f(m['afvsgp_min_h'])}"
-              f" m, oracle = {f(m['oracle_min_h'])} m, difference = {f(m['conservatism'])} m "
-              f"(paper, real robot: {PAPER['margin_m']} m)."]
+    f = format_value
+    text = (f"Conservatism margin (dynamic obstacle): min h AFVSGP = {f(m['afvsgp_min_h'])} m, "
+            f"oracle = {f(m['oracle_min_h'])} m, difference = {f(m['conservatism'])} m "
+            f"(paper, real robot: {PAPER['margin_m']} m).")
     if "conservatism_mean" in m:
         per = ", ".join(f"{a:.4f} vs {o:.4f}" for a, o in
                         zip(m["afvsgp_min_h_per_episode"], m["oracle_min_h_per_episode"],
                             strict=False))
-        lines.append(f"Per episode, min h AFVSGP vs oracle [m]: {per}; mean difference "
-                     f"{f(m['conservatism_mean'])} m.")
-    lines.append("")
-    return "\n".join(lines)
+        text += (f"\nPer episode, min h AFVSGP vs oracle [m]: {per}; mean difference "
+                 f"{f(m['conservatism_mean'])} m.")
+    parts.append(text)
+    if "dynamic_arm" in result:
+        arm = [{"name": _LABELS.get(k, k), **v} for k, v in result["dynamic_arm"].items()]
+        parts.append(format_table(
+            arm, ["name", "episodes_with_cost", "cost_steps", "collisions", "min_h",
+                  "tracking_error_mean"],
+            ["Dynamic obstacle, whole arm", "episodes with cost", "cost steps",
+             "arm contact steps", "min h [m]", "tracking error [m]"], markdown=True))
+    return "\n\n".join(parts) + "\n"

@@ -36,7 +36,7 @@ def test_reproduce_tiny_then_plot(tmp_path, capsys):
                           dynamic_max_steps=450)
     res = reproduce(cfg, out_dir=tmp_path / "docs")
     data = json.loads((tmp_path / "docs" / "reproduce.json").read_text())
-    assert set(data) == {"table1", "dynamic", "margin"}
+    assert set(data) == {"table1", "dynamic", "margin", "dynamic_arm"}
     assert set(data["table1"]) == {"afvsgp", "vsgp", "gp", "sogp"}
     for name, row in data["table1"].items():
         assert row["mse"] >= 0 and row["n_stream"] == 100
