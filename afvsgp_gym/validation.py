@@ -6,52 +6,35 @@ import math
 from collections.abc import Sequence
 from typing import Any
 
-__all__ = ["check_choice", "check_int", "check_number"]
+import numpy as np
+
+__all__ = ["check_choice", "check_count", "check_real"]
 
 
-def check_number(
-    name: str,
-    value: Any,
-    strictly_positive: bool = False,
-    *,
-    low: float | None = 0.0,
-    high: float | None = None,
-    high_open: bool = False,
-) -> float:
-    """``float(value)`` if finite and in range, else ``ValueError`` naming ``name``.
+def check_count(value: Any, name: str, minimum: int = 1) -> int:
+    """``value`` as an ``int >= minimum`` (bool and non-integral types rejected)."""
+    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < minimum:
+        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
+    return int(value)
 
-    The default range is ``value >= 0`` (``> 0`` with ``strictly_positive``); ``low=None``
-    drops the lower bound; ``high`` adds ``value <= high`` (``< high`` with ``high_open``).
-    """
+
+def check_real(value: Any, name: str, *, low: float | None = None, high: float | None = None,
+               low_open: bool = False, high_open: bool = False) -> float:
+    """``value`` as a finite float in the interval given by ``low``/``high`` (``*_open``:
+    excluding the end point)."""
     try:
-        x = float(value)
+        v = float(value)
     except (TypeError, ValueError):
-        x = math.nan
-    ok = math.isfinite(x)
-    if ok and low is not None:
-        ok = x > low if strictly_positive else x >= low
-    if ok and high is not None:
-        ok = x < high if high_open else x <= high
+        raise ValueError(f"{name} must be a real number, got {value!r}") from None
+    ok = math.isfinite(v)
+    if low is not None:
+        ok = ok and (v > low if low_open else v >= low)
+    if high is not None:
+        ok = ok and (v < high if high_open else v <= high)
     if not ok:
-        parts = []
-        if low is not None:
-            parts.append(f"{'>' if strictly_positive else '>='} {low:g}")
-        if high is not None:
-            parts.append(f"{'<' if high_open else '<='} {high:g}")
-        rng = " and ".join(parts)
-        raise ValueError(f"{name} must be a finite number{' ' + rng if rng else ''}, got {value!r}")
-    return x
-
-
-def check_int(name: str, value: Any, minimum: int = 0) -> int:
-    """``int(value)`` for an integer ``>= minimum`` (bools refused), else ``ValueError``."""
-    if isinstance(value, bool) or not isinstance(value, (int,)) and not (
-        hasattr(value, "__index__")
-    ):
-        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
-    v = int(value)
-    if v < minimum:
-        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
+        lo = "(-inf" if low is None else ("(" if low_open else "[") + f"{low:g}"
+        hi = "inf)" if high is None else f"{high:g}" + (")" if high_open else "]")
+        raise ValueError(f"{name} must be a finite number in {lo}, {hi}, got {value!r}")
     return v
 
 

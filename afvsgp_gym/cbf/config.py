@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass, field, fields
 
-from afvsgp_gym.validation import check_int, check_number
+from afvsgp_gym.validation import check_count, check_real
 
 __all__ = ["DEFAULT_BETA", "DEFAULT_RESIDUAL_CORRECTION", "FilterConfig"]
 
@@ -99,26 +99,27 @@ class FilterConfig:
     seed: int | None = None
 
     def __post_init__(self) -> None:
-        check_int("relative_degree", self.relative_degree, 1)
+        check_count(self.relative_degree, "relative_degree")
         if not isinstance(self.alpha, (int, float)):
             if not isinstance(self.alpha, Sequence):
                 raise ValueError(f"alpha must be a float or a sequence of floats, got {self.alpha}")
             object.__setattr__(self, "alpha", tuple(float(a) for a in self.alpha))
-        check_number("beta", self.beta)
-        check_number("barrier_margin", self.barrier_margin)
+        check_real(self.beta, "beta", low=0.0)
+        check_real(self.barrier_margin, "barrier_margin", low=0.0)
         if self.activation_distance != float("inf"):
-            check_number("activation_distance", self.activation_distance, low=None)
-        check_int("warmup_samples", self.warmup_samples, 2)
-        check_number("exploration_noise", self.exploration_noise)
-        check_number("online_exploration", self.online_exploration)
-        check_number("exploration_threshold", self.exploration_threshold)
-        check_number("residual_correction", self.residual_correction, high=1.0, high_open=True)
+            check_real(self.activation_distance, "activation_distance")
+        check_count(self.warmup_samples, "warmup_samples", 2)
+        check_real(self.exploration_noise, "exploration_noise", low=0.0)
+        check_real(self.online_exploration, "online_exploration", low=0.0)
+        check_real(self.exploration_threshold, "exploration_threshold", low=0.0)
+        check_real(self.residual_correction, "residual_correction", low=0.0, high=1.0,
+                   high_open=True)
         if self.learner_kwargs is None:
             object.__setattr__(self, "learner_kwargs", {})
         if not isinstance(self.learner_kwargs, dict):
             raise ValueError(f"learner_kwargs must be a dict, got {self.learner_kwargs!r}")
         if self.seed is not None:
-            check_int("seed", self.seed, 0)
+            check_count(self.seed, "seed", 0)
 
     @classmethod
     def option_names(cls) -> tuple[str, ...]:

@@ -41,7 +41,7 @@ from afvsgp_gym.cbf.measurement import measure_all
 from afvsgp_gym.cbf.residuals import ResidualObserver
 from afvsgp_gym.cbf.socp import SOCPFilter
 from afvsgp_gym.types import BarrierSet
-from afvsgp_gym.validation import check_int
+from afvsgp_gym.validation import check_count
 
 __all__ = ["FilterResult", "SafetyController", "StepPrediction"]
 
@@ -142,7 +142,7 @@ class SafetyController:
     def __init__(self, action_low, action_high, n_barriers: int = 1, learner: str = "afvsgp",
                  *, dataset=None, config: FilterConfig | None = None, **options: Any):
         self.learner_name = check_learner_name(learner)
-        self.n_barriers = check_int("n_barriers", n_barriers, 1)
+        self.n_barriers = check_count(n_barriers, "n_barriers")
         unknown = sorted(set(options) - set(FilterConfig.option_names()))
         if unknown:
             valid = list(FilterConfig.option_names())

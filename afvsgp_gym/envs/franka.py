@@ -26,7 +26,7 @@ from afvsgp_gym.envs.scenario import (
     sphere_barriers,
 )
 from afvsgp_gym.types import BarrierSet
-from afvsgp_gym.validation import check_choice, check_number
+from afvsgp_gym.validation import check_choice, check_real
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -236,9 +236,9 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         self.scenario = check_choice("scenario", scenario, SCENARIOS)
         self.nominal_model = check_choice("nominal_model", cfg["nominal_model"], NOMINAL_MODELS)
         for name in ("payload_mass", "damping", "friction", "armature", "reset_noise"):
-            cfg[name] = check_number(name, cfg[name], strictly_positive=False)
+            cfg[name] = check_real(cfg[name], name, low=0.0)
         for name in ("physics_dt", "ee_radius", "obstacle_speed"):
-            cfg[name] = check_number(name, cfg[name], strictly_positive=True)
+            cfg[name] = check_real(cfg[name], name, low=0.0, low_open=True)
         frame_skip = int(cfg["frame_skip"])
         if frame_skip < 1:
             raise ValueError(f"frame_skip must be >= 1, got {cfg['frame_skip']}")
@@ -255,7 +255,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         self.control_weight = float(cfg["control_weight"])
         self.reset_noise = float(cfg["reset_noise"])
         self.normalize_action = bool(cfg["normalize_action"])
-        self.brake_gain = check_number("brake_gain", cfg["brake_gain"], strictly_positive=False)
+        self.brake_gain = check_real(cfg["brake_gain"], "brake_gain", low=0.0)
         physics_dt = float(cfg["physics_dt"])
         self._control_dt = physics_dt * frame_skip
         self._user_obstacles = (

@@ -23,7 +23,7 @@ from afvsgp_gym.envs.scenario import (
     sphere_barriers,
 )
 from afvsgp_gym.types import BarrierSet
-from afvsgp_gym.validation import check_choice, check_number
+from afvsgp_gym.validation import check_choice, check_real
 
 
 class PointMassObstacleEnv(ObstacleTask, gym.Env):
@@ -166,9 +166,9 @@ class PointMassObstacleEnv(ObstacleTask, gym.Env):
         if self.dim not in (2, 3):
             raise ValueError(f"dim must be 2 or 3, got {cfg['dim']}")
         for name in ("dt", "mass", "nominal_mass", "max_force", "agent_radius", "obstacle_speed"):
-            cfg[name] = check_number(name, cfg[name], strictly_positive=True)
+            cfg[name] = check_real(cfg[name], name, low=0.0, low_open=True)
         for name in ("drag", "nominal_drag", "tracking_weight", "control_weight", "reset_noise"):
-            cfg[name] = check_number(name, cfg[name], strictly_positive=False)
+            cfg[name] = check_real(cfg[name], name, low=0.0)
         self.dt = float(cfg["dt"])
         self.mass, self.drag = float(cfg["mass"]), float(cfg["drag"])
         self.nominal_mass, self.nominal_drag = (
@@ -176,7 +176,7 @@ class PointMassObstacleEnv(ObstacleTask, gym.Env):
             float(cfg["nominal_drag"]),
         )
         self.max_force = float(cfg["max_force"])
-        self.brake_gain = check_number("brake_gain", cfg["brake_gain"], strictly_positive=False)
+        self.brake_gain = check_real(cfg["brake_gain"], "brake_gain", low=0.0)
         self.agent_radius = self.tracking_radius = float(cfg["agent_radius"])
         self.obstacle_speed = float(cfg["obstacle_speed"])
         self.warmup_steps = int(cfg["warmup_steps"])

@@ -1,6 +1,7 @@
-"""Shared numerics for the GP learners: the jitter policy, jittered Cholesky and the one set of
-validation helpers (arrays: ``check_matrix``, ``check_batch``, ``check_sample``; parameters:
-``check_count``, ``check_real``), each raising ``ValueError`` naming the argument.
+"""Shared numerics for the GP learners: the jitter policy, jittered Cholesky and the array
+checks (``check_matrix``, ``check_batch``, ``check_sample``; the scalar checks ``check_count``,
+``check_real`` are the package's, from :mod:`afvsgp_gym.validation`), each raising
+``ValueError`` naming the argument.
 """
 
 from __future__ import annotations
@@ -9,6 +10,8 @@ import warnings
 
 import numpy as np
 from scipy.linalg import LinAlgError, cholesky
+
+from afvsgp_gym.validation import check_count, check_real  # the package's scalar checks
 
 __all__ = [
     "DEFAULT_JITTER",
@@ -119,28 +122,3 @@ def check_sample(xi, u, z, *, input_dim: int, action_dim: int):
     return xi, u, float(z)
 
 
-def check_count(value, name: str, minimum: int = 1) -> int:
-    """``value`` as an ``int >= minimum`` (bool and non-integral types rejected)."""
-    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < minimum:
-        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
-    return int(value)
-
-
-def check_real(value, name: str, *, low: float | None = None, high: float | None = None,
-               low_open: bool = False, high_open: bool = False) -> float:
-    """``value`` as a finite float in the interval given by ``low``/``high`` (``*_open``:
-    excluding the end point)."""
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a real number, got {value!r}") from None
-    ok = np.isfinite(v)
-    if low is not None:
-        ok = ok and (v > low if low_open else v >= low)
-    if high is not None:
-        ok = ok and (v < high if high_open else v <= high)
-    if not ok:
-        lo = "(-inf" if low is None else ("(" if low_open else "[") + f"{low:g}"
-        hi = "inf)" if high is None else f"{high:g}" + (")" if high_open else "]")
-        raise ValueError(f"{name} must be a finite number in {lo}, {hi}, got {value!r}")
-    return v
