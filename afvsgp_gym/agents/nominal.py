@@ -21,6 +21,9 @@ class NominalController:
     (known) kinematics are used. Posture PD towards the ready pose in the null space keeps the
     redundant arm away from joint limits. The output is clipped to the action bounds.
 
+    Franka reach (velocity command): straight at the goal, ``u = clip(kp (g - p) / v_max)``
+    with kp = 6 1/s, blind to the obstacles.
+
     Parameters
     ----------
     env : gymnasium.Env
@@ -33,7 +36,9 @@ class NominalController:
         base = env.unwrapped
         self.low = np.asarray(env.action_space.low, dtype=np.float64)
         self.high = np.asarray(env.action_space.high, dtype=np.float64)
-        if hasattr(base, "model") and hasattr(base, "q_home"):
+        if hasattr(base, "goal") and hasattr(base, "loop"):
+            self._impl = _ReachStraight(base, kp)
+        elif hasattr(base, "model") and hasattr(base, "q_home"):
             self._impl = _FrankaTaskPD(base, kp, kd)
         else:
             self._impl = _PointMassPD(base, kp, kd)
@@ -63,6 +68,17 @@ class _PointMassPD:
         r, rd, rdd = obs[k : k + d], obs[k + d : k + 2 * d], obs[k + 2 * d : k + 3 * d]
         acc = rdd + self.kp * (r - p) + self.kd * (rd - v)
         return (self.mass * acc + self.drag * v) / self.max_force
+
+
+class _ReachStraight:
+    """Straight-line velocity command at the goal for FrankaObstacleReachEnv."""
+
+    def __init__(self, env: Any, kp: float | None) -> None:
+        self.kp = 6.0 if kp is None else float(kp)
+        self.max_speed = env.loop.max_speed
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        return self.kp * obs[23:26] / self.max_speed
 
 
 class _FrankaTaskPD:

@@ -18,6 +18,9 @@ def register_envs() -> None:
         "afvsgp_gym/FrankaObstacleRandom-v0": dict(
             entry_point=franka, max_episode_steps=4000, kwargs={"scenario": "random"}
         ),
+        "afvsgp_gym/FrankaObstacleReach-v0": dict(
+            entry_point="afvsgp_gym.envs.reach:FrankaObstacleReachEnv", max_episode_steps=1250
+        ),
         "afvsgp_gym/PointMassObstacle-v0": dict(
             entry_point="afvsgp_gym.envs.point_mass:PointMassObstacleEnv",
             max_episode_steps=1500,
