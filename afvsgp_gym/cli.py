@@ -336,28 +336,41 @@ def _cmd_video(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int
 
 def _cmd_train(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
     _check_env(parser, args.env)
-    _check_learner(parser, args.learner)
+    learner = None if args.no_filter else _check_learner(parser, args.learner)
     _require_sb3(parser)
     from afvsgp_gym.agents.sb3 import train
 
-    out = args.out or f"{args.algo}_{args.env.split('/')[-1]}_{args.learner}.zip"
+    tag = "unfiltered" if learner is None else learner
+    out = args.out or f"{args.algo}_{args.env.split('/')[-1]}_{tag}.zip"
     if not out.endswith(".zip"):
         parser.error(f"--out must end in .zip, got {out!r}")
     out_path = _check_out(parser, out, "--out")
-    res = train(args.algo, args.env, learner=args.learner, timesteps=args.timesteps,
+    log_dir = _check_out(parser, args.log_dir, "--log-dir", directory=True)
+    res = train(args.algo, args.env, learner=learner, timesteps=args.timesteps,
                 path=out_path, seed=args.seed, n_envs=args.n_envs,
+                action_repeat=args.action_repeat,
                 env_kwargs=_json_arg(parser, args.env_kwargs, "--env-kwargs"),
-                verbose=args.verbose)
-    costs = res.episode_costs
-    print(f"trained {args.algo.upper()} for {args.timesteps} steps on {args.env} behind "
-          f"SafetyFilter(learner={args.learner!r})")
-    if costs:
-        print(f"episodes: {len(costs)}, cost per episode (steps with h < 0): mean "
-              f"{sum(costs) / len(costs):.2f}, last {costs[-1]:.0f}")
+                filter_kwargs=_json_arg(parser, args.filter_kwargs, "--filter-kwargs"),
+                algo_kwargs=_json_arg(parser, args.algo_kwargs, "--algo-kwargs"),
+                log_dir=log_dir, verbose=args.verbose)
+    behind = "no filter" if learner is None else f"SafetyFilter(learner={learner!r})"
+    print(f"trained {args.algo.upper()} for {res.timesteps} agent steps ({res.env_steps} env "
+          f"steps) on {args.env} behind {behind} in {res.wall_time_s:.0f} s")
+    eps = res.episodes
+    if eps:
+        last = eps[-max(1, len(eps) // 10):]
+        cost = sum(r["cost_steps"] for r in eps)
+        after = sum(r["cost_steps_after_warmup"] for r in eps)
+        print(f"episodes: {len(eps)}; cost steps (h < 0 or contact): {cost} in total, {after} "
+              f"after the filter's warm-up; last {len(last)} episodes: success "
+              f"{sum(r['success'] for r in last) / len(last):.0%}, return "
+              f"{sum(r['return'] for r in last) / len(last):.2f}")
     else:
-        print("no training episode finished (increase --timesteps to see episode costs)")
-    print(f"saved {res.path}; evaluate with: afvsgp-gym evaluate --env {args.env} "
-          f"--agent {res.path} --learner {args.learner}")
+        print("no training episode finished (increase --timesteps to see episode statistics)")
+    if log_dir is not None:
+        print(f"logs in {log_dir} (episodes.csv, progress.csv)")
+    print(f"saved {res.path}; evaluate (behind the filter) with: afvsgp-gym evaluate --env "
+          f"{args.env} --agent {res.path} --learner {learner or 'afvsgp'}")
     return 0
 
 
@@ -477,13 +490,25 @@ def build_parser() -> argparse.ArgumentParser:
     tr = sub.add_parser("train", help="train a Stable-Baselines3 agent with the filter in the loop")
     tr.add_argument("--algo", choices=("ppo", "sac"), default="ppo")
     tr.add_argument("--env", default=DEFAULT_ENV)
-    tr.add_argument("--learner", default="afvsgp")
-    tr.add_argument("--timesteps", type=_positive, default=10_000)
+    tr.add_argument("--learner", default="afvsgp", help="filter learner (default afvsgp)")
+    tr.add_argument("--no-filter", action="store_true",
+                    help="train on the bare env (no SafetyFilter; overrides --learner)")
+    tr.add_argument("--timesteps", type=_positive, default=10_000,
+                    help="agent steps (each --action-repeat env steps; default 10000)")
     tr.add_argument("--seed", type=int, default=0)
-    tr.add_argument("--n-envs", type=_positive, default=1)
+    tr.add_argument("--n-envs", type=_positive, default=1,
+                    help="parallel envs, one worker process each when > 1 (SubprocVecEnv)")
+    tr.add_argument("--action-repeat", type=_positive, default=None,
+                    help="env steps per agent action (default: the env's suggestion, 1 if none)")
     tr.add_argument("--out", default=None, metavar="PATH.zip",
                     help="model zip (default ALGO_ENV_LEARNER.zip)")
+    tr.add_argument("--log-dir", default=None, metavar="DIR",
+                    help="episodes.csv (one row per episode) and SB3's progress.csv")
     tr.add_argument("--env-kwargs", default=None, metavar="JSON")
+    tr.add_argument("--filter-kwargs", default=None, metavar="JSON",
+                    help='SafetyFilter options, e.g. \'{"beta": 2.0}\'')
+    tr.add_argument("--algo-kwargs", default=None, metavar="JSON",
+                    help='PPO/SAC keyword arguments, e.g. \'{"learning_rate": 1e-4}\'')
     tr.add_argument("--verbose", type=int, default=0)
 
     bn = sub.add_parser("bench", help="speed figures of the GP, env and filter benchmarks")
