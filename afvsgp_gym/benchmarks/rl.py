@@ -89,10 +89,9 @@ def _eval_episode(task: tuple[str, str | None, int, dict]) -> dict[str, Any]:
     env = gym.make(ENV_ID, **env_kwargs)
     if learner is not None:
         env = SafetyFilter(env, learner=learner, seed=seed)
-    counts = {"cost_steps": 0, "success": False, "backup_steps": 0}
+    counts = {"success": False, "backup_steps": 0}
 
     def on_step(info: dict) -> None:
-        counts["cost_steps"] += float(info["cost"]) > 0
         counts["success"] = counts["success"] or bool(info["success"])
         counts["backup_steps"] += str(info.get("filter_status", "")).startswith(
             ("backup", "fallback"))
@@ -101,7 +100,7 @@ def _eval_episode(task: tuple[str, str | None, int, dict]) -> dict[str, Any]:
         rec, _ = run_episode(env, load_policy(zip_path, env=env), seed, on_step=on_step)
     finally:
         env.close()
-    rec.pop("_filter_times")
+    rec.pop("filter_time_hist", None)
     rec.update(counts)
     return rec
 

@@ -15,7 +15,7 @@ from afvsgp_gym.envs.franka import FrankaObstacleEnv
 from afvsgp_gym.envs.scenario import ObstacleSpec
 from afvsgp_gym.envs.task_velocity import TaskVelocityLoop, compose_affine
 from afvsgp_gym.types import BarrierSet
-from afvsgp_gym.validation import check_choice, check_int, check_number
+from afvsgp_gym.validation import check_choice, check_count, check_real
 
 __all__ = ["FrankaObstacleReachEnv"]
 
@@ -172,20 +172,21 @@ class FrankaObstacleReachEnv(FrankaObstacleEnv):
 
     def __init__(self, **kwargs: Any) -> None:
         cfg = read_kwargs(self._REACH_DEFAULTS, kwargs)
-        n_obs = check_int("n_obstacles", cfg["n_obstacles"], 1)
+        n_obs = check_count(cfg["n_obstacles"], "n_obstacles")
         check_choice("nominal_model", cfg["nominal_model"], NOMINAL_MODELS)
         self.loop = TaskVelocityLoop(
-            max_speed=check_number("max_speed", cfg["max_speed"], strictly_positive=True),
-            damping=check_number("task_damping", cfg["task_damping"], strictly_positive=True),
+            max_speed=check_real(cfg["max_speed"], "max_speed", low=0.0, low_open=True),
+            damping=check_real(cfg["task_damping"], "task_damping", low=0.0, low_open=True),
         )
-        self.goal_tolerance = check_number("goal_tolerance", cfg["goal_tolerance"], True)
-        self.start_clearance = check_number("start_clearance", cfg["start_clearance"])
-        self.progress_weight = check_number("progress_weight", cfg["progress_weight"])
-        self.time_penalty = check_number("time_penalty", cfg["time_penalty"])
-        self.cost_weight = check_number("cost_weight", cfg["cost_weight"])
-        self.success_bonus = check_number("success_bonus", cfg["success_bonus"], low=None)
-        self.action_repeat = check_int("action_repeat", cfg["action_repeat"], 1)
-        check_number("control_weight", cfg["control_weight"])
+        self.goal_tolerance = check_real(cfg["goal_tolerance"], "goal_tolerance", low=0.0,
+                                         low_open=True)
+        self.start_clearance = check_real(cfg["start_clearance"], "start_clearance", low=0.0)
+        self.progress_weight = check_real(cfg["progress_weight"], "progress_weight", low=0.0)
+        self.time_penalty = check_real(cfg["time_penalty"], "time_penalty", low=0.0)
+        self.cost_weight = check_real(cfg["cost_weight"], "cost_weight", low=0.0)
+        self.success_bonus = check_real(cfg["success_bonus"], "success_bonus")
+        self.action_repeat = check_count(cfg["action_repeat"], "action_repeat")
+        check_real(cfg["control_weight"], "control_weight", low=0.0)
         r_max = self.RADIUS_RANGE[1]
         parked = [{"position": [2.0 + i, 2.0, 0.0], "radius": r_max} for i in range(n_obs)]
         parent = {k: cfg[k] for k in FrankaObstacleEnv._DEFAULTS if k in cfg}

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import gymnasium as gym
 
-from afvsgp_gym.validation import check_int
+from afvsgp_gym.validation import check_count
 
 __all__ = ["ActionRepeat"]
 
@@ -39,7 +39,7 @@ class ActionRepeat(gym.Wrapper, gym.utils.RecordConstructorArgs):
     """
 
     def __init__(self, env: gym.Env, repeat: int):
-        self.repeat = check_int("repeat", repeat, 1)
+        self.repeat = check_count(repeat, "repeat")
         gym.utils.RecordConstructorArgs.__init__(self, repeat=self.repeat)
         gym.Wrapper.__init__(self, env)
 

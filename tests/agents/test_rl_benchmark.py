@@ -1,0 +1,56 @@
+"""The RL benchmark's --quick form end to end (a test of the pipeline, not of the result),
+and its pure helpers."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from afvsgp_gym.benchmarks import rl
+
+
+def test_wilson_interval_against_the_formula():
+    lo, hi = rl._wilson(45, 50)
+    # Wilson score interval, z = 1.96: centre (p + z^2/2n) / (1 + z^2/n)
+    p, n, z = 0.9, 50, 1.96
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    assert lo == pytest.approx(centre - half, rel=1e-12)
+    assert hi == pytest.approx(centre + half, rel=1e-12)
+    assert rl._wilson(0, 10)[0] == 0.0 and rl._wilson(10, 10)[1] == 1.0
+
+
+def test_curves_bin_by_agent_steps():
+    eps = [{"timesteps": t, "return": r, "success": s, "cost_steps": c,
+            "cost_steps_after_warmup": a}
+           for t, r, s, c, a in [(10, 1.0, 0, 5, 0), (40, 3.0, 1, 0, 0), (60, 2.0, 1, 2, 2),
+                                 (100, 4.0, 0, 1, 1)]]
+    cur = rl._curves(eps, 100, 2)
+    assert cur["steps"] == [50.0, 100.0]
+    assert cur["return"] == [2.0, 3.0] and cur["success"] == [0.5, 0.5]
+    assert cur["cumulative_cost"] == [5.0, 8.0]
+    assert cur["cumulative_cost_after_warmup"] == [0.0, 3.0]
+
+
+@pytest.mark.slow
+def test_quick_benchmark_pipeline(tmp_path):
+    pytest.importorskip("stable_baselines3", reason="needs the rl extra")
+    cfg = rl.RLBenchConfig.quick()
+    res = rl.run(cfg, tmp_path, log=lambda m: None)
+    data = json.loads((tmp_path / "rl_results.json").read_text())
+    assert len(data["runs"]) == len(cfg.conditions) * len(cfg.seeds)
+    for r in data["runs"]:
+        assert r["timesteps"] == cfg.timesteps
+        assert r["env_steps"] == 10 * cfg.timesteps
+        cum = np.array(r["curves"]["cumulative_cost"])
+        assert np.all(np.diff(cum) >= 0) and cum[-1] == r["training"]["cost_steps"]
+        assert r["eval_own"]["episodes"] == cfg.eval_episodes
+        if r["condition"] != "unfiltered":
+            # the filter's warm-up happened in training, once per worker
+            assert r["training"]["warmup_steps"] == cfg.n_envs * 75
+    table = (tmp_path / "rl_table.md").read_text()
+    for cond in cfg.conditions:
+        assert f"| {cond} |" in table
+    assert (tmp_path / "rl_training.png").stat().st_size > 10_000
+    assert res["total_wall_s"] > 0
