@@ -307,8 +307,8 @@ def run(cfg: RLBenchConfig, out_dir: str | os.PathLike, *, figure: str | os.Path
     env_kwargs = dict(cfg.env_kwargs)
     results: dict[str, Any] = {"config": asdict(cfg), "machine": machine(), "runs": []}
     ctx = get_context("forkserver")
-    for cond in cfg.conditions:
-        for seed in cfg.seeds:
+    for seed in cfg.seeds:  # every condition of a seed before the next seed
+        for cond in cfg.conditions:
             name = f"{cfg.algo}_{cond}_s{seed}"
             log(f"[rl] training {name} ({cfg.timesteps} agent steps)")
             res = train(cfg.algo, ENV_ID, learner=CONDITIONS[cond], timesteps=cfg.timesteps,

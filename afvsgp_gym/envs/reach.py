@@ -117,7 +117,7 @@ class FrankaObstacleReachEnv(FrankaObstacleEnv):
     | safety_spheres | "arm" | "arm", "ee" or a list of (body, offset, radius) |
     | max_speed | 0.3 | m/s per unit action |
     | task_damping | 200.0 | N s/m, inner loop ``D`` |
-    | goal_tolerance | 0.03 | m |
+    | goal_tolerance | 0.05 | m (as FetchReach and panda-gym) |
     | start_clearance | 0.22 | m, obstacle surface to every safety sphere at the start |
     | progress_weight | 10.0 | reward per m of approach |
     | time_penalty, control_weight | 4e-4, 1e-4 | reward weights per step |
@@ -139,7 +139,7 @@ class FrankaObstacleReachEnv(FrankaObstacleEnv):
         safety_spheres="arm",
         max_speed=0.3,
         task_damping=200.0,
-        goal_tolerance=0.03,
+        goal_tolerance=0.05,
         start_clearance=0.22,
         progress_weight=10.0,
         time_penalty=4e-4,
