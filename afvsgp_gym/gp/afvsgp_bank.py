@@ -494,23 +494,15 @@ class AFVSGPBank:
         col = self._window_column(k, xi, ub)
         lc = self._weights(k) * col
         wk = self._wk[k, :cnt, :m]
-        stats = np.empty((m + 1, m + 2))
+        stats = np.empty((m + 1, m + 2))  # enlarged [r, S] (eq. 30)
         stats[:m, : m + 1] = self._stats[k, :m, : m + 1]
         stats[m, 1 : m + 1] = stats[:m, m + 1] = lc @ wk
-        stats[m, 0] = lc @ self._wz[k, :cnt]
         stats[m, m + 1] = lc @ col
         jit = self.jitter[k]
         low_e = np.zeros((m + 1, m + 1))
         low_e[:m, :m] = low
         low_e[m, :m] = lvec
         low_e[m, m] = math.sqrt(d + jit)
-        koo = np.empty((m + 1, m + 1))
-        koo[:m, :m] = self._koo[k, :m, :m]
-        koo[m, :m] = koo[:m, m] = kn
-        koo[m, m] = kss + jit
-        xo = np.concatenate([self._ind_xi[k, :m], xi[None]])
-        ubo = np.concatenate([self._ind_ub[k, :m], ub[None]])
-        wcols = np.concatenate([wk, col[:, None]], axis=1)
         drop = None
         if m + 1 > self.num_inducing:
             linv = dtrtri(low_e, lower=1)[0]
@@ -520,6 +512,14 @@ class AFVSGPBank:
             if score[m] - score[j] <= self.swap_margin * kss:
                 return False  # not informative enough: state unchanged
             drop = j
+        stats[m, 0] = lc @ self._wz[k, :cnt]
+        koo = np.empty((m + 1, m + 1))
+        koo[:m, :m] = self._koo[k, :m, :m]
+        koo[m, :m] = koo[:m, m] = kn
+        koo[m, m] = kss + jit
+        xo = np.concatenate([self._ind_xi[k, :m], xi[None]])
+        ubo = np.concatenate([self._ind_ub[k, :m], ub[None]])
+        wcols = np.concatenate([wk, col[:, None]], axis=1)
         self.n_added_[k] += 1
         if drop is not None:
             keep = np.r_[0:drop, drop + 1 : m + 1]
