@@ -8,7 +8,9 @@ for all learners, not K:
     S_k <- phi S_k + k k' - phi^P k_old k_old',   r_k <- phi r_k + z k - phi^P z_old k_old
     b_k(xi) = Kt B_k r_k / s2_k,   Sigma_k(xi) = diag(s_k) - Kt (K_oo^-1 - B_k) Kt'     (eq. 20)
 
-with ``B_k = (K_oo,k + S_k / s2_k)^-1``. Inducing sets have up to ``num_inducing`` points;
+with ``B_k = (K_oo,k + S_k / s2_k)^-1``, computed in whitened form (``L^-1 S L^-T / s2``,
+triangular solves only; ``I + L^-1 S L^-T / s2 >= I`` factors stably however ill-conditioned
+``K_oo + S / s2`` is). Inducing sets have up to ``num_inducing`` points;
 a learner with fewer is padded with inert slots (identity block in ``K_oo``, zero kernel
 columns), which leaves every posterior quantity unchanged. The rare inducing-set changes
 (eqs. 27-30: add, and replace by the eq. 28 score) run per learner.
@@ -66,8 +68,8 @@ class FittedState:
 
 #: Per-learner arrays (leading axis K), concatenated by :meth:`AFVSGPBank.stack`.
 _STACKED = ("inv_ls2", "var", "log_var", "noise_variance", "jitter", "n_inducing_", "_ind_xi",
-            "_ind_ub", "_amat", "_ubt", "_koo", "_l_oo", "_koo_inv", "_l_oo_invt", "_stats",
-            "_scale", "_wz", "_wk", "_wx", "_wub", "_head", "_count", "_sig_chol", "_rs2",
+            "_ind_ub", "_amat", "_ubt", "_koo", "_l_oo", "_koo_inv", "_stats",
+            "_scale", "_wz", "_wk", "_wx", "_wub", "_head", "_count", "_l_d", "_cvec",
             "_fresh", "n_seen_", "n_added_", "n_removed_")
 
 
@@ -122,7 +124,6 @@ class AFVSGPBank:
         self._koo = np.zeros((K, mp, mp))
         self._l_oo = np.zeros((K, mp, mp))
         self._koo_inv = np.zeros((K, mp, mp))
-        self._l_oo_invt = np.zeros((K, mp, mp))
         # statistics [r, S] with a per-learner scale (forgetting folded in), the window ring
         self._stats = np.zeros((K, mp, mp + 1))
         self._scale = np.ones(K)
@@ -132,9 +133,9 @@ class AFVSGPBank:
         self._wub = np.zeros((K, P, c))
         self._head = np.full(K, -1)
         self._count = np.zeros(K, dtype=int)
-        # posterior factor cache: chol(K_oo + S/s2) and r/s2
-        self._sig_chol = np.zeros((K, mp, mp))
-        self._rs2 = np.zeros((K, mp))
+        # whitened posterior cache: chol(I + L^-1 S L^-T / s2) and its solve with L^-1 r / s2
+        self._l_d = np.zeros((K, mp, mp))
+        self._cvec = np.zeros((K, mp))
         self._fresh = np.zeros(K, dtype=bool)
         self.n_seen_ = np.zeros(K, dtype=int)
         self.n_added_ = np.zeros(K, dtype=int)
@@ -247,8 +248,6 @@ class AFVSGPBank:
         linv, info = dtrtri(low, lower=1)
         if info != 0:
             linv = np.linalg.inv(low)
-        self._l_oo_invt[k] = eye
-        self._l_oo_invt[k, :m, :m] = linv.T
         self._koo_inv[k] = eye
         self._koo_inv[k, :m, :m] = linv.T @ linv
         self._fresh[k] = False
@@ -311,17 +310,43 @@ class AFVSGPBank:
 
     # ------------------------------------------------------------------ prediction
     def _refresh(self, rows: np.ndarray) -> None:
-        """Factor ``K_oo + S/s2`` and ``r/s2`` of the learners ``rows``."""
-        inv = 1.0 / (self.noise_variance[rows] * self._scale[rows])
-        st = self._stats[rows]
-        sig = self._koo[rows] + st[:, :, 1:] * inv[:, None, None]
-        for j, k in enumerate(rows):
-            low, info = dpotrf(sig[j], lower=1, clean=1, overwrite_a=1)
+        """The whitened posterior of the learners ``rows`` (triangular solves only):
+        ``D = I + L^-1 S L^-T / s2`` (``>= I``), ``L_D = chol(D)``,
+        ``c = L_D^-1 L^-1 r / s2``, with ``L = chol(K_oo)``."""
+        eye = np.eye(self._mp)
+        for k in rows:
+            inv = 1.0 / (self.noise_variance[k] * self._scale[k])
+            low = self._l_oo[k]
+            st = self._stats[k]
+            a = dtrsm(1.0, low, st[:, 1:], 0, 1, 0, 0, 0)  # L^-1 S
+            d = dtrsm(inv, low, np.ascontiguousarray(a.T), 0, 1, 0, 0, 0)  # L^-1 S L^-T / s2
+            d = 0.5 * (d + d.T)
+            d += eye
+            l_d, info = dpotrf(d, lower=1, clean=1)
             if info != 0:
-                low = jittered_cholesky(sig[j], name="K_oo + S/s2")
-            self._sig_chol[k] = low
-        self._rs2[rows] = st[:, :, 0] * inv[:, None]
-        self._fresh[rows] = True
+                l_d = jittered_cholesky(d, name="I + L^-1 S L^-T / s2")
+            self._l_d[k] = l_d
+            v = dtrsm(inv, low, st[:, :1], 0, 1, 0, 0, 0)  # L^-1 r / s2
+            self._cvec[k] = dtrsm(1.0, l_d, v, 0, 1, 0, 0, 0)[:, 0]
+            self._fresh[k] = True
+
+    def _affine(self, k: int, kt: np.ndarray):
+        """``b`` (n, m+1), ``Sigma`` (n, m+1, m+1) of learner ``k`` from ``Kt`` (n, m+1, Mp):
+        ``G = L^-1 Kt'``, ``H = L_D^-1 G``, ``b = H' c``,
+        ``Sigma = diag(s) - G'G + H'H`` (eq. 20 in whitened form)."""
+        n, c, mp = kt.shape
+        rhs = np.asfortranarray(kt.reshape(n * c, mp).T)
+        g = dtrsm(1.0, self._l_oo[k], rhs, 0, 1, 0, 0, 0)  # (Mp, n c)
+        h = dtrsm(1.0, self._l_d[k], g, 0, 1, 0, 0, 0)
+        gt = g.T.reshape(n, c, mp)
+        ht = h.T.reshape(n, c, mp)
+        mean = ht @ self._cvec[k]
+        sig = np.matmul(ht, ht.transpose(0, 2, 1)) - np.matmul(gt, gt.transpose(0, 2, 1))
+        sig += sig.transpose(0, 2, 1)
+        sig *= 0.5
+        i = np.arange(c)
+        sig[:, i, i] += self.var[k]
+        return mean, sig
 
     def predict_affine(self, xi: np.ndarray, rows: np.ndarray | None = None):
         """``b`` (k, m+1) and ``Sigma`` (k, m+1, m+1) of the learners ``rows`` (default all)
@@ -333,22 +358,13 @@ class AFVSGPBank:
         kt = self._kt(rows, xi)
         stale = idx[~self._fresh[idx]]
         if stale.size:
-            self._refresh(stale)
+            self._refresh(np.unique(stale))
         n = len(idx)
-        ff = np.empty((n, c + 1, c + 1))
-        rhs = np.empty((self._mp, c + 1), order="F")
-        for j, k in enumerate(idx):  # L^-1 [Kt', r/s2] (triangular solves), F'F
-            rhs[:, :c] = kt[j].T
-            rhs[:, c] = self._rs2[k]
-            f = dtrsm(1.0, self._sig_chol[k], rhs, 0, 1, 0, 0, 0)
-            ff[j] = f.T.dot(f)
-        g = np.matmul(kt, self._l_oo_invt[idx])
-        sig = ff[:, :c, :c] - np.matmul(g, g.transpose(0, 2, 1))
-        sig += sig.transpose(0, 2, 1)
-        sig *= 0.5
-        i = np.arange(c)
-        sig[:, i, i] += self.var[idx]
-        return ff[:, :c, c].copy(), sig
+        mean = np.empty((n, c))
+        sig = np.empty((n, c, c))
+        for j, k in enumerate(idx):
+            mean[j : j + 1], sig[j : j + 1] = self._affine(k, kt[j : j + 1])
+        return mean, sig
 
     def predict_points(self, k: int, xi: np.ndarray):
         """``b`` (N, m+1) and ``Sigma`` (N, m+1, m+1) of learner ``k`` at N finite points
@@ -367,19 +383,7 @@ class AFVSGPBank:
         kt *= self._ubt[k]
         if not self._fresh[k]:
             self._refresh(np.array([k]))
-        rhs = np.empty((mp, n * c + 1), order="F")
-        rhs[:, : n * c] = kt.reshape(n * c, mp).T
-        rhs[:, n * c] = self._rs2[k]
-        f = dtrsm(1.0, self._sig_chol[k], rhs, 0, 1, 0, 0, 0)  # L^-1 [Kt', r/s2]
-        fk = f[:, : n * c].T.reshape(n, c, mp)
-        mean = fk @ f[:, n * c]
-        g = kt @ self._l_oo_invt[k]
-        sig = np.matmul(fk, fk.transpose(0, 2, 1)) - np.matmul(g, g.transpose(0, 2, 1))
-        sig += sig.transpose(0, 2, 1)
-        sig *= 0.5
-        i = np.arange(c)
-        sig[:, i, i] += self.var[k]
-        return mean, sig
+        return self._affine(k, kt)
 
     # ------------------------------------------------------------------ update
     def update(self, xi: np.ndarray, u: np.ndarray, z: np.ndarray) -> np.ndarray:
@@ -494,23 +498,15 @@ class AFVSGPBank:
         col = self._window_column(k, xi, ub)
         lc = self._weights(k) * col
         wk = self._wk[k, :cnt, :m]
-        stats = np.empty((m + 1, m + 2))
+        stats = np.empty((m + 1, m + 2))  # enlarged [r, S] (eq. 30)
         stats[:m, : m + 1] = self._stats[k, :m, : m + 1]
         stats[m, 1 : m + 1] = stats[:m, m + 1] = lc @ wk
-        stats[m, 0] = lc @ self._wz[k, :cnt]
         stats[m, m + 1] = lc @ col
         jit = self.jitter[k]
         low_e = np.zeros((m + 1, m + 1))
         low_e[:m, :m] = low
         low_e[m, :m] = lvec
         low_e[m, m] = math.sqrt(d + jit)
-        koo = np.empty((m + 1, m + 1))
-        koo[:m, :m] = self._koo[k, :m, :m]
-        koo[m, :m] = koo[:m, m] = kn
-        koo[m, m] = kss + jit
-        xo = np.concatenate([self._ind_xi[k, :m], xi[None]])
-        ubo = np.concatenate([self._ind_ub[k, :m], ub[None]])
-        wcols = np.concatenate([wk, col[:, None]], axis=1)
         drop = None
         if m + 1 > self.num_inducing:
             linv = dtrtri(low_e, lower=1)[0]
@@ -520,6 +516,14 @@ class AFVSGPBank:
             if score[m] - score[j] <= self.swap_margin * kss:
                 return False  # not informative enough: state unchanged
             drop = j
+        stats[m, 0] = lc @ self._wz[k, :cnt]
+        koo = np.empty((m + 1, m + 1))
+        koo[:m, :m] = self._koo[k, :m, :m]
+        koo[m, :m] = koo[:m, m] = kn
+        koo[m, m] = kss + jit
+        xo = np.concatenate([self._ind_xi[k, :m], xi[None]])
+        ubo = np.concatenate([self._ind_ub[k, :m], ub[None]])
+        wcols = np.concatenate([wk, col[:, None]], axis=1)
         self.n_added_[k] += 1
         if drop is not None:
             keep = np.r_[0:drop, drop + 1 : m + 1]
