@@ -95,8 +95,9 @@ def default_algo_kwargs(algo: str, timesteps: int, n_envs: int) -> dict[str, Any
     PPO: rollouts of 512 steps per env (fewer for short runs: a multiple of 64 so no
     mini-batch is truncated), mini-batches of 256 (64 for short runs), 10 epochs,
     gamma 0.98, two hidden layers of 64 units, initial action std exp(-0.5) = 0.61 (of the
-    [-1, 1] range; SB3's default 1 saturates half the actions). SAC: a 300k-transition buffer, learning from
-    1,000 steps (half the run if shorter), gamma 0.98, two layers of 256 units.
+    [-1, 1] range; SB3's default 1 saturates half the actions). SAC: a 300k-transition
+    buffer, learning from 1,000 steps (half the run if shorter), gamma 0.98, two layers of
+    256 units.
     """
     if algo == "ppo":
         n_steps = max(64, min(512, int(timesteps) // n_envs // 64 * 64))
