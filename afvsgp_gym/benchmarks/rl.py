@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from afvsgp_gym.benchmarks._machine import machine
+from afvsgp_gym.evaluation import jsonable
 
 __all__ = ["CONDITIONS", "RLBenchConfig", "evaluate_agent", "plot_curves", "run"]
 
@@ -336,7 +337,7 @@ def run(cfg: RLBenchConfig, out_dir: str | os.PathLike, *, figure: str | os.Path
                 "eval_own": own, "eval_afvsgp": behind,
             })
     results["total_wall_s"] = time.perf_counter() - t_start
-    (out_dir / "rl_results.json").write_text(json.dumps(_jsonable(results), indent=1) + "\n")
+    (out_dir / "rl_results.json").write_text(json.dumps(jsonable(results), indent=1) + "\n")
     table = table_markdown(results)
     (out_dir / "rl_table.md").write_text(table)
     fig = plot_curves(results, figure or out_dir / "rl_training.png")
@@ -358,18 +359,6 @@ def _best_filtered(results: dict) -> dict | None:
         return None
     return max(runs, key=lambda r: (-r["eval_own"]["episodes_with_cost"],
                                     r["eval_own"]["success_rate"], r["eval_own"]["return_mean"]))
-
-
-def _jsonable(x: Any) -> Any:
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, list | tuple):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, np.generic):
-        return _jsonable(x.item())
-    if isinstance(x, float):
-        return x if math.isfinite(x) else None
-    return x
 
 
 def main(argv: Sequence[str] | None = None) -> int:

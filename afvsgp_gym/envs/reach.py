@@ -148,18 +148,11 @@ class FrankaObstacleReachEnv(FrankaObstacleEnv):
         success_bonus=1.0,
         warmup_steps=76,
         action_repeat=10,
-        payload_mass=1.0,
-        mass_scale=(0.9, 1.3),
-        damping=1.0,
-        friction=0.0,
-        armature=0.1,
-        plant_seed=0,
-        physics_dt=0.002,
-        frame_skip=2,
         reset_noise=0.02,
-        render_mode=None,
-        width=480,
-        height=480,
+        # the plant, the physics and rendering as every Franka env
+        **{key: FrankaObstacleEnv._DEFAULTS[key] for key in (
+            "payload_mass", "mass_scale", "damping", "friction", "armature", "plant_seed",
+            "physics_dt", "frame_skip", "render_mode", "width", "height")},
     )
     #: Obstacle radius range (m) and the goal's workspace box (m).
     RADIUS_RANGE = (0.04, 0.07)
