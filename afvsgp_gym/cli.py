@@ -27,6 +27,7 @@ from typing import Any
 __all__ = ["build_parser", "main"]
 
 DEFAULT_ENV = "afvsgp_gym/FrankaObstacleDynamic-v0"
+TRAIN_ENV = "afvsgp_gym/FrankaObstacleReach-v0"
 
 
 # ----------------------------------------------------------------------------- choices
@@ -489,7 +490,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     tr = sub.add_parser("train", help="train a Stable-Baselines3 agent with the filter in the loop")
     tr.add_argument("--algo", choices=("ppo", "sac"), default="ppo")
-    tr.add_argument("--env", default=DEFAULT_ENV)
+    tr.add_argument("--env", default=TRAIN_ENV, help=f"env id (default {TRAIN_ENV}, the RL task)")
     tr.add_argument("--learner", default="afvsgp", help="filter learner (default afvsgp)")
     tr.add_argument("--no-filter", action="store_true",
                     help="train on the bare env (no SafetyFilter; overrides --learner)")
