@@ -1,0 +1,144 @@
+"""The tables of benchmarks/acceptance.md from the records of the acceptance sweep.
+
+    afvsgp-gym sweep benchmarks/configs/acceptance.toml --out acceptance.jsonl
+    python benchmarks/acceptance_tables.py acceptance.jsonl
+
+Episodes with cost, the exact Clopper-Pearson 95 % upper bound on the per-episode cost rate,
+min h, mean tracking error with its standard error over episodes, the ratio to the oracle's on
+the same scenarios and seeds, backup (infeasible) steps per episode and the share of safe
+proposals kept, per block, scenario and prior.
+"""
+
+from __future__ import annotations
+
+import argparse
+import gzip
+import json
+from collections.abc import Iterable
+
+import numpy as np
+from scipy.stats import beta
+
+SCENARIOS = ("static", "dynamic", "random")
+PRIORS = ("zero", "kinematic", "perturbed")
+
+
+def load(path: str) -> list[dict]:
+    """The records of a results file (``.jsonl`` or ``.jsonl.gz``)."""
+    opener = gzip.open if path.endswith(".gz") else open
+    with opener(path, "rt") as fh:
+        return [json.loads(line) for line in fh if line.strip()]
+
+
+def scenario(rec: dict) -> str:
+    env = rec["config"]["env_id"]
+    return next((s for s in SCENARIOS if s.capitalize() in env), env.split("/")[-1])
+
+
+def prior(rec: dict) -> str:
+    return rec["config"]["env_kwargs"].get("nominal_model", "zero")
+
+
+def cp_upper(k: int, n: int, level: float = 0.95) -> float:
+    """Exact one-sided Clopper-Pearson upper bound on a binomial rate."""
+    return 1.0 if k >= n else float(beta.ppf(level, k + 1, n - k))
+
+
+def summary(recs: list[dict]) -> dict:
+    track = np.array([r["tracking_error_mean"] for r in recs], dtype=float)
+    safe = sum(r["safe_proposals"] for r in recs)
+    return {
+        "n": len(recs),
+        "cost": sum(r["cost_steps"] > 0 for r in recs),
+        "bound": cp_upper(sum(r["cost_steps"] > 0 for r in recs), len(recs)),
+        "min_h": min(r["min_h"] for r in recs),
+        "track": float(np.mean(track)),
+        "track_se": float(np.std(track, ddof=1) / np.sqrt(len(track))) if len(track) > 1 else 0.0,
+        "backup": float(np.mean([r["infeasible_steps"] for r in recs])),
+        "kept": sum(r["safe_proposals_kept"] for r in recs) / safe if safe else 1.0,
+        "contact_eps": sum(r["contact_steps"] > 0 for r in recs),
+        "h_eps": sum(r["violation_steps"] > 0 for r in recs),
+    }
+
+
+def select(recs: Iterable[dict], block: str, **where) -> list[dict]:
+    out = [r for r in recs if r["block"] == block]
+    if "scenario" in where:
+        out = [r for r in out if scenario(r) == where["scenario"]]
+    if "prior" in where:
+        out = [r for r in out if prior(r) == where["prior"]]
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("results")
+    recs = load(parser.parse_args().results)
+    versions = sorted({r["code_version"] for r in recs})
+    print(f"{len(recs)} records, code {', '.join(versions)}\n")
+
+    arm = [r for r in recs if r["block"] in ("priors", "plants", "fast_obstacle")]
+    zero = [r for r in arm if prior(r) == "zero"]
+    print("| filter | episodes | with cost | 95 % bound | min h [m] |\n|---|---|---|---|---|")
+    for name, group in (("AFVSGP, whole arm", arm), ("of which prior zero", zero),
+                        ("oracle", select(recs, "oracle")),
+                        ("nominal only", select(recs, "nominal_only")),
+                        ("AFVSGP, end-effector sphere only", select(recs, "paper_ee")),
+                        ("AFVSGP, point mass", select(recs, "pointmass"))):
+        if group:
+            s = summary(group)
+            print(f"| {name} | {s['n']} | {s['cost']} (h<0: {s['h_eps']}, contact: "
+                  f"{s['contact_eps']}) | {s['bound']:.4f} | {s['min_h']:.4f} |")
+
+    print("\n| scenario | prior | episodes | with cost | 95 % bound | min h [m] | tracking [m] "
+          "(s.e.) | oracle tracking [m] | ratio | backup / episode | kept |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    for sc in SCENARIOS:
+        ora = summary(select(recs, "oracle", scenario=sc))
+        for pr in PRIORS:
+            s = summary(select(recs, "priors", scenario=sc, prior=pr))
+            print(f"| {sc} | {pr} | {s['n']} | {s['cost']} | {s['bound']:.3f} | "
+                  f"{s['min_h']:.4f} | {s['track']:.4f} ({s['track_se']:.4f}) | "
+                  f"{ora['track']:.4f} | {s['track'] / ora['track']:.2f} | {s['backup']:.1f} | "
+                  f"{s['kept']:.4f} |")
+        print(f"| {sc} | oracle | {ora['n']} | {ora['cost']} | {ora['bound']:.3f} | "
+              f"{ora['min_h']:.4f} | {ora['track']:.4f} ({ora['track_se']:.4f}) | | | "
+              f"{ora['backup']:.0f} | {ora['kept']:.4g} |")
+
+    ora_all = summary(select(recs, "oracle"))
+    print("\n| prior (all three scenarios) | episodes | with cost | tracking [m] (s.e.) | / oracle "
+          "| backup / episode | kept |\n|---|---|---|---|---|---|---|")
+    for pr in PRIORS:
+        s = summary(select(recs, "priors", prior=pr))
+        print(f"| {pr} | {s['n']} | {s['cost']} | {s['track']:.4f} ({s['track_se']:.4f}) | "
+              f"{s['track'] / ora_all['track']:.2f} | {s['backup']:.1f} | {s['kept']:.4f} |")
+
+    print("\n| block | prior | episodes | with cost | min h [m] | tracking [m] | backup / episode "
+          "| kept |\n|---|---|---|---|---|---|---|---|")
+    for block in ("plants", "fast_obstacle"):
+        for pr in PRIORS:
+            s = summary(select(recs, block, prior=pr))
+            print(f"| {block} | {pr} | {s['n']} | {s['cost']} | {s['min_h']:.4f} | "
+                  f"{s['track']:.4f} | {s['backup']:.1f} | {s['kept']:.4f} |")
+    plants = select(recs, "plants")
+    for key, values in (("friction", (0.0, 0.5)), ("payload_mass", (0.5, 2.0))):
+        parts = []
+        for v in values:
+            s = summary([r for r in plants if r["config"]["env_kwargs"].get(key) == v])
+            parts.append(f"{key} {v}: {s['n']} episodes, {s['cost']} with cost, tracking "
+                         f"{s['track']:.3f} m")
+        print("; ".join(parts))
+
+    print("\n| filter | episodes | with h < 0 | min h [m] | tracking [m] | with an arm contact |"
+          "\n|---|---|---|---|---|---|")
+    for sc in ("static", "dynamic"):
+        s = summary(select(recs, "paper_ee", scenario=sc))
+        print(f"| end-effector, {sc} | {s['n']} | {s['h_eps']} | {s['min_h']:.4f} | "
+              f"{s['track']:.4f} | {s['contact_eps']} |")
+    s = summary(select(recs, "pointmass"))
+    print(f"| point mass | {s['n']} | {s['h_eps']} | {s['min_h']:.4f} | {s['track']:.4f} | "
+          f"{s['contact_eps']} |")
+
+
+if __name__ == "__main__":
+    main()
