@@ -36,6 +36,22 @@ def _rows(streams, i):
     return (np.array([s[0][i] for s in streams]), np.array([s[2][i] for s in streams]))
 
 
+def _assert_equals_batch_posterior(bank, streams, u, n, seed):
+    """The bank's affine prediction at random points equals the weighted Titsias posterior of
+    each learner's last P samples on its current inducing set (independent batch formula)."""
+    xs = np.random.default_rng(seed).normal(size=(K, 3))
+    b, s = bank.predict_affine(xs)
+    w = 0.95 ** np.arange(P - 1, -1, -1, dtype=float)
+    for k, (xi, _, z, _) in enumerate(streams):
+        m = bank.n_inducing_[k]
+        kern = bank.kernels[k]
+        bref, sref = weighted_titsias_affine(
+            kern.lengthscales, kern.variances, bank.noise_variance[k], xi[n - P : n],
+            u[n - P : n], z[n - P : n], w, bank._ind_xi[k, :m], bank._ind_ub[k, :m, 1:],
+            xs[k : k + 1], jitter=bank.jitter[k])
+        assert _rel(b[k], bref[0]) < 1e-7 and _rel(s[k], sref[0]) < 1e-7
+
+
 def test_bank_equals_independent_learners_through_inducing_events():
     n = P + 10 * P
     streams = _streams(n)
@@ -72,17 +88,7 @@ def test_bank_equals_the_batch_weighted_posterior():
     for i in range(P, n):
         xi, z = _rows(streams, i)
         bank.update(xi, u[i], z)
-    xs = np.random.default_rng(5).normal(size=(K, 3))
-    b, s = bank.predict_affine(xs)
-    w = 0.95 ** np.arange(P - 1, -1, -1, dtype=float)
-    for k, (xi, _, z, _) in enumerate(streams):
-        m = bank.n_inducing_[k]
-        kern = bank.kernels[k]
-        bref, sref = weighted_titsias_affine(
-            kern.lengthscales, kern.variances, bank.noise_variance[k], xi[n - P : n],
-            u[n - P : n], z[n - P : n], w, bank._ind_xi[k, :m], bank._ind_ub[k, :m, 1:],
-            xs[k : k + 1], jitter=bank.jitter[k])
-        assert _rel(b[k], bref[0]) < 1e-7 and _rel(s[k], sref[0]) < 1e-7
+    _assert_equals_batch_posterior(bank, streams, u, n, seed=5)
 
 
 def test_subset_prediction_equals_full_prediction():
@@ -142,16 +148,6 @@ def test_at_most_one_inducing_change_per_step_keeps_the_posterior_exact():
         bank.update(xi, u[i], z)
         assert (bank.n_added_ - before).sum() <= 1
     assert bank.n_added_.sum() > 20
-    xs = np.random.default_rng(6).normal(size=(K, 3))
-    b, s = bank.predict_affine(xs)
-    w = 0.95 ** np.arange(P - 1, -1, -1, dtype=float)
-    for k, (xi, _, z, _) in enumerate(streams):
-        m = bank.n_inducing_[k]
-        kern = bank.kernels[k]
-        bref, sref = weighted_titsias_affine(
-            kern.lengthscales, kern.variances, bank.noise_variance[k], xi[n - P : n],
-            u[n - P : n], z[n - P : n], w, bank._ind_xi[k, :m], bank._ind_ub[k, :m, 1:],
-            xs[k : k + 1], jitter=bank.jitter[k])
-        assert _rel(b[k], bref[0]) < 1e-7 and _rel(s[k], sref[0]) < 1e-7
+    _assert_equals_batch_posterior(bank, streams, u, n, seed=6)
     with pytest.raises(ValueError, match="max_inducing_candidates"):
         AFVSGPBank.from_learners(_learners(streams[:1], u), max_inducing_candidates=0)
