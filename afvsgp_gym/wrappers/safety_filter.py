@@ -143,7 +143,11 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
 
     def step(self, action):
         base = self.env.unwrapped
-        proposed = np.array(action, dtype=np.float64).reshape(self.action_space.shape)  # copy
+        proposed = np.array(action, dtype=np.float64)  # a copy: the agent's array is untouched
+        if proposed.size != int(np.prod(self.action_space.shape)):
+            raise ValueError(f"action must have shape {self.action_space.shape}, got "
+                             f"{proposed.shape}")
+        proposed = proposed.reshape(self.action_space.shape)
         terms = base.barrier_terms("nominal")
         true_terms = (
             base.barrier_terms("true") if self.controller.uses_true_terms else None

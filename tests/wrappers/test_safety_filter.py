@@ -200,3 +200,13 @@ def test_reset_seed_makes_a_filtered_episode_reproducible():
     a, b, c = actions(3), actions(3), actions(4)
     np.testing.assert_array_equal(a, b)
     assert not np.array_equal(a, c)
+
+
+def test_wrong_action_shape_is_refused_naming_the_action():
+    env = SafetyFilter(gym.make("afvsgp_gym/PointMassObstacle-v0"), learner="none")
+    env.reset(seed=0)
+    n = env.action_space.shape[0]
+    with pytest.raises(ValueError, match=r"action must have shape"):
+        env.step(np.zeros(n + 1))
+    obs, *_ = env.step(np.zeros(n))  # the filter still works after the refusal
+    assert np.all(np.isfinite(obs))
