@@ -28,7 +28,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import solve_triangular
 from scipy.linalg.blas import dtrsm
 from scipy.linalg.lapack import dpotrf, dtrtri
 
@@ -421,18 +420,22 @@ class AFVSGPBank:
         slot = np.where(full, self._head[sel] + 1, cnt)
         slot[slot == self.window] = 0
         stats = self._stats[sel] if rows is not None else self._stats
+        # the new sample in, the sample leaving a full window out: one batched rank-2 product
+        n = len(idx)
+        left = np.zeros((n, self._mp, 2))
+        right = np.zeros((n, 2, self._mp + 1))
+        left[:, :, 0] = k_new
+        right[:, 0, 0] = z
+        right[:, 0, 1:] = k_new
+        right[:, 0] *= scale[:, None]
         if full.any():
             fi, fs = idx[full], slot[full]
             k_old = self._wk[fi, fs]
-            y_old = np.concatenate([self._wz[fi, fs][:, None], k_old], axis=1)
-            y_old *= (-self._phi_p * scale[full])[:, None]
-            if full.all():
-                stats += k_old[:, :, None] * y_old[:, None, :]
-            else:
-                stats[full] += k_old[:, :, None] * y_old[:, None, :]
-        y = np.concatenate([z[:, None], k_new], axis=1)
-        y *= scale[:, None]
-        stats += k_new[:, :, None] * y[:, None, :]
+            left[full, :, 1] = k_old
+            right[full, 1, 0] = self._wz[fi, fs]
+            right[full, 1, 1:] = k_old
+            right[full, 1] *= (-self._phi_p * scale[full])[:, None]
+        stats += np.matmul(left, right)
         if rows is not None:
             self._stats[rows] = stats
         self._wk[idx, slot] = k_new
@@ -474,7 +477,10 @@ class AFVSGPBank:
         cnt, b = self._count[k], self.input_dim
         il2 = self.inv_ls2[k]  # (c, b)
         wx = self._wx[k, :cnt]
-        e = wx[:, :b] @ (il2 * xi).T - 0.5 * (wx[:, b:] @ il2.T)
+        coef = np.empty((2 * b, self._c))
+        coef[:b] = (il2 * xi).T
+        coef[b:] = -0.5 * il2.T
+        e = wx @ coef
         e += self.log_var[k] - 0.5 * (il2 @ (xi * xi))
         np.minimum(e, self.log_var[k], out=e)
         np.exp(e, out=e)
@@ -489,7 +495,7 @@ class AFVSGPBank:
         m = int(self.n_inducing_[k])
         low = self._l_oo[k, :m, :m]
         kn = k_new[:m]
-        lvec = solve_triangular(low, kn, lower=True, check_finite=False)
+        lvec = dtrsm(1.0, low, kn[:, None], 0, 1, 0, 0, 0)[:, 0]
         d = kss - float(lvec @ lvec)  # the same residual, from the factor (stable)
         if not d > 1e-6 * kss:
             return False
@@ -523,20 +529,22 @@ class AFVSGPBank:
         koo[m, m] = kss + jit
         xo = np.concatenate([self._ind_xi[k, :m], xi[None]])
         ubo = np.concatenate([self._ind_ub[k, :m], ub[None]])
-        wcols = np.concatenate([wk, col[:, None]], axis=1)
         self.n_added_[k] += 1
+        wk_k = self._wk[k]
         if drop is not None:
             keep = np.r_[0:drop, drop + 1 : m + 1]
-            xo, ubo, koo, wcols = xo[keep], ubo[keep], koo[np.ix_(keep, keep)], wcols[:, keep]
+            xo, ubo, koo = xo[keep], ubo[keep], koo[np.ix_(keep, keep)]
             stats = stats[np.ix_(keep, np.r_[0, keep + 1])]
             low_e, info = dpotrf(koo, lower=1, clean=1)  # O(M^3 / 3): cheaper than a loop
             if info != 0:
                 low_e = jittered_cholesky(koo, name="K_oo")
             self.n_removed_[k] += 1
+            wk_k[:cnt, drop : m - 1] = wk_k[:cnt, drop + 1 : m]  # the window's kernel columns
+            wk_k[:cnt, m - 1] = col
+        else:
+            wk_k[:cnt, m] = col
         self._set_inducing(k, xo, ubo, koo, low_e)
         mm = len(xo)
-        self._wk[k, :, :] = 0.0
-        self._wk[k, :cnt, :mm] = wcols
         self._stats[k] = 0.0
         self._stats[k, :mm, : mm + 1] = stats
         return True
