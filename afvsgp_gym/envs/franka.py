@@ -28,12 +28,6 @@ from afvsgp_gym.envs.scenario import (
 from afvsgp_gym.types import BarrierSet
 from afvsgp_gym.validation import check_choice, check_real
 
-
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise cross product of (n, 3) arrays (np.cross is slow on small arrays)."""
-    return a[:, [1, 2, 0]] * b[:, [2, 0, 1]] - a[:, [2, 0, 1]] * b[:, [1, 2, 0]]
-
-
 _BAD_WARNINGS = np.array(
     [
         int(mujoco.mjtWarning.mjWARN_BADQACC),
@@ -348,18 +342,13 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
             spheres = parse_spheres(spec, arm)
         self.safety_spheres = spheres
         bodies, offsets, radii = sphere_arrays(spheres)
-        ids = np.array([m.body(b).id for b in bodies])
-        self._sphere_bodies, self._sphere_slot = np.unique(ids, return_inverse=True)
+        self._sphere_body_ids = np.array([m.body(b).id for b in bodies])
         self._sphere_offsets = offsets
         self._sphere_radii = radii
-        nb, nv = len(self._sphere_bodies), m.nv
-        self._jacp = np.zeros((nb, 3, nv))
-        self._jacr = np.zeros((nb, 3, nv))
-        self._jdotp = np.zeros((nb, 3, nv))
-        self._jdotr = np.zeros((nb, 3, nv))
+        n_s, nv = len(spheres), m.nv
+        self._jacp = np.zeros((n_s, 3, nv))
+        self._jdotp = np.zeros((n_s, 3, nv))
         self._ee_jac = np.zeros((3, nv))
-        self._skew = np.zeros((len(spheres), 3, 3))
-        n_s = len(spheres)
         self.n_barriers = n_s * self.n_obstacles
         self.barrier_names = tuple(
             f"{s.body.removeprefix('panda0_')}[{i}]/obstacle{o}"
@@ -492,31 +481,24 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         self.data.mocap_pos[self._ref_mocap] = self._ref_state[0]
 
     # ------------------------------------------------------------------ barriers
+    def _sphere_centres(self, data: mujoco.MjData) -> np.ndarray:
+        """(S, 3) safety-sphere centres at the kinematics of ``data``."""
+        body = self._sphere_body_ids
+        rot = data.xmat[body].reshape(-1, 3, 3)
+        return data.xpos[body] + np.matmul(rot, self._sphere_offsets[:, :, None])[:, :, 0]
+
     def _sphere_kinematics(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Sphere centres p (S, 3), velocities v (S, 3), Jacobians J (S, 3, nv) and the
-        velocity-product accelerations J' q' (S, 3) (rigid-body transport from each body's
-        origin: a = a_b + alpha x r + w x (w x r) at q'' = 0)."""
+        velocity-product accelerations J' q' (S, 3): MuJoCo's point Jacobian and its time
+        derivative at each centre (``mj_jac``, ``mj_jacDot``)."""
         m, d = self.model, self.data
-        for i, b in enumerate(self._sphere_bodies):
-            mujoco.mj_jacBody(m, d, self._jacp[i], self._jacr[i], b)
-            mujoco.mj_jacDot(m, d, self._jdotp[i], self._jdotr[i], d.xpos[b], b)
-        slot = self._sphere_slot
-        body = self._sphere_bodies[slot]
-        rot = d.xmat[body].reshape(-1, 3, 3)
-        r = np.matmul(rot, self._sphere_offsets[:, :, None])[:, :, 0]  # offset, world axes
-        p = d.xpos[body] + r
+        p = self._sphere_centres(d)
+        jac, jdot = self._jacp, self._jdotp
+        for i, b in enumerate(self._sphere_body_ids.tolist()):
+            mujoco.mj_jac(m, d, jac[i], None, p[i], b)
+            mujoco.mj_jacDot(m, d, jdot[i], None, p[i], b)
         qd = d.qvel
-        jr = self._jacr[slot]
-        skew = self._skew
-        skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -r[:, 2], r[:, 1], -r[:, 0]
-        skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = r[:, 2], -r[:, 1], r[:, 0]
-        jac = self._jacp[slot] - np.matmul(skew, jr)  # J_t - [r]x J_r
-        w = jr @ qd  # angular velocity of each sphere's body
-        alpha = self._jdotr[slot] @ qd
-        w_x_r = -np.matmul(skew, w[:, :, None])[:, :, 0]  # w x r = -[r]x w
-        alpha_x_r = -np.matmul(skew, alpha[:, :, None])[:, :, 0]
-        bias = self._jdotp[slot] @ qd + alpha_x_r + _cross(w, w_x_r)
-        return p, jac @ qd, jac, bias
+        return p, jac @ qd, jac.copy(), jdot @ qd
 
     def _pair_geometry(self):
         """Kinematic part of every (sphere, obstacle) barrier, shared by all models."""

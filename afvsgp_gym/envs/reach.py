@@ -224,12 +224,6 @@ class FrankaObstacleReachEnv(FrankaObstacleEnv):
             self.model.geom_size[g, 0] = ob.radius
             self.model.geom_rbound[g] = ob.radius
 
-    def _sphere_centres(self, data: mujoco.MjData) -> np.ndarray:
-        """(S, 3) safety-sphere centres at the kinematics of ``data``."""
-        body = self._sphere_bodies[self._sphere_slot]
-        rot = data.xmat[body].reshape(-1, 3, 3)
-        return data.xpos[body] + np.matmul(rot, self._sphere_offsets[:, :, None])[:, :, 0]
-
     def _goal_configuration(self, q0: np.ndarray, goal: np.ndarray) -> np.ndarray | None:
         """Sphere centres where the inner loop's arm (joints 1-4, wrist held) puts the
         end-effector at ``goal`` (damped least squares with the loop's posture in the null
