@@ -113,6 +113,9 @@ def main() -> None:
         print(f"| {pr} | {s['n']} | {s['cost']} | {s['track']:.4f} ({s['track_se']:.4f}) | "
               f"{s['track'] / ora_all['track']:.2f} | {s['backup']:.1f} | {s['kept']:.4f} |")
 
+    if not any(r.get("block") in ("plants", "fast_obstacle", "paper_ee", "pointmass")
+               for r in recs):
+        return  # a sweep of the priors grid only (e.g. benchmarks/configs/recheck.toml)
     print("\n| block | prior | episodes | with cost | min h [m] | tracking [m] | backup / episode "
           "| kept |\n|---|---|---|---|---|---|---|---|")
     for block in ("plants", "fast_obstacle"):
