@@ -398,7 +398,7 @@ class AFVSGPBank:
             raise ValueError(
                 f"update needs xi ({K}, {b}), u ({self.action_dim},), z ({K},). Got: "
                 f"{xi.shape}, {u.shape}, {z.shape}")
-        if not np.all(np.isfinite(u)):
+        if not np.isfinite(u).all():
             raise ValueError("u contains NaN or inf")
         ok = np.isfinite(z + xi.sum(axis=1))
         if not ok.any():
@@ -428,7 +428,13 @@ class AFVSGPBank:
         right[:, 0, 0] = z
         right[:, 0, 1:] = k_new
         right[:, 0] *= scale[:, None]
-        if full.any():
+        if full.all():  # once the windows have filled: basic slicing
+            k_old = self._wk[idx, slot]
+            left[:, :, 1] = k_old
+            right[:, 1, 0] = self._wz[idx, slot]
+            right[:, 1, 1:] = k_old
+            right[:, 1] *= (-self._phi_p * scale)[:, None]
+        elif full.any():
             fi, fs = idx[full], slot[full]
             k_old = self._wk[fi, fs]
             left[full, :, 1] = k_old
@@ -444,7 +450,7 @@ class AFVSGPBank:
         self._wx[idx, slot, b:] = xi * xi
         self._wub[idx, slot] = ub
         self._head[sel] = slot
-        self._count[sel] = np.where(full, cnt, cnt + 1)
+        self._count[sel] = cnt + ~full
         self.n_seen_[sel] += 1
         self._fresh[sel] = False
         since = self._since_refresh[sel] + 1
