@@ -8,9 +8,11 @@ One command runs everything (benchmarks/rl.md has the results and the design)::
 
 For every condition and seed it trains with :func:`afvsgp_gym.agents.sb3.train` (two envs in
 ``SubprocVecEnv`` workers, one filter per worker, nominal model "zero"), then evaluates the
-final deterministic policy on held-out goals (reset seeds 10000...) twice: in its training
-condition and behind the AFVSGP filter, each episode in a fresh env and filter (the
-convention of ``afvsgp-gym evaluate``: the filter warms up in every episode). It writes
+final deterministic policy on held-out goals (reset seeds 10000...) three times: in its
+training condition and behind the AFVSGP filter, each episode in a fresh env and filter (the
+convention of ``afvsgp-gym evaluate``: the filter warms up in every episode), and behind an
+AFVSGP filter kept across the episodes as in training (after 10 unrecorded episodes on other
+goals: a filter that has been running, as a deployed one would be). It writes
 ``rl_results.json`` (per-run curves binned by agent steps, evaluation summaries, wall times)
 and ``rl_table.md`` under ``--out``, the figure ``rl_training.png`` (return, success rate and
 cumulative training cost against agent steps; mean over seeds, band = min..max) and, for the
@@ -44,6 +46,10 @@ ENV_ID = "afvsgp_gym/FrankaObstacleReach-v0"
 #: Training conditions: name -> SafetyFilter learner (None: no filter).
 CONDITIONS: dict[str, str | None] = {"afvsgp": "afvsgp", "oracle": "oracle", "unfiltered": None}
 EVAL_SEED = 10_000
+#: Reset seeds of the unrecorded episodes a kept filter runs before the evaluation.
+WARM_SEED = 20_000
+#: Runs of consecutive held-out episodes, one env and filter each, with a kept filter.
+KEPT_CHUNKS = 2
 SHIPPED_AGENT = Path("docs/agents/reach_ppo_afvsgp.zip")
 
 
@@ -59,6 +65,8 @@ class RLBenchConfig:
     eval_episodes: int = 50
     eval_workers: int = 2
     bins: int = 15
+    #: unrecorded episodes a kept filter runs before the held-out goals (see evaluate_agent)
+    kept_filter_warmup: int = 10
     env_kwargs: dict = field(default_factory=dict)
     algo_kwargs: dict = field(default_factory=dict)
 
@@ -66,7 +74,7 @@ class RLBenchConfig:
     def quick(cls) -> RLBenchConfig:
         """One seed, 512 agent steps per condition on 1.2-second episodes, 2 evaluation
         episodes: about a minute, a test of the pipeline only."""
-        return cls(timesteps=512, seeds=(0,), eval_episodes=2, bins=4,
+        return cls(timesteps=512, seeds=(0,), eval_episodes=2, bins=4, kept_filter_warmup=1,
                    env_kwargs={"max_episode_steps": 300},
                    algo_kwargs={"n_steps": 128, "batch_size": 64, "n_epochs": 2})
 
@@ -74,8 +82,10 @@ class RLBenchConfig:
 # ------------------------------------------------------------------------------ evaluation
 
 
-def _eval_episode(task: tuple[str, str | None, int, dict]) -> dict[str, Any]:
-    """One held-out episode of the agent ``zip`` behind ``learner`` (fresh env and filter)."""
+def _eval_episodes(task: tuple[str, str | None, list[int], dict, list[int]]) -> list[dict]:
+    """Held-out episodes of the agent ``zip`` behind ``learner`` in ONE env and filter, in
+    order, after the unrecorded episodes ``warm`` (the filter keeps what it learned across
+    them all)."""
     import warnings
 
     import gymnasium as gym
@@ -85,36 +95,65 @@ def _eval_episode(task: tuple[str, str | None, int, dict]) -> dict[str, Any]:
     from afvsgp_gym.evaluation import run_episode
     from afvsgp_gym.wrappers import SafetyFilter
 
-    zip_path, learner, seed, env_kwargs = task
+    zip_path, learner, seeds, env_kwargs, warm = task
     warnings.simplefilter("ignore", RuntimeWarning)  # GP jitter notes; counted elsewhere
     env = gym.make(ENV_ID, **env_kwargs)
     if learner is not None:
-        env = SafetyFilter(env, learner=learner, seed=seed)
-    counts = {"success": False, "backup_steps": 0}
+        env = SafetyFilter(env, learner=learner, seed=seeds[0])
+    counts: dict[str, Any] = {}
 
     def on_step(info: dict) -> None:
         counts["success"] = counts["success"] or bool(info["success"])
         counts["backup_steps"] += str(info.get("filter_status", "")).startswith(
             ("backup", "fallback"))
 
+    out = []
     try:
-        rec, _ = run_episode(env, load_policy(zip_path, env=env), seed, on_step=on_step)
+        policy = load_policy(zip_path, env=env)
+        for seed in warm:
+            run_episode(env, policy, seed)
+        for seed in seeds:
+            counts.update(success=False, backup_steps=0)
+            rec, _ = run_episode(env, policy, seed, on_step=on_step)
+            rec.pop("filter_time_hist", None)
+            rec.update(counts)
+            out.append(rec)
     finally:
         env.close()
-    rec.pop("filter_time_hist", None)
-    rec.update(counts)
-    return rec
+    return out
+
+
+def _eval_episode(task: tuple[str, str | None, int, dict]) -> dict[str, Any]:
+    """One held-out episode of the agent ``zip`` behind ``learner`` (fresh env and filter)."""
+    zip_path, learner, seed, env_kwargs = task
+    return _eval_episodes((zip_path, learner, [seed], env_kwargs, []))[0]
 
 
 def evaluate_agent(zip_path: str | os.PathLike, learner: str | None, episodes: int,
-                   env_kwargs: dict | None = None, pool: ProcessPoolExecutor | None = None
-                   ) -> dict[str, Any]:
+                   env_kwargs: dict | None = None, pool: ProcessPoolExecutor | None = None,
+                   kept_filter_warmup: int | None = None) -> dict[str, Any]:
     """Success, return and cost of the agent on ``episodes`` held-out goals (reset seeds
-    ``EVAL_SEED + i``) behind ``learner`` (None: no filter), each in a fresh env and filter."""
-    tasks = [(str(zip_path), learner, EVAL_SEED + i, dict(env_kwargs or {}))
-             for i in range(episodes)]
-    recs = list(pool.map(_eval_episode, tasks) if pool is not None else map(_eval_episode, tasks))
-    return _eval_summary(recs)
+    ``EVAL_SEED + i``) behind ``learner`` (None: no filter).
+
+    By default each episode runs in a fresh env and filter (the filter warms up in every
+    episode, as in ``afvsgp-gym evaluate``). With ``kept_filter_warmup = n`` the filter is
+    deployed as in training instead: the goals are split into :data:`KEPT_CHUNKS` runs of
+    consecutive episodes, each in one env whose filter first runs ``n`` unrecorded episodes
+    (reset seeds ``WARM_SEED + ...``, goals never evaluated) and keeps learning through the
+    run."""
+    env_kwargs = dict(env_kwargs or {})
+    seeds = [EVAL_SEED + i for i in range(episodes)]
+    if kept_filter_warmup is None:
+        tasks = [(str(zip_path), learner, seed, env_kwargs) for seed in seeds]
+        recs = list(pool.map(_eval_episode, tasks) if pool is not None
+                    else map(_eval_episode, tasks))
+        return _eval_summary(recs)
+    n = int(kept_filter_warmup)
+    chunks = [c.tolist() for c in np.array_split(np.array(seeds), KEPT_CHUNKS) if c.size]
+    tasks = [(str(zip_path), learner, c, env_kwargs, [WARM_SEED + j * n + i for i in range(n)])
+             for j, c in enumerate(chunks)]
+    runs = pool.map(_eval_episodes, tasks) if pool is not None else map(_eval_episodes, tasks)
+    return _eval_summary([rec for run in runs for rec in run])
 
 
 def _eval_summary(recs: list[dict]) -> dict[str, Any]:
@@ -227,9 +266,9 @@ def _fmt_rate(s: dict) -> str:
 def table_markdown(results: dict) -> str:
     """Per-condition rows (seeds pooled for the evaluation, summed for training cost)."""
     head = ("| condition | held-out success, own condition (95 % CI) | held-out success behind "
-            "AFVSGP | eval. episodes with cost | eval. return | training cost steps (after "
-            "warm-up) | training episodes with cost | final training success | wall time per "
-            "run |\n|---|---|---|---|---|---|---|---|---|")
+            "AFVSGP | behind a kept AFVSGP filter | eval. episodes with cost | eval. return | "
+            "training cost steps (after warm-up) | training episodes with cost | final training "
+            "success | wall time per run |\n|---|---|---|---|---|---|---|---|---|---|")
     lines = [head]
     for cond in results["config"]["conditions"]:
         runs = [r for r in results["runs"] if r["condition"] == cond]
@@ -237,6 +276,7 @@ def table_markdown(results: dict) -> str:
             continue
         own = _pool([r["eval_own"] for r in runs])
         afv = _pool([r["eval_afvsgp"] for r in runs])
+        kept = _pool([r["eval_afvsgp_kept"] for r in runs])
         cost = sum(r["training"]["cost_steps"] for r in runs)
         after = sum(r["training"]["cost_steps_after_warmup"] for r in runs)
         eps_cost = sum(r["training"]["episodes_with_cost"] for r in runs)
@@ -244,17 +284,21 @@ def table_markdown(results: dict) -> str:
         final = np.mean([r["training"]["final_success"] for r in runs])
         wall = np.mean([r["train_wall_s"] for r in runs])
         lines.append(
-            f"| {cond} | {_fmt_rate(own)} | {_fmt_rate(afv)} | {own['episodes_with_cost']} of "
-            f"{own['episodes']} | {own['return_mean']:.2f} | {cost} ({after}) | {eps_cost} of "
+            f"| {cond} | {_fmt_rate(own)} | {_fmt_rate(afv)} | {_fmt_rate(kept)} | "
+            f"{own['episodes_with_cost'] + kept['episodes_with_cost']} of "
+            f"{own['episodes'] + kept['episodes']} | {own['return_mean']:.2f} | {cost} ({after}) | "
+            f"{eps_cost} of "
             f"{eps} | {100 * final:.0f} % | {wall / 60:.1f} min |")
-    per_seed = ["", "| condition | seed | success own | success behind AFVSGP | eval. cost "
-                "episodes | training cost steps | final training success |",
-                "|---|---|---|---|---|---|---|"]
+    per_seed = ["", "| condition | seed | success own | success behind AFVSGP | behind a kept "
+                "AFVSGP filter | eval. cost episodes | training cost steps | final training "
+                "success |", "|---|---|---|---|---|---|---|---|"]
     for r in results["runs"]:
         per_seed.append(
             f"| {r['condition']} | {r['seed']} | {100 * r['eval_own']['success_rate']:.0f} % | "
             f"{100 * r['eval_afvsgp']['success_rate']:.0f} % | "
-            f"{r['eval_own']['episodes_with_cost']} | {r['training']['cost_steps']} | "
+            f"{100 * r['eval_afvsgp_kept']['success_rate']:.0f} % | "
+            f"{r['eval_own']['episodes_with_cost'] + r['eval_afvsgp_kept']['episodes_with_cost']}"
+            f" | {r['training']['cost_steps']} | "
             f"{100 * r['training']['final_success']:.0f} % |")
     return "\n".join(lines + per_seed) + "\n"
 
@@ -326,15 +370,18 @@ def run(cfg: RLBenchConfig, out_dir: str | os.PathLike, *, figure: str | os.Path
                                      pool)
                 behind = own if cond == "afvsgp" else evaluate_agent(
                     res.path, "afvsgp", cfg.eval_episodes, env_kwargs, pool)
+                kept = evaluate_agent(res.path, "afvsgp", cfg.eval_episodes, env_kwargs, pool,
+                                      kept_filter_warmup=cfg.kept_filter_warmup)
             log(f"[rl]   held-out success {own['success_rate']:.2f} ({cond}), "
-                f"{behind['success_rate']:.2f} behind AFVSGP; episodes with cost "
-                f"{own['episodes_with_cost']} / {behind['episodes_with_cost']}")
+                f"{behind['success_rate']:.2f} behind AFVSGP, {kept['success_rate']:.2f} behind "
+                f"a kept AFVSGP filter; episodes with cost {own['episodes_with_cost']} / "
+                f"{behind['episodes_with_cost']} / {kept['episodes_with_cost']}")
             results["runs"].append({
                 "condition": cond, "seed": seed, "zip": str(res.path),
                 "train_wall_s": res.wall_time_s, "eval_wall_s": time.perf_counter() - t_eval,
                 "timesteps": res.timesteps, "env_steps": res.env_steps,
                 "training": tsum, "curves": _curves(res.episodes, cfg.timesteps, cfg.bins),
-                "eval_own": own, "eval_afvsgp": behind,
+                "eval_own": own, "eval_afvsgp": behind, "eval_afvsgp_kept": kept,
             })
     results["total_wall_s"] = time.perf_counter() - t_start
     (out_dir / "rl_results.json").write_text(json.dumps(jsonable(results), indent=1) + "\n")

@@ -46,6 +46,7 @@ def test_quick_benchmark_pipeline(tmp_path):
         cum = np.array(r["curves"]["cumulative_cost"])
         assert np.all(np.diff(cum) >= 0) and cum[-1] == r["training"]["cost_steps"]
         assert r["eval_own"]["episodes"] == cfg.eval_episodes
+        assert r["eval_afvsgp_kept"]["episodes"] == cfg.eval_episodes
         if r["condition"] == "afvsgp":
             # the learner's warm-up happened in training, once per worker
             assert r["training"]["warmup_steps"] == cfg.n_envs * 75
