@@ -33,6 +33,7 @@ __all__ = [
     "RayExecutor",
     "available_cpus",
     "make_executor",
+    "one_blas_thread",
     "require_ray",
 ]
 
@@ -108,6 +109,13 @@ def _environ(values: dict[str, str]):
                 os.environ[k] = v
 
 
+def one_blas_thread():
+    """Context manager: processes started inside it run one BLAS thread each
+    (:data:`ONE_BLAS_THREAD`; on a few cores, several processes each with a BLAS thread pool
+    slow each other down several-fold on these small arrays)."""
+    return _environ(ONE_BLAS_THREAD)
+
+
 class LocalExecutor:
     """A pool of ``workers`` spawned worker processes on this machine (one BLAS thread each).
 
@@ -136,7 +144,7 @@ class LocalExecutor:
         if not tasks:
             return
         pool = self._get_pool(len(tasks))
-        with _environ(ONE_BLAS_THREAD):  # workers are spawned on submit and inherit it
+        with one_blas_thread():  # workers are spawned on submit and inherit it
             pending = {pool.submit(fn, t): i for i, t in enumerate(tasks)}
         try:
             while pending:

@@ -236,6 +236,7 @@ def train(
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
     import afvsgp_gym  # noqa: F401  (registers the ids)
+    from afvsgp_gym.executors import one_blas_thread
 
     if isinstance(timesteps, bool) or int(timesteps) < 1:
         raise ValueError(f"timesteps must be a positive integer, got {timesteps}")
@@ -249,9 +250,10 @@ def train(
     filter_kwargs = dict(filter_kwargs or {})
     wrapper_kwargs = {"learner": learner, "filter_kwargs": filter_kwargs,
                       "action_repeat": int(action_repeat)}
-    venv = make_vec_env(env_id, n_envs=int(n_envs), seed=seed, env_kwargs=env_kwargs,
-                        wrapper_class=wrap_env, wrapper_kwargs=wrapper_kwargs,
-                        vec_env_cls=SubprocVecEnv if n_envs > 1 else DummyVecEnv)
+    with one_blas_thread():  # the env worker processes: one BLAS thread each
+        venv = make_vec_env(env_id, n_envs=int(n_envs), seed=seed, env_kwargs=env_kwargs,
+                            wrapper_class=wrap_env, wrapper_kwargs=wrapper_kwargs,
+                            vec_env_cls=SubprocVecEnv if n_envs > 1 else DummyVecEnv)
     kwargs: dict[str, Any] = {"seed": seed, "verbose": verbose, "device": "cpu"}
     kwargs.update(default_algo_kwargs(algo, int(timesteps), int(n_envs)))
     kwargs.update(algo_kwargs or {})

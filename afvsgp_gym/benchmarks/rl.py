@@ -342,6 +342,7 @@ def run(cfg: RLBenchConfig, out_dir: str | os.PathLike, *, figure: str | os.Path
     """Train and evaluate every (condition, seed); write results, table, figure (and the
     shipped agent when ``ship`` is set). Returns the results dict."""
     from afvsgp_gym.agents.sb3 import train
+    from afvsgp_gym.executors import one_blas_thread
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -365,7 +366,7 @@ def run(cfg: RLBenchConfig, out_dir: str | os.PathLike, *, figure: str | os.Path
                 f"{tsum['cost_steps']} ({tsum['cost_steps_after_warmup']} after warm-up), final "
                 f"training success {tsum['final_success']:.2f}")
             t_eval = time.perf_counter()
-            with ProcessPoolExecutor(cfg.eval_workers, mp_context=ctx) as pool:
+            with one_blas_thread(), ProcessPoolExecutor(cfg.eval_workers, mp_context=ctx) as pool:
                 own = evaluate_agent(res.path, CONDITIONS[cond], cfg.eval_episodes, env_kwargs,
                                      pool)
                 behind = own if cond == "afvsgp" else evaluate_agent(

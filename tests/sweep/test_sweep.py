@@ -221,3 +221,29 @@ def test_evaluate_raises_the_episode_error_as_it_was(workers):
     with pytest.raises(ValueError, match="mass"):
         evaluate(PM, learners=["none"], episodes=2, max_steps=5, env_kwargs={"mass": -1.0},
                  workers=workers)
+
+
+def _blas_env(queue) -> None:
+    import os
+
+    queue.put(os.environ.get("OPENBLAS_NUM_THREADS"))
+
+
+def test_processes_started_in_one_blas_thread_get_one_blas_thread(monkeypatch):
+    """Worker processes (sweep executors, SB3's SubprocVecEnv in `train`, the RL benchmark's
+    evaluation pool) start with one BLAS thread; the parent's environment is restored."""
+    import multiprocessing as mp
+
+    from afvsgp_gym.executors import one_blas_thread
+
+    monkeypatch.setenv("OPENBLAS_NUM_THREADS", "4")
+    ctx = mp.get_context("spawn")
+    q = ctx.Queue()
+    with one_blas_thread():
+        p = ctx.Process(target=_blas_env, args=(q,))
+        p.start()
+    p.join(60)
+    assert q.get(timeout=10) == "1"
+    import os
+
+    assert os.environ["OPENBLAS_NUM_THREADS"] == "4"
