@@ -311,8 +311,11 @@ class _Secular:
 
     def root(self, neg: float, pos: float, start: float, max_iter: int = 60):
         """``(eta, t)`` with ``h(eta) = 0`` between ``neg`` (h < 0; ``inf`` if not known yet)
-        and ``pos`` (h > 0): Newton's method from ``start``, bisection (doubling towards an
-        unknown ``neg``) when a step leaves the bracket."""
+        and ``pos`` (h > 0), both on one side of the pole, from ``start``: each step goes to
+        the root of the model fitted at the iterate (:meth:`model_root`), else a Newton step
+        on ``h``, else bisection (doubling towards an unknown ``neg``). A step below
+        ``1e-9 |eta|`` ends it (the convergence is quadratic: that step is exact to rounding;
+        ``t`` is then the iterate's: only its sign is used)."""
         eta = start if min(neg, pos) <= start < max(neg, pos) else 0.5 * (neg + pos)
         for _ in range(max_iter):
             h, dh, size, t = self(eta)
@@ -322,17 +325,38 @@ class _Secular:
                 neg = eta
             else:
                 pos = eta
-            nxt = eta - h / dh if dh != 0.0 else math.nan
-            if abs(nxt - eta) <= 1e-9 * abs(eta) and min(neg, pos) < nxt < max(neg, pos):
-                return nxt, self(nxt)[3]  # quadratic convergence: exact to rounding
-            if abs(pos - neg) <= 1e-16 * abs(pos):
+            lo, hi = min(neg, pos), max(neg, pos)
+            nxt = self.model_root(eta, h, dh)
+            if not lo < nxt < hi:
+                nxt = eta - h / dh if dh != 0.0 else math.nan
+            if lo < nxt < hi and abs(nxt - eta) <= 1e-9 * abs(eta):
+                return nxt, t
+            if hi - lo <= 1e-16 * abs(pos):
                 return eta, t
-            if not min(neg, pos) < nxt < max(neg, pos):
+            if not lo < nxt < hi:
                 if neg == math.inf and eta > 1e6 * pos:
                     return None  # no sign change found this far: give up
                 nxt = 0.5 * (neg + pos) if neg < math.inf else 2.0 * max(pos, eta)
             eta = nxt
         return None
+
+    def model_root(self, eta: float, h: float, dh: float) -> float:
+        """Root of ``phi ~ A / (1 - eta max(d))^2 + B`` fitted to ``phi`` and ``phi'`` at
+        ``eta`` (osculatory rational interpolation: the pole's term plus slowly varying
+        ones, the secular-equation device of More and Sorensen 1983 with the constant
+        refitted at each step; exact for the pole's term alone), on the iterate's side of
+        the pole; NaN if the fit has no root there (or there is no pole)."""
+        dmax = self.dmax
+        q = 1.0 - eta * dmax
+        if not dmax > 0.0 or q == 0.0:
+            return math.nan
+        qq = q * q
+        phi = h / qq
+        A = (dh + 2.0 * dmax * q * phi) * q / (2.0 * dmax)  # phi' q^3 / (2 max(d))
+        B = phi - A / qq
+        if not (A > 0.0 and B < 0.0):
+            return math.nan
+        return (1.0 - math.copysign(math.sqrt(A / -B), q)) / dmax
 
     def boundary_point(self, start: float):
         """``(eta, t)`` of a root with ``eta >= 0`` and ``t > 0`` (the cone's boundary, not
@@ -370,45 +394,16 @@ class _Secular:
             found = self.root(math.inf, pole, pole * (1.0 + 1e-9))
         return found if found is not None and found[1] > 0.0 else None
 
-    def root_beyond_pole(self, pole: float, max_iter: int = 60):
+    def root_beyond_pole(self, pole: float):
         """``(eta, t)`` of the root right of the pole, where ``phi`` falls from ``+inf`` to
-        ``phi_inf = W00 - sum s^2 / d``. There ``phi`` is the pole's term
-        ``A / (1 - eta max(d))^2`` plus terms that vary slowly, so each step fits
-        ``phi ~ A / (1 - eta max(d))^2 + B`` to ``phi`` and ``phi'`` at the iterate and goes to
-        that model's root (osculatory rational interpolation, the secular-equation device of
-        More and Sorensen 1983 with the constant refitted; exact for the pole's term alone,
-        ~4 evaluations); bisection keeps it in the bracket. None if ``phi_inf >= 0`` (no
-        root there)."""
+        ``phi_inf = W00 - sum s^2 / d`` (:meth:`root` from ``2 pole``; ~4 evaluations).
+        None if ``phi_inf >= 0`` (no root there) or ``phi`` grows linearly in ``eta``."""
         if any(d == 0.0 and s != 0.0 for s, d, _, _ in self.terms):
             return None  # phi grows linearly in eta: not of that shape
         c = self.W00 - sum(s * s / d for s, d, _, _ in self.terms if d != 0.0)
         if not c < 0.0:
             return None
-        dmax = self.dmax
-        pos, neg = pole, math.inf
-        eta = 2.0 * pole
-        for _ in range(max_iter):
-            h, dh, size, t = self(eta)
-            if abs(h) <= 1e-14 * size:
-                return eta, t
-            q = 1.0 - eta * dmax
-            qq = q * q
-            phi = h / qq
-            if phi < 0.0:
-                neg = eta
-            else:
-                pos = eta
-            A = (dh + 2.0 * dmax * q * phi) * q / (2.0 * dmax)  # phi' q^3 / (2 max(d))
-            B = phi - A / qq
-            nxt = (1.0 + math.sqrt(A / -B)) / dmax if A > 0.0 and B < 0.0 else math.nan
-            if abs(nxt - eta) <= 1e-9 * abs(eta) and pos < nxt < neg:
-                return nxt, self(nxt)[3]  # fast convergence: this step is exact to rounding
-            if abs(neg - pos) <= 1e-16 * abs(pos):
-                return eta, t
-            if not pos < nxt < neg:
-                nxt = 0.5 * (neg + pos) if neg < math.inf else 2.0 * max(pos, eta)
-            eta = nxt
-        return None
+        return self.root(math.inf, pole, 2.0 * pole)
 
 
 def project_cone_box(u_nom, a0: float, a, G, low, high, max_rounds: int = 16):
