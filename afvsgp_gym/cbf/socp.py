@@ -315,8 +315,8 @@ class SOCPFilter:
         return None
 
     def _one_cone(self, u_nom, a0: float, a, G, tol):
-        """``(u, "cone", margins at u)`` for a program with one (non-zero) cone, the
-        end-effector barrier's case, certified; or None."""
+        """``(u, "cone", margins at u)`` for a program with one (non-zero) cone (paper eq. 05
+        with k = 1, the end-effector barrier's case), certified; or None."""
         low, high = self.low, self.high
         sol = fastpath.project_cone_box(u_nom, a0, a, G, low, high)
         if sol is None:
