@@ -73,15 +73,19 @@ class Tolerance:
     def at(self, idx) -> np.ndarray:
         if self._tol is not None:
             return self._tol[idx]
+        return np.array([self.one(i) for i in idx.tolist()])
+
+    def one(self, i: int) -> float:
+        """The tolerance of constraint ``i`` alone (plain floats)."""
+        if self._tol is not None:
+            return float(self._tol[i])
         a0, a, G, bound_norm = self._args
-        out = []
-        for i in idx.tolist():
-            s = abs(float(a0[i])) + math.sqrt(float(a[i] @ a[i])) * bound_norm
-            if G is not None:
-                g = G[i].ravel()
-                s += math.sqrt(float(g @ g)) * math.sqrt(1.0 + bound_norm**2)
-            out.append(FEAS_TOL * s)
-        return np.array(out)
+        ai = a[i]
+        s = abs(float(a0[i])) + math.sqrt(float(ai @ ai)) * bound_norm
+        if G is not None:
+            g = G[i].ravel()
+            s += math.sqrt(float(g @ g)) * math.sqrt(1.0 + bound_norm**2)
+        return FEAS_TOL * s
 
 
 def certify(u, u_nom, margins, tol: Tolerance, active, lam, grads, low, high) -> bool:
@@ -116,9 +120,25 @@ def certify(u, u_nom, margins, tol: Tolerance, active, lam, grads, low, high) ->
     for li, ci, ti in zip(lam_l, margins[active].tolist(), tol.at(active).tolist(), strict=True):
         if ci > ti:
             comp += li * ci
-    w = (u - u_nom - lam @ grads).tolist()
+    return _distance_bound_ok(u, u - u_nom - lam @ grads, comp, low, high)
+
+
+def certify_one(u, u_nom, c: float, tol: float, lam: float, grad, low, high) -> bool:
+    """:func:`certify` for a program with one constraint: its margin ``c``, tolerance ``tol``,
+    multiplier ``lam`` and gradient ``grad`` at ``u`` (plain floats; the same test)."""
+    if not (c >= -tol and lam >= 0.0):  # also False for NaN
+        return False
+    return _distance_bound_ok(u, u - u_nom - lam * grad, lam * c if c > tol else 0.0, low,
+                              high)
+
+
+def _distance_bound_ok(u, w, comp: float, low, high) -> bool:
+    """The distance bound of :func:`certify`: ``w = u - u_nom - grads' lam`` less the box
+    multipliers it implies (its part pushing inwards at a face) is the Lagrangian's gradient
+    ``rho``; ``||rho|| + sqrt(||rho||^2 + 2 comp) <= DIST_TOL (1 + max|u|)``."""
     r2, umax = 0.0, 0.0
-    for wj, uj, lj, hj in zip(w, u.tolist(), low.tolist(), high.tolist(), strict=True):
+    for wj, uj, lj, hj in zip(w.tolist(), u.tolist(), low.tolist(), high.tolist(),
+                              strict=True):
         if uj <= lj:
             wj = min(wj, 0.0)
         elif uj >= hj:
@@ -260,67 +280,83 @@ def project_polyhedron_box(u_nom, a0, a, low, high):
 
 class _Secular:
     """The quadric ``phi(eta) = ubar' W ubar`` along the stationarity path of
-    :func:`project_cone_box`, in the eigenbasis of ``W_FF = V diag(d) V'``:
-    ``y = (p + eta s) / (1 - eta d)``, ``phi = W00 + sum (2 s + d y) y``,
-    ``t(eta) = t0 + alpha . y``. ``phi`` has a double pole at ``1 / max(d)`` (W has one
+    :func:`project_cone_box` (paper eq. 05's cone on its boundary), in the eigenbasis of
+    ``W_FF = V diag(d) V'``: ``y = (p + eta s) / (1 - eta d)``, ``phi = W00 + sum (2 s + d y)
+    y``, ``t(eta) = t0 + alpha . y``. ``phi`` has a double pole at ``1 / max(d)`` (W has one
     positive eigenvalue); the root search uses ``h = (1 - eta max(d))^2 phi``, which is
-    smooth there and has the same roots. Plain floats: m is small."""
+    smooth there and has the same roots. Plain floats (lists ``s, d, p, alpha``): m is
+    small."""
 
     def __init__(self, W00: float, s, d, p, t0: float, alpha):
         self.W00, self.t0 = W00, t0
-        self.terms = list(zip(s.tolist(), d.tolist(), p.tolist(), alpha.tolist(), strict=True))
-        self.dmax = max(max(d.tolist(), default=0.0), 0.0)
+        self.terms = list(zip(s, d, p, alpha, strict=True))
+        self.dmax = max(max(d, default=0.0), 0.0)
 
-    def __call__(self, eta: float) -> tuple[float, float]:
-        """``(h, h')`` at ``eta``."""
+    def __call__(self, eta: float) -> tuple[float, float, float, float]:
+        """``(h, h', size, t)`` at ``eta``: ``size`` the sum of the absolute terms of ``h``
+        (its rounding scale); one pass over the terms."""
         q = 1.0 - eta * self.dmax
-        phi, dphi = self.W00, 0.0
-        for s, d, p, _ in self.terms:
+        phi, dphi, size, t = self.W00, 0.0, abs(self.W00), self.t0
+        for s, d, p, al in self.terms:
             den = 1.0 - eta * d
             y = (p + eta * s) / den
             g = s + d * y
-            phi += (s + g) * y
+            f = (s + g) * y
+            phi += f
+            size += abs(f)
             dphi += g * g / den
-        return q * q * phi, q * (2.0 * q * dphi - 2.0 * self.dmax * phi)
-
-    def size_and_t(self, eta: float) -> tuple[float, float]:
-        """Sum of the absolute terms of ``h`` (its rounding scale) and ``t`` at ``eta``."""
-        q = 1.0 - eta * self.dmax
-        size, t = abs(self.W00), self.t0
-        for s, d, p, al in self.terms:
-            y = (p + eta * s) / (1.0 - eta * d)
-            size += abs((2.0 * s + d * y) * y)
             t += al * y
-        return q * q * size, t
+        qq = q * q
+        return qq * phi, q * (2.0 * q * dphi - 2.0 * self.dmax * phi), qq * size, t
 
     def root(self, neg: float, pos: float, start: float, max_iter: int = 60):
         """``(eta, t)`` with ``h(eta) = 0`` between ``neg`` (h < 0; ``inf`` if not known yet)
-        and ``pos`` (h > 0): Newton's method from ``start``, bisection (doubling towards an
-        unknown ``neg``) when a step leaves the bracket."""
+        and ``pos`` (h > 0), both on one side of the pole, from ``start``: each step goes to
+        the root of the model fitted at the iterate (:meth:`model_root`), else a Newton step
+        on ``h``, else bisection (doubling towards an unknown ``neg``). A step below
+        ``1e-9 |eta|`` ends it (the convergence is quadratic: that step is exact to rounding;
+        ``t`` is then the iterate's: only its sign is used)."""
         eta = start if min(neg, pos) <= start < max(neg, pos) else 0.5 * (neg + pos)
-        size = self.size_and_t(eta)[0]
         for _ in range(max_iter):
-            h, dh = self(eta)
+            h, dh, size, t = self(eta)
             if abs(h) <= 1e-14 * size:
-                break
+                return eta, t
             if h < 0.0:
                 neg = eta
             else:
                 pos = eta
-            nxt = eta - h / dh if dh != 0.0 else math.nan
-            if abs(nxt - eta) <= 1e-9 * abs(eta) and min(neg, pos) < nxt < max(neg, pos):
-                eta = nxt  # quadratic convergence: this step is exact to rounding
-                break
-            if abs(pos - neg) <= 1e-16 * abs(pos):
-                break
-            if not min(neg, pos) < nxt < max(neg, pos):
+            lo, hi = min(neg, pos), max(neg, pos)
+            nxt = self.model_root(eta, h, dh)
+            if not lo < nxt < hi:
+                nxt = eta - h / dh if dh != 0.0 else math.nan
+            if lo < nxt < hi and abs(nxt - eta) <= 1e-9 * abs(eta):
+                return nxt, t
+            if hi - lo <= 1e-16 * abs(pos):
+                return eta, t
+            if not lo < nxt < hi:
                 if neg == math.inf and eta > 1e6 * pos:
                     return None  # no sign change found this far: give up
                 nxt = 0.5 * (neg + pos) if neg < math.inf else 2.0 * max(pos, eta)
             eta = nxt
-        else:
-            return None
-        return eta, self.size_and_t(eta)[1]
+        return None
+
+    def model_root(self, eta: float, h: float, dh: float) -> float:
+        """Root of ``phi ~ A / (1 - eta max(d))^2 + B`` fitted to ``phi`` and ``phi'`` at
+        ``eta`` (osculatory rational interpolation: the pole's term plus slowly varying
+        ones, the secular-equation device of More and Sorensen 1983 with the constant
+        refitted at each step; exact for the pole's term alone), on the iterate's side of
+        the pole; NaN if the fit has no root there (or there is no pole)."""
+        dmax = self.dmax
+        q = 1.0 - eta * dmax
+        if not dmax > 0.0 or q == 0.0:
+            return math.nan
+        qq = q * q
+        phi = h / qq
+        A = (dh + 2.0 * dmax * q * phi) * q / (2.0 * dmax)  # phi' q^3 / (2 max(d))
+        B = phi - A / qq
+        if not (A > 0.0 and B < 0.0):
+            return math.nan
+        return (1.0 - math.copysign(math.sqrt(A / -B), q)) / dmax
 
     def boundary_point(self, start: float):
         """``(eta, t)`` of a root with ``eta >= 0`` and ``t > 0`` (the cone's boundary, not
@@ -358,49 +394,16 @@ class _Secular:
             found = self.root(math.inf, pole, pole * (1.0 + 1e-9))
         return found if found is not None and found[1] > 0.0 else None
 
-    def root_beyond_pole(self, pole: float, max_iter: int = 60):
+    def root_beyond_pole(self, pole: float):
         """``(eta, t)`` of the root right of the pole, where ``phi`` falls from ``+inf`` to
-        ``phi_inf = W00 - sum s^2 / d``. Near and far from the pole ``phi - phi_inf`` behaves
-        like ``C / (1 - eta max(d))^2``, so Newton's method on
-        ``(phi - phi_inf)^(-1/2) = (-phi_inf)^(-1/2)`` (nearly linear in ``eta``; the
-        secular-equation device of More and Sorensen 1983) converges in a few steps;
-        bisection keeps it in the bracket. None if ``phi_inf >= 0`` (no root there)."""
+        ``phi_inf = W00 - sum s^2 / d`` (:meth:`root` from ``2 pole``; ~4 evaluations).
+        None if ``phi_inf >= 0`` (no root there) or ``phi`` grows linearly in ``eta``."""
         if any(d == 0.0 and s != 0.0 for s, d, _, _ in self.terms):
             return None  # phi grows linearly in eta: not of that shape
         c = self.W00 - sum(s * s / d for s, d, _, _ in self.terms if d != 0.0)
         if not c < 0.0:
             return None
-        target = 1.0 / math.sqrt(-c)
-        pos, neg = pole, math.inf
-        eta = 2.0 * pole
-        size = self.size_and_t(eta)[0]
-        for _ in range(max_iter):
-            h, dh = self(eta)
-            q = 1.0 - eta * self.dmax
-            phi = h / (q * q)
-            dphi = (dh + 2.0 * self.dmax * q * phi) / (q * q)
-            if abs(h) <= 1e-14 * size:
-                break
-            if phi < 0.0:
-                neg = eta
-            else:
-                pos = eta
-            r = phi - c
-            nxt = math.nan
-            if r > 0.0 and dphi != 0.0:
-                g = 1.0 / math.sqrt(r)
-                nxt = eta - (g - target) / (-0.5 * g * g * g * dphi)
-            if abs(nxt - eta) <= 1e-9 * abs(eta) and pos < nxt < neg:
-                eta = nxt  # quadratic convergence: this step is exact to rounding
-                break
-            if abs(neg - pos) <= 1e-16 * abs(pos):
-                break
-            if not pos < nxt < neg:
-                nxt = 0.5 * (neg + pos) if neg < math.inf else 2.0 * max(pos, eta)
-            eta = nxt
-        else:
-            return None
-        return eta, self.size_and_t(eta)[1]
+        return self.root(math.inf, pole, 2.0 * pole)
 
 
 def project_cone_box(u_nom, a0: float, a, G, low, high, max_rounds: int = 16):
@@ -424,8 +427,8 @@ def project_cone_box(u_nom, a0: float, a, G, low, high, max_rounds: int = 16):
     W10 = a0 * a - GtG[1:, 0]
     W00 = a0 * a0 - float(GtG[0, 0])
     m = a.size
-    found = _cone_faces(u_nom, a0, a, low, high, W00, W10, W11, np.zeros(m, dtype=bool),
-                        u_nom.clip(low, high), 0.0, max_rounds)
+    cone = _ConeFaces(u_nom, a0, a, low, high, W00, W10, W11)
+    found = cone.settle(np.zeros(m, dtype=bool), None, 0.0, max_rounds)
     if found is not None:
         return found
     uc = u_nom.clip(low, high)
@@ -437,68 +440,91 @@ def project_cone_box(u_nom, a0: float, a, G, low, high, max_rounds: int = 16):
         return None
     u, lam = lin
     t = a0 + float(a @ u)
-    return _cone_faces(u_nom, a0, a, low, high, W00, W10, W11, u != u_nom + lam * grad, u,
-                       lam / t if t > 0.0 else 0.0, max_rounds)
+    return cone.settle(u != u_nom + lam * grad, u, lam / t if t > 0.0 else 0.0, max_rounds)
 
 
-def _cone_faces(u_nom, a0, a, low, high, W00, W10, W11, fixed, u, eta, max_rounds):
-    """The face iteration of :func:`project_cone_box` from the faces ``fixed`` (at the
-    values of ``u``) and the multiplier estimate ``eta``."""
-    lo_l, hi_l = low.tolist(), high.tolist()
-    seen = set()
-    for _ in range(max_rounds):
-        key = fixed.tobytes()
-        if key in seen:
+class _ConeFaces:
+    """The face iteration of :func:`project_cone_box` (paper eq. 05, one cone and the box)
+    for ``W = [[W00, W10'], [W10, W11]]``; the eigensystem with no face fixed is computed
+    once per program (both starts of :func:`project_cone_box` use it)."""
+
+    def __init__(self, u_nom, a0: float, a, low, high, W00: float, W10, W11):
+        self.u_nom, self.a0, self.a, self.low, self.high = u_nom, a0, a, low, high
+        self.W00, self.W10, self.W11 = W00, W10, W11
+        self._free: tuple | None = None  # (V, _Secular data) with no face fixed
+
+    def secular(self, fixed, u):
+        """``(V, free, u_fixed, (W00', s, d, p, t0', alpha))``: the secular function's data on
+        the free coordinates with those in ``fixed`` at their values in ``u``; None if the
+        eigensolver fails or no coordinate is free."""
+        if not fixed.any():
+            if self._free is None:
+                d, V, info = dsyev(self.W11)
+                if info != 0:
+                    return None
+                p, s, al = (np.array((self.u_nom, self.W10, self.a)) @ V).tolist()
+                self._free = V, (self.W00, s, d.tolist(), p, self.a0, al)
+            V, data = self._free
+            return V, None, None, data
+        F = ~fixed
+        if not F.any():
             return None
-        seen.add(key)
-        if fixed.any():
-            F = ~fixed
-            if not F.any():
-                return None
-            uB = np.where(fixed, u, 0.0)
-            wb = W10 + W11 @ uB  # linear term on the free coordinates (fixed part)
-            c00 = W00 + float((W10 + wb) @ uB)
-            d, V, info = dsyev(W11[np.ix_(F, F)])
-            wbF, unF, aF, t0 = wb[F], u_nom[F], a[F], a0 + float(a @ uB)
-        else:
-            F = None
-            d, V, info = dsyev(W11)
-            wbF, unF, aF, t0, c00 = W10, u_nom, a, a0, W00
+        uB = np.where(fixed, u, 0.0)
+        wb = self.W10 + self.W11 @ uB  # linear term on the free coordinates (fixed part)
+        d, V, info = dsyev(self.W11[np.ix_(F, F)])
         if info != 0:
             return None
-        p = V.T @ unF
-        s = V.T @ wbF
-        sec = _Secular(c00, s, d, p, t0, V.T @ aF)
-        found = sec.boundary_point(eta)
-        if found is None:
-            return None
-        eta = found[0]
-        uF = V @ np.array([(pi + eta * si) / (1.0 - eta * di) for si, di, pi, _ in sec.terms])
-        if F is None:
-            u = uF
-        else:
-            u = uB
-            u[F] = uF
-        # primal: fix the coordinate farthest outside the box
-        j, worst = -1, 0.0
-        for jj, (x, lj, hj) in enumerate(zip(u.tolist(), lo_l, hi_l, strict=True)):
-            e = max(lj - x, x - hj)
-            if e > worst:
-                j, worst = jj, e
-        if j >= 0:
-            u = u.clip(low, high)
-            fixed[j] = True
-            continue
-        if F is not None:
-            # dual: a face's multiplier w = u - u_nom - eta (W10 + W11 u) must push inwards
-            w = u - u_nom - eta * (W10 + W11 @ u)
-            wrong = np.where(fixed & (u <= low), -w, 0.0) + np.where(fixed & (u >= high), w, 0.0)
-            j = int(wrong.argmax())
-            if wrong[j] > 0.0:
-                fixed[j] = False
+        p, s, al = (np.array((self.u_nom, wb, self.a))[:, F] @ V).tolist()
+        c00 = self.W00 + float((self.W10 + wb) @ uB)
+        return V, F, uB, (c00, s, d.tolist(), p, self.a0 + float(self.a @ uB), al)
+
+    def settle(self, fixed, u, eta: float, max_rounds: int):
+        """``(u, lam)`` from the faces ``fixed`` (at the values of ``u``) and the multiplier
+        estimate ``eta``, or None if the faces do not settle."""
+        low, high = self.low, self.high
+        lo_l, hi_l = low.tolist(), high.tolist()
+        seen = set()
+        for _ in range(max_rounds):
+            key = fixed.tobytes()
+            if key in seen:
+                return None
+            seen.add(key)
+            found = self.secular(fixed, u)
+            if found is None:
+                return None
+            V, F, uB, data = found
+            sec = _Secular(*data)
+            found = sec.boundary_point(eta)
+            if found is None:
+                return None
+            eta = found[0]
+            uF = V @ np.array([(p + eta * s) / (1.0 - eta * d) for s, d, p, _ in sec.terms])
+            if F is None:
+                u = uF
+            else:
+                u = uB
+                u[F] = uF
+            # primal: fix the coordinate farthest outside the box
+            j, worst = -1, 0.0
+            for jj, (x, lj, hj) in enumerate(zip(u.tolist(), lo_l, hi_l, strict=True)):
+                e = max(lj - x, x - hj)
+                if e > worst:
+                    j, worst = jj, e
+            if j >= 0:
+                u = u.clip(low, high)
+                fixed[j] = True
                 continue
-        t = a0 + float(a @ u)
-        if not t > 0.0:
-            return None
-        return snap_to_box(u, low, high), eta * t
-    return None
+            if F is not None:
+                # dual: a face's multiplier w = u - u_nom - eta (W10 + W11 u) must push inwards
+                w = u - self.u_nom - eta * (self.W10 + self.W11 @ u)
+                wrong = (np.where(fixed & (u <= low), -w, 0.0)
+                         + np.where(fixed & (u >= high), w, 0.0))
+                j = int(wrong.argmax())
+                if wrong[j] > 0.0:
+                    fixed[j] = False
+                    continue
+            t = self.a0 + float(self.a @ u)
+            if not t > 0.0:
+                return None
+            return snap_to_box(u, low, high), eta * t
+        return None

@@ -150,10 +150,17 @@ class SOCPFilter:
         """``a0 + a @ u - ||G ubar||`` for every constraint."""
         out = np.asarray(a, dtype=np.float64) @ u + np.asarray(a0, dtype=np.float64)
         if G is not None:
+            G = np.asarray(G, dtype=np.float64)
+            if G.shape[0] == 1:  # one cone: fewer numpy calls
+                g = G[0]
+                v = g[:, 1:] @ u
+                v += g[:, 0]
+                out -= math.sqrt(float(v @ v))
+                return out
             ubar = np.empty(self.m + 1)
             ubar[0] = 1.0
             ubar[1:] = u
-            v = np.asarray(G, dtype=np.float64) @ ubar
+            v = G @ ubar
             out -= np.sqrt(np.einsum("ki,ki->k", v, v))
         return out
 
@@ -248,6 +255,8 @@ class SOCPFilter:
         """``(u, path, margins at u)`` from a certified fast path, ``"infeasible"`` (a Farkas
         certificate of the QP), or None."""
         low, high = self.low, self.high
+        if G is not None and a0.size == 1:
+            return self._one_cone(u_nom, float(a0[0]), a[0], G[0], tol)
         violated = np.flatnonzero(marg < 0.0)
         if G is None:
             if violated.size == 1:
@@ -303,6 +312,23 @@ class SOCPFilter:
             i = int(np.argmin(c))
             if not c[i] < 0.0:
                 return None  # feasible but not certified: leave it to clarabel
+        return None
+
+    def _one_cone(self, u_nom, a0: float, a, G, tol):
+        """``(u, "cone", margins at u)`` for a program with one (non-zero) cone (paper eq. 05
+        with k = 1, the end-effector barrier's case), certified; or None."""
+        low, high = self.low, self.high
+        sol = fastpath.project_cone_box(u_nom, a0, a, G, low, high)
+        if sol is None:
+            return None
+        u, lam = sol
+        c, grad = fastpath.cone_margin_gradient(u, a0, a, G)
+        if lam == 0.0:
+            grad = a
+        elif grad is None:
+            return None
+        if fastpath.certify_one(u, u_nom, c, tol.one(0), lam, grad, low, high):
+            return u, "cone", np.array([c])
         return None
 
     def _run_qpsolvers(self, u_nom, a0, a):
