@@ -149,6 +149,8 @@ def evaluate_agent(zip_path: str | os.PathLike, learner: str | None, episodes: i
                     else map(_eval_episode, tasks))
         return _eval_summary(recs)
     n = int(kept_filter_warmup)
+    if n < 0:
+        raise ValueError(f"kept_filter_warmup must be >= 0 or None, got {kept_filter_warmup}")
     chunks = [c.tolist() for c in np.array_split(np.array(seeds), KEPT_CHUNKS) if c.size]
     tasks = [(str(zip_path), learner, c, env_kwargs, [WARM_SEED + j * n + i for i in range(n)])
              for j, c in enumerate(chunks)]

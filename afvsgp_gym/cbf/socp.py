@@ -289,21 +289,11 @@ class SOCPFilter:
         tried = []
         for _ in range(CONE_ATTEMPTS):
             tried.append(i)
-            if G[i].any():
-                sol = fastpath.project_cone_box(u_nom, float(a0[i]), a[i], G[i], low, high)
-                path = "cone"
-            else:
-                sol = fastpath.project_halfspace_box(u_nom, float(a0[i]), a[i], low, high)
-                path = "halfspace"
-            if sol is None:
+            found = self._project_one(u_nom, float(a0[i]), a[i], G[i])
+            if found is None:
                 return None
-            u, lam = sol
-            ci, grad = fastpath.cone_margin_gradient(u, float(a0[i]), a[i], G[i])
-            c = np.array([ci]) if a0.size == 1 else self.margins(u, a0, a, G)
-            if lam == 0.0:
-                grad = a[i]
-            elif grad is None:
-                return None
+            u, lam, _, grad, path = found
+            c = self.margins(u, a0, a, G)
             if fastpath.certify(u, u_nom, c, tol, np.array([i]), np.array([lam]),
                                 grad[None], low, high):
                 return u, path, c
@@ -314,11 +304,16 @@ class SOCPFilter:
                 return None  # feasible but not certified: leave it to clarabel
         return None
 
-    def _one_cone(self, u_nom, a0: float, a, G, tol):
-        """``(u, "cone", margins at u)`` for a program with one (non-zero) cone (paper eq. 05
-        with k = 1, the end-effector barrier's case), certified; or None."""
-        low, high = self.low, self.high
-        sol = fastpath.project_cone_box(u_nom, a0, a, G, low, high)
+    def _project_one(self, u_nom, a0: float, a, G):
+        """``(u, lam, c(u), grad c(u), path)``: the projection of ``u_nom`` onto one
+        constraint (cone, or half-space when ``G = 0``) and the box; None if it fails or
+        ends at the cone's apex."""
+        if G.any():
+            sol = fastpath.project_cone_box(u_nom, a0, a, G, self.low, self.high)
+            path = "cone"
+        else:
+            sol = fastpath.project_halfspace_box(u_nom, a0, a, self.low, self.high)
+            path = "halfspace"
         if sol is None:
             return None
         u, lam = sol
@@ -327,8 +322,17 @@ class SOCPFilter:
             grad = a
         elif grad is None:
             return None
-        if fastpath.certify_one(u, u_nom, c, tol.one(0), lam, grad, low, high):
-            return u, "cone", np.array([c])
+        return u, lam, c, grad, path
+
+    def _one_cone(self, u_nom, a0: float, a, G, tol):
+        """``(u, "cone", margins at u)`` for a program with one (non-zero) cone (paper eq. 05
+        with k = 1, the end-effector barrier's case), certified; or None."""
+        found = self._project_one(u_nom, a0, a, G)
+        if found is None:
+            return None
+        u, lam, c, grad, path = found
+        if fastpath.certify_one(u, u_nom, c, tol.one(0), lam, grad, self.low, self.high):
+            return u, path, np.array([c])
         return None
 
     def _run_qpsolvers(self, u_nom, a0, a):
