@@ -470,20 +470,39 @@ def fast_path_agreement(instances, low=None, high=None) -> dict:
     fast path certifies, the largest ``|u_fast - u_ref|`` over those, how many exceed 1e-6,
     the same for clarabel's own answers, and how many references could not be refined
     (then clarabel's answer is the reference and ``fast_vs_clarabel_when_unrefined`` the
-    largest difference); ``max_diff_vs_clarabel`` compares with clarabel's answers directly."""
+    largest difference); ``max_diff_vs_clarabel`` compares with clarabel's answers directly.
+    ``working_set_*``: the same for the answers clarabel gave on a working set of the cones
+    (feasible, not certified, fewer cones than the program)."""
     m = len(instances[0][0])
     low = -np.ones(m) if low is None else np.asarray(low, dtype=np.float64)
     high = np.ones(m) if high is None else np.asarray(high, dtype=np.float64)
     fast = SOCPFilter(low, high)
     ref = SOCPFilter(low, high, fast_path=False, tol=1e-10)
-    n_active = n_cert = n_far = n_unrefined = n_clar_far = 0
-    max_diff = max_clar = max_unrefined = max_vs_clarabel = 0.0
+    n_active = n_cert = n_far = n_unrefined = n_clar_far = n_ws = n_ws_far = 0
+    max_diff = max_clar = max_unrefined = max_vs_clarabel = max_ws = 0.0
+    sizes: list[int] = []
+    solve = fast.programs.solve
+
+    def sized(kind, u_nom, a0, a, G=None):
+        sizes.append(a0.size)
+        return solve(kind, u_nom, a0, a, G)
+
+    fast.programs.solve = sized
     for u, a0, a, G in instances:
+        sizes.clear()
         r = fast.solve(u, a0, a, G)
         if r.status == "inactive":
             continue
         n_active += 1
         if not r.status.startswith("certified"):
+            if r.feasible and sizes and sizes[-1] < len(a0):
+                n_ws += 1
+                rr = ref.solve(u, a0, a, G)
+                exact = refine_kkt_mp(rr.u, u, a0, a, G, low, high) if rr.feasible else None
+                if exact is not None:
+                    d = float(np.abs(r.u - exact).max())
+                    max_ws = max(max_ws, d)
+                    n_ws_far += d > 1e-6
             continue
         n_cert += 1
         rr = ref.solve(u, a0, a, G)
@@ -510,7 +529,9 @@ def fast_path_agreement(instances, low=None, high=None) -> dict:
             "clarabel_max_diff_vs_reference": max_clar,
             "clarabel_differ_over_1e-6": float(n_clar_far),
             "unrefined": float(n_unrefined),
-            "fast_vs_clarabel_when_unrefined": max_unrefined}
+            "fast_vs_clarabel_when_unrefined": max_unrefined,
+            "working_set_answers": float(n_ws), "working_set_max_diff_vs_reference": max_ws,
+            "working_set_differ_over_1e-6": float(n_ws_far)}
 
 
 def solver_before_after(instances, before_path: str, low=None, high=None) -> dict[str, float]:

@@ -15,13 +15,19 @@ is the HOCBF-QP of eq. 04.
 :meth:`SOCPFilter.solve` tries, in order: the clipped proposal (returned as is when it
 satisfies every constraint: status ``"inactive"``); an exact fast path
 (:mod:`afvsgp_gym.cbf.fastpath`: one half-space, any number of half-spaces, one cone, each
-with the box) whose answer is used only when its KKT certificate holds (status
-``"certified:<path>"``); clarabel (:mod:`afvsgp_gym.cbf.cone_programs`, status ``"Solved"``
-or ``"AlmostSolved"``). If the program is infeasible or the solve fails, a backup action or
-the action maximising the worst margin (``min -t + eps/2 ||u - u_nom||^2``) is returned,
-flagged infeasible. The returned action is always finite and inside the bounds, and one
-returned as feasible satisfies every constraint to ``1e-8`` of the constraint's scale
-(:func:`afvsgp_gym.cbf.fastpath.constraint_scales`).
+with the box; with several cones, the projection onto the one farthest from the proposal)
+whose answer is used only when its KKT certificate holds (status ``"certified:<path>"``);
+clarabel (:mod:`afvsgp_gym.cbf.cone_programs`, status ``"Solved"`` or ``"AlmostSolved"``).
+With several cones clarabel first solves the program over a working set of them (the
+farthest and the most violated at the fast path's answer, enlarged by the most violated at
+each answer, ``WORKING_SET_ADD`` at a time): an answer that satisfies every constraint is the
+optimum of the whole program (whose feasible set lies inside the working set's), an
+infeasible working set proves the whole program infeasible; after ``WORKING_SET_ROUNDS``
+rounds the whole program is solved. If the program is infeasible or the solve fails, a
+backup action or the action maximising the worst margin (``min -t + eps/2 ||u - u_nom||^2``)
+is returned, flagged infeasible. The returned action is always finite and inside the
+bounds, and one returned as feasible satisfies every constraint to ``1e-8`` of the
+constraint's scale (:func:`afvsgp_gym.cbf.fastpath.constraint_scales`).
 """
 
 from __future__ import annotations
@@ -37,11 +43,10 @@ from afvsgp_gym.cbf.cone_programs import SOLVED, ConePrograms
 
 #: A returned feasible action satisfies ``c_i(u) >= -FEASIBILITY_TOL * scale_i``.
 FEASIBILITY_TOL = 1e-8
-#: Fast-path attempts with a single cone (most violated constraint first) before clarabel.
-CONE_ATTEMPTS = 2
-#: The single-cone fast path is tried only when at most this many constraints are violated
-#: at the clipped proposal.
-CONE_MAX_VIOLATED = 2
+#: Working-set rounds of clarabel with several cones before the whole program is solved.
+WORKING_SET_ROUNDS = 3
+#: Cones added to the working set per round: the most violated ones (relative to scale).
+WORKING_SET_ADD = 2
 
 
 @dataclass(frozen=True)
@@ -222,38 +227,91 @@ class SOCPFilter:
         if k == 0 or float(marg.min()) >= 0.0:  # the filter is inactive
             return SOCPResult(uc, True, "inactive", marg, time.perf_counter() - t0)
         tol = fastpath.Tolerance(a0, a, G, self.bound_norm)
+        working = None
         if self.fast_path:
             try:
-                found = self._fast(u_nom, a0, a, G, marg, tol)
+                found = self._fast(u_nom, uc, a0, a, G, marg, tol)
             except Exception:  # an uncertified case: clarabel decides
                 found = None
-            if found == "infeasible":  # certified: no clarabel solve to confirm it
+            if isinstance(found, np.ndarray):
+                working = found
+            elif found == "infeasible":  # certified: no clarabel solve to confirm it
                 return self._fallback("infeasible", u_nom, uc, a0, a, G, None, t0, backup)
-            if found is not None:
+            elif found is not None:
                 u, path, marg = found
                 return SOCPResult(u, True, f"certified:{path}", marg, time.perf_counter() - t0)
         try:
-            if G is None and self.qp_solver is not None:
-                x, status = self._run_qpsolvers(u_nom, a0, a)
+            if working is not None:
+                u, status, marg = self._solve_working_set(u_nom, a0, a, G, tol, working)
             else:
-                x, status = self.programs.solve("qp" if G is None else "socp", u_nom, a0, a, G)
-            u = x[:m]
-            if status in SOLVED and math.isfinite(float(u.sum())):
-                u = u.clip(self.low, self.high)
-                marg = self.margins(u, a0, a, G)
-                if float(marg.min()) >= 0.0 or float(
-                    (marg + tol.array() * (FEASIBILITY_TOL / fastpath.FEAS_TOL)).min()
-                ) >= 0.0:
-                    return SOCPResult(u, True, status, marg, time.perf_counter() - t0)
-                status = "constraint_violated"
+                u, status, marg = self._solve_whole(u_nom, a0, a, G, tol)
+            if status in SOLVED:
+                return SOCPResult(u, True, status, marg, time.perf_counter() - t0)
         except Exception as exc:  # never raise in the control loop
             status = f"error:{type(exc).__name__}"
         return self._fallback(status, u_nom, uc, a0, a, G, None, t0, backup)
 
     # ------------------------------------------------------------------ internals
-    def _fast(self, u_nom, a0, a, G, marg, tol):
+    def _accepted(self, u, a0, a, G, tol):
+        """``(u, margins)`` of a solver answer clipped to the box, and the constraints it
+        violates beyond ``FEASIBILITY_TOL`` of their scale (empty: accepted)."""
+        u = u.clip(self.low, self.high)
+        marg = self.margins(u, a0, a, G)
+        if float(marg.min()) >= 0.0:
+            return u, marg, np.zeros(0, dtype=int)
+        slack = marg + tol.array() * (FEASIBILITY_TOL / fastpath.FEAS_TOL)
+        return u, marg, np.flatnonzero(~(slack >= 0.0))
+
+    def _solve_whole(self, u_nom, a0, a, G, tol):
+        """``(u, status, margins)`` of clarabel (or ``qp_solver``) on the whole program;
+        status ``"constraint_violated"`` when its answer fails the feasibility check."""
+        if G is None and self.qp_solver is not None:
+            x, status = self._run_qpsolvers(u_nom, a0, a)
+        else:
+            x, status = self.programs.solve("qp" if G is None else "socp", u_nom, a0, a, G)
+        u = x[: self.m]
+        if status not in SOLVED or not math.isfinite(float(u.sum())):
+            return u, status, None
+        u, marg, bad = self._accepted(u, a0, a, G, tol)
+        return u, (status if bad.size == 0 else "constraint_violated"), marg
+
+    def _solve_working_set(self, u_nom, a0, a, G, tol, working):
+        """:meth:`_solve_whole` through working sets of cones (module docstring): clarabel on
+        the cones ``working``, enlarged by those the answer violates, for at most
+        ``WORKING_SET_ROUNDS`` rounds, then on all of them."""
+        for _ in range(WORKING_SET_ROUNDS):
+            x, status = self.programs.solve("socp", u_nom, a0[working], a[working],
+                                            G[working])
+            u = x[: self.m]
+            if status not in SOLVED or not math.isfinite(float(u.sum())):
+                if status.endswith("Infeasible"):  # a relaxation of the program is infeasible
+                    return u, status, None
+                break
+            u, marg, bad = self._accepted(u, a0, a, G, tol)
+            if bad.size == 0:
+                return u, status, marg
+            if bad.size > WORKING_SET_ADD:
+                bad = bad[np.argsort(marg[bad] / tol.at(bad))[:WORKING_SET_ADD]]
+            working = np.union1d(working, bad)
+        return self._solve_whole(u_nom, a0, a, G, tol)
+
+    def _farthest_cones(self, uc, a0, a, G, marg) -> np.ndarray:
+        """The violated constraints at the clipped proposal ``uc``, farthest first: by the
+        distance ``-c_i / ||grad c_i||`` to their linearisation there."""
+        violated = np.flatnonzero(marg < 0.0)
+        g = G[violated]
+        v = g[:, :, 0] + g[:, :, 1:] @ uc
+        nv = np.sqrt(np.einsum("ki,ki->k", v, v))
+        grad = a[violated] - np.einsum("kji,kj->ki", g[:, :, 1:], v) / np.where(
+            nv > 0.0, nv, 1.0)[:, None]
+        with np.errstate(divide="ignore"):
+            dist = -marg[violated] / np.sqrt(np.einsum("ki,ki->k", grad, grad))
+        return violated[np.argsort(-dist, kind="stable")]
+
+    def _fast(self, u_nom, uc, a0, a, G, marg, tol):
         """``(u, path, margins at u)`` from a certified fast path, ``"infeasible"`` (a Farkas
-        certificate of the QP), or None."""
+        certificate of the QP), the working set of cones for clarabel (an index array), or
+        None."""
         low, high = self.low, self.high
         if G is not None and a0.size == 1:
             return self._one_cone(u_nom, float(a0[0]), a[0], G[0], tol)
@@ -277,32 +335,22 @@ class SOCPFilter:
             if fastpath.certify(u, u_nom, c, tol, act, lam[act], a[act], low, high):
                 return u, "polyhedron", c
             return None
-        # one constraint at a time: the most violated relative to its scale first, then
-        # the most violated at that answer (only when few are violated: with more, several
-        # cones are usually active at the optimum)
-        if violated.size > CONE_MAX_VIOLATED:
-            return None
-        if violated.size == 1:
-            i = int(violated[0])
-        else:
-            i = int(violated[np.argmin(marg[violated] / tol.at(violated))])
-        tried = []
-        for _ in range(CONE_ATTEMPTS):
-            tried.append(i)
-            found = self._project_one(u_nom, float(a0[i]), a[i], G[i])
-            if found is None:
-                return None
-            u, lam, _, grad, path = found
-            c = self.margins(u, a0, a, G)
-            if fastpath.certify(u, u_nom, c, tol, np.array([i]), np.array([lam]),
-                                grad[None], low, high):
-                return u, path, c
-            c = c / tol.array()
-            c[tried] = np.inf
-            i = int(np.argmin(c))
-            if not c[i] < 0.0:
-                return None  # feasible but not certified: leave it to clarabel
-        return None
+        # several cones: the projection onto the farthest one answers the program when that
+        # cone is the only one binding at the optimum; else it starts clarabel's working set
+        order = self._farthest_cones(uc, a0, a, G, marg)
+        i = int(order[0])
+        found = self._project_one(u_nom, float(a0[i]), a[i], G[i])
+        if found is None:
+            return order[:2]
+        u, lam, _, grad, path = found
+        c = self.margins(u, a0, a, G)
+        if fastpath.certify(u, u_nom, c, tol, np.array([i]), np.array([lam]),
+                            grad[None], low, high):
+            return u, path, c
+        bad = np.flatnonzero(c < 0.0)
+        if bad.size > WORKING_SET_ADD:
+            bad = bad[np.argsort(c[bad] / tol.at(bad))[:WORKING_SET_ADD]]
+        return np.union1d([i], bad)
 
     def _project_one(self, u_nom, a0: float, a, G):
         """``(u, lam, c(u), grad c(u), path)``: the projection of ``u_nom`` onto one

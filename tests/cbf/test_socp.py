@@ -260,3 +260,74 @@ def test_bad_shapes_and_construction():
         SOCPFilter([0.0], [1.0], qp_solver="no_such_solver")
     with pytest.raises(ValueError, match="tol"):
         SOCPFilter([0.0], [1.0], tol=0.0)
+
+
+def _spy_cone_counts(f):
+    """Record the number of cones of every clarabel program the filter solves (the real
+    solver runs)."""
+    sizes, solve = [], f.programs.solve
+
+    def spy(kind, u_nom, a0, a, G=None):
+        sizes.append(a0.size)
+        return solve(kind, u_nom, a0, a, G)
+
+    f.programs.solve = spy
+    return sizes
+
+
+@pytest.mark.parametrize("seed", range(10))
+def test_many_cones_working_set_answer_is_the_whole_programs_optimum(seed):
+    """With many cones clarabel solves working sets of them; the answer is the optimum of the
+    whole program: clarabel on every cone at a tighter tolerance, and SLSQP."""
+    rng = np.random.default_rng(500 + seed)
+    m, K = 7, int(rng.integers(6, 16))
+    low, high, u_nom, a0, a, G = _random_instance(rng, m, K)
+    u_nom = 3.0 * u_nom  # far outside: many cones violated at the proposal
+    f = SOCPFilter(low, high)
+    sizes = _spy_cone_counts(f)
+    res = f.solve(u_nom, a0, a, G)
+    ref = SOCPFilter(low, high, fast_path=False, tol=1e-11).solve(u_nom, a0, a, G)
+    assert res.feasible and ref.feasible
+    scale = np.abs(a0) + np.abs(a) @ np.abs(res.u) + np.abs(G).sum(axis=(1, 2))
+    assert np.all(_margins(res.u, a0, a, G) >= -1e-8 * scale)
+    # clarabel's answers are optimal to ~sqrt(tol) in u (1-strongly convex objective)
+    np.testing.assert_allclose(res.u, ref.u, atol=1e-4)
+    slsqp = _slsqp(u_nom, a0, a, G, low, high)
+    if slsqp is not None:
+        assert 0.5 * np.sum((res.u - u_nom) ** 2) <= slsqp.fun + 1e-7
+    assert all(k <= K for k in sizes)
+
+
+def test_working_sets_smaller_than_the_program_are_used():
+    """Across random many-cone programs, some are answered by clarabel on fewer cones than
+    the program has (the working set), and every answer matches the whole program's."""
+    smaller = 0
+    for seed in range(30):
+        rng = np.random.default_rng(700 + seed)
+        low, high, u_nom, a0, a, G = _random_instance(rng, 7, 12)
+        f = SOCPFilter(low, high)
+        sizes = _spy_cone_counts(f)
+        res = f.solve(3.0 * u_nom, a0, a, G)
+        ref = SOCPFilter(low, high, fast_path=False, tol=1e-11).solve(3.0 * u_nom, a0, a, G)
+        assert res.feasible == ref.feasible
+        if res.feasible:
+            np.testing.assert_allclose(res.u, ref.u, atol=1e-4)
+        smaller += bool(sizes) and min(sizes) < 12
+    assert smaller >= 3
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_many_cones_infeasible_is_flagged_like_the_whole_program(seed):
+    """Two contradicting cones among ten: infeasible, found on a working set, flagged as the
+    whole program's clarabel solve flags it."""
+    rng = np.random.default_rng(900 + seed)
+    m, K = 7, 10
+    low, high, u_nom, a0, a, G = _random_instance(rng, m, K)
+    a[1] = -a[0]
+    G[1] = G[0]
+    a0[0] = a0[1] = -0.05  # a0 + a u >= ||G ubar|| >= 0 and a0 - a u >= 0: no u
+    res = SOCPFilter(low, high).solve(u_nom, a0, a, G)
+    ref = SOCPFilter(low, high, fast_path=False).solve(u_nom, a0, a, G)
+    assert not ref.feasible
+    assert not res.feasible and res.status.startswith("fallback:")
+    assert np.all(np.isfinite(res.u)) and np.all(res.u >= low) and np.all(res.u <= high)
