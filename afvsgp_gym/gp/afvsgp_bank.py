@@ -308,43 +308,56 @@ class AFVSGPBank:
         return e
 
     # ------------------------------------------------------------------ prediction
-    def _refresh(self, rows: np.ndarray) -> None:
-        """The whitened posterior of the learners ``rows`` (triangular solves only):
-        ``D = I + L^-1 S L^-T / s2`` (``>= I``), ``L_D = chol(D)``,
-        ``c = L_D^-1 L^-1 r / s2``, with ``L = chol(K_oo)``."""
-        eye = np.eye(self._mp)
-        for k in rows:
-            inv = 1.0 / (self.noise_variance[k] * self._scale[k])
-            low = self._l_oo[k]
-            st = self._stats[k]
-            a = dtrsm(1.0, low, st[:, 1:], 0, 1, 0, 0, 0)  # L^-1 S
-            d = dtrsm(inv, low, np.ascontiguousarray(a.T), 0, 1, 0, 0, 0)  # L^-1 S L^-T / s2
-            d = 0.5 * (d + d.T)
-            d += eye
-            l_d, info = dpotrf(d, lower=1, clean=1)
-            if info != 0:
-                l_d = jittered_cholesky(d, name="I + L^-1 S L^-T / s2")
-            self._l_d[k] = l_d
-            v = dtrsm(inv, low, st[:, :1], 0, 1, 0, 0, 0)  # L^-1 r / s2
-            self._cvec[k] = dtrsm(1.0, l_d, v, 0, 1, 0, 0, 0)[:, 0]
-            self._fresh[k] = True
+    def _stats_block(self, idx: np.ndarray, kt_rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``inv = 1 / s2`` (n,) and the (n, Mp, Mp + q + 1) blocks ``[S, Kt', r / s2]`` of
+        learners ``idx`` with their ``q`` kernel rows ``kt_rows`` (n, q, Mp): the transposed
+        block ``[S; Kt; r' / s2]`` of each is Fortran-ordered, as :meth:`_whiten` takes it."""
+        n, q, mp = kt_rows.shape
+        inv = 1.0 / (self.noise_variance[idx] * self._scale[idx])
+        st = self._stats[idx]
+        buf = np.empty((n, mp, mp + q + 1))
+        buf[:, :, :mp] = st[:, :, 1:]
+        buf[:, :, mp : mp + q] = kt_rows.transpose(0, 2, 1)
+        np.multiply(st[:, :, 0], inv[:, None], out=buf[:, :, mp + q])
+        return inv, buf
 
-    def _affine(self, k: int, kt: np.ndarray):
-        """``b`` (n, m+1), ``Sigma`` (n, m+1, m+1) of learner ``k`` from ``Kt`` (n, m+1, Mp):
-        ``G = L^-1 Kt'``, ``H = L_D^-1 G``, ``b = H' c``,
-        ``Sigma = diag(s) - G'G + H'H`` (eq. 20 in whitened form)."""
-        n, c, mp = kt.shape
-        rhs = np.asfortranarray(kt.reshape(n * c, mp).T)
-        g = dtrsm(1.0, self._l_oo[k], rhs, 0, 1, 0, 0, 0)  # (Mp, n c)
-        h = dtrsm(1.0, self._l_d[k], g, 0, 1, 0, 0, 0)
-        gt = g.T.reshape(n, c, mp)
-        ht = h.T.reshape(n, c, mp)
-        mean = ht @ self._cvec[k]
-        sig = np.matmul(ht, ht.transpose(0, 2, 1)) - np.matmul(gt, gt.transpose(0, 2, 1))
+    def _whiten(self, k: int, xt: np.ndarray, inv: float) -> np.ndarray:
+        """Eq. 20 in whitened form (triangular solves only) for learner ``k`` from the
+        Fortran-ordered rows ``xt = [S; Kt; r' / s2]`` (Mp + q + 1, Mp), with ``L = chol(K_oo)``:
+        ``xt`` becomes ``[S L^-T; G'; (L^-1 r / s2)']`` in place (``G = L^-1 Kt'``); unless
+        fresh, the posterior cache is refreshed: ``D = I + L^-1 S L^-T / s2`` (``>= I``),
+        ``L_D = chol(D)``, ``c = L_D^-1 L^-1 r / s2``. Returns ``[H'; c']`` (q + 1, Mp),
+        ``H = L_D^-1 G``."""
+        mp = self._mp
+        upper = self._l_oo[k].T  # L' (Fortran-ordered): X L' = B solves in place, no copy
+        dtrsm(1.0, upper, xt, 1, 0, 0, 0, 1)
+        if self._fresh[k]:
+            return dtrsm(1.0, self._l_d[k].T, xt[mp:], 1, 0, 0, 0, 0)
+        # (S L^-T)' = L^-1 S (S symmetric); dpotrf reads the lower triangle only
+        d = dtrsm(inv, upper, xt[:mp].T, 1, 0, 0, 0, 0)  # L^-1 S L^-T / s2
+        d.T.reshape(-1)[:: mp + 1] += 1.0
+        l_d, info = dpotrf(d, lower=1, clean=1, overwrite_a=1)
+        if info != 0:
+            d = dtrsm(inv, upper, xt[:mp].T, 1, 0, 0, 0, 0)
+            d += np.eye(mp)
+            l_d = jittered_cholesky(d, name="I + L^-1 S L^-T / s2")
+        self._l_d[k] = l_d
+        out = dtrsm(1.0, l_d, xt[mp:], 1, 1, 1, 0, 0)
+        self._cvec[k] = out[-1]
+        self._fresh[k] = True
+        return out
+
+    def _moments(self, idx: np.ndarray, gt: np.ndarray, ht: np.ndarray, cv: np.ndarray):
+        """``b = H' c`` (n, m+1) and ``Sigma = diag(s) - G'G + H'H`` (n, m+1, m+1) from
+        ``G'``, ``H'`` (n, m+1, Mp) and ``c`` (n, Mp) (eq. 20 in whitened form); learner
+        ``idx[j]`` gives row ``j``'s prior variances ``s``."""
+        n, c, _ = gt.shape
+        mean = np.matmul(ht, cv[:, :, None])[:, :, 0]
+        sig = np.matmul(ht, ht.transpose(0, 2, 1))
+        sig -= np.matmul(gt, gt.transpose(0, 2, 1))
         sig += sig.transpose(0, 2, 1)
         sig *= 0.5
-        i = np.arange(c)
-        sig[:, i, i] += self.var[k]
+        sig.reshape(n, c * c)[:, :: c + 1] += self.var[idx]
         return mean, sig
 
     def predict_affine(self, xi: np.ndarray, rows: np.ndarray | None = None):
@@ -353,17 +366,15 @@ class AFVSGPBank:
         of ``Delta B^(r)`` (eq. 20). ``xi`` must be finite (the caller checks)."""
         idx = np.arange(self.n_learners) if rows is None else np.asarray(rows, dtype=int)
         xi = np.asarray(xi, dtype=np.float64).reshape(len(idx), self.input_dim)
-        c = self._c
+        c, mp = self._c, self._mp
         kt = self._kt(rows, xi)
-        stale = idx[~self._fresh[idx]]
-        if stale.size:
-            self._refresh(np.unique(stale))
+        inv, buf = self._stats_block(idx, kt)
         n = len(idx)
-        mean = np.empty((n, c))
-        sig = np.empty((n, c, c))
+        hc = np.empty((n, c + 1, mp))  # [H'; c'] per row
         for j, k in enumerate(idx):
-            mean[j : j + 1], sig[j : j + 1] = self._affine(k, kt[j : j + 1])
-        return mean, sig
+            hc[j] = self._whiten(k, buf[j].T, inv[j])
+        gt = buf[:, :, mp : mp + c].transpose(0, 2, 1)
+        return self._moments(idx, gt, hc[:, :c], hc[:, c])
 
     def predict_points(self, k: int, xi: np.ndarray):
         """``b`` (N, m+1) and ``Sigma`` (N, m+1, m+1) of learner ``k`` at N finite points
@@ -380,9 +391,12 @@ class AFVSGPBank:
             e = np.concatenate([self._exponent_direct(np.array([k]), x[None]) for x in xi])
         kt = np.exp(e)
         kt *= self._ubt[k]
-        if not self._fresh[k]:
-            self._refresh(np.array([k]))
-        return self._affine(k, kt)
+        idx = np.array([k])
+        inv, buf = self._stats_block(idx, kt.reshape(1, n * c, mp))
+        hc = self._whiten(k, buf[0].T, inv[0])
+        gt = buf[0, :, mp : mp + n * c].T.reshape(n, c, mp)
+        ht = hc[: n * c].reshape(n, c, mp)
+        return self._moments(np.full(n, k), gt, ht, np.broadcast_to(hc[n * c], (n, mp)))
 
     # ------------------------------------------------------------------ update
     def update(self, xi: np.ndarray, u: np.ndarray, z: np.ndarray) -> np.ndarray:
