@@ -258,6 +258,5 @@ class AFVSGP(SparseLearner):
         bank = self._fitted_bank()
         cnt, head, p = int(bank._count[0]), int(bank._head[0]), bank.window
         order = (head + 1 + np.arange(cnt)) % p if cnt == p else np.arange(cnt)
-        b = bank.input_dim
-        return (bank._wx[0, order, :b].copy(), bank._wub[0, order, 1:].copy(),
+        return (bank._wxt[0][:, order].T.copy(), bank._wubt[0][1:, order].T.copy(),
                 bank._wz[0, order].copy(), bank._weights(0)[order])

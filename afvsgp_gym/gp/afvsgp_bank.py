@@ -68,7 +68,7 @@ class FittedState:
 #: Per-learner arrays (leading axis K), concatenated by :meth:`AFVSGPBank.stack`.
 _STACKED = ("inv_ls2", "var", "log_var", "noise_variance", "jitter", "n_inducing_", "_ind_xi",
             "_ind_ub", "_amat", "_ubt", "_koo", "_l_oo", "_koo_inv", "_stats",
-            "_scale", "_wz", "_wk", "_wx", "_wub", "_head", "_count", "_l_d", "_cvec",
+            "_scale", "_wz", "_wk", "_wxt", "_wubt", "_head", "_count", "_l_d", "_cvec",
             "_fresh", "n_seen_", "n_added_", "n_removed_")
 
 
@@ -128,8 +128,8 @@ class AFVSGPBank:
         self._scale = np.ones(K)
         self._wz = np.zeros((K, P))
         self._wk = np.zeros((K, P, mp))
-        self._wx = np.zeros((K, P, 2 * b))  # [xi, xi^2]
-        self._wub = np.zeros((K, P, c))
+        self._wxt = np.zeros((K, b, P))  # window xi and ubar by slot, transposed
+        self._wubt = np.zeros((K, c, P))
         self._head = np.full(K, -1)
         self._count = np.zeros(K, dtype=int)
         # whitened posterior cache: chol(I + L^-1 S L^-T / s2) and its solve with L^-1 r / s2
@@ -143,9 +143,8 @@ class AFVSGPBank:
             n = min(len(st.z), P)
             xi, ub, z = st.xi[-n:], st.ub[-n:], st.z[-n:]
             self._wz[k, :n] = z
-            self._wx[k, :n, :b] = xi
-            self._wx[k, :n, b:] = xi * xi
-            self._wub[k, :n] = ub
+            self._wxt[k, :, :n] = xi.T
+            self._wubt[k, :, :n] = ub.T
             self._count[k], self._head[k] = n, n - 1
             self.n_seen_[k] = n
             koo = st.kernel._gram(st.xi_o, st.ub_o)
@@ -174,7 +173,7 @@ class AFVSGPBank:
         self._c = self.action_dim + 1
         self._mp = self.num_inducing
         self._phi, self._phi_p, self._inv_phi = phi, phi ** P, 1.0 / phi
-        self._pow = phi ** np.arange(P, dtype=float)
+        self._pow_rev = phi ** np.arange(P - 1, -1, -1, dtype=float)  # phi**(P-1-i)
 
     def _stagger(self) -> None:
         """Spread the periodic rebuilds so that at most a few learners rebuild in one step."""
@@ -244,17 +243,25 @@ class AFVSGPBank:
         self._koo[k, :m, :m] = koo
         self._l_oo[k] = eye
         self._l_oo[k, :m, :m] = low
+        self._koo_inv[k] = eye
+        self._set_koo_inv(k)
+
+    def _set_koo_inv(self, k: int) -> None:
+        """``K_oo^-1`` of learner ``k`` from its factor (``L^-T L^-1``); marks it stale."""
+        m = self.n_inducing_[k]
+        low = self._l_oo[k, :m, :m]
         linv, info = dtrtri(low, lower=1)
         if info != 0:
             linv = np.linalg.inv(low)
-        self._koo_inv[k] = eye
         self._koo_inv[k, :m, :m] = linv.T @ linv
         self._fresh[k] = False
 
     def _weights(self, k: int) -> np.ndarray:
         """``phi**age`` of window slots ``[0, count)`` of learner ``k``."""
-        ages = (self._head[k] - np.arange(self._count[k])) % self.window
-        return self._pow[ages]
+        head, cnt, rev = int(self._head[k]), int(self._count[k]), self._pow_rev
+        if head + 1 == cnt:  # slots [0, head]: ages head..0
+            return rev[self.window - cnt :]
+        return np.concatenate((rev[self.window - 1 - head :], rev[: cnt - head - 1]))
 
     def _rebuild_stats(self, k: int) -> None:
         """``[r, S]`` of learner ``k`` from its stored window (the periodic drift refresh)."""
@@ -308,43 +315,56 @@ class AFVSGPBank:
         return e
 
     # ------------------------------------------------------------------ prediction
-    def _refresh(self, rows: np.ndarray) -> None:
-        """The whitened posterior of the learners ``rows`` (triangular solves only):
-        ``D = I + L^-1 S L^-T / s2`` (``>= I``), ``L_D = chol(D)``,
-        ``c = L_D^-1 L^-1 r / s2``, with ``L = chol(K_oo)``."""
-        eye = np.eye(self._mp)
-        for k in rows:
-            inv = 1.0 / (self.noise_variance[k] * self._scale[k])
-            low = self._l_oo[k]
-            st = self._stats[k]
-            a = dtrsm(1.0, low, st[:, 1:], 0, 1, 0, 0, 0)  # L^-1 S
-            d = dtrsm(inv, low, np.ascontiguousarray(a.T), 0, 1, 0, 0, 0)  # L^-1 S L^-T / s2
-            d = 0.5 * (d + d.T)
-            d += eye
-            l_d, info = dpotrf(d, lower=1, clean=1)
-            if info != 0:
-                l_d = jittered_cholesky(d, name="I + L^-1 S L^-T / s2")
-            self._l_d[k] = l_d
-            v = dtrsm(inv, low, st[:, :1], 0, 1, 0, 0, 0)  # L^-1 r / s2
-            self._cvec[k] = dtrsm(1.0, l_d, v, 0, 1, 0, 0, 0)[:, 0]
-            self._fresh[k] = True
+    def _stats_block(self, idx: np.ndarray, kt_rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``inv = 1 / s2`` (n,) and the (n, Mp, Mp + q + 1) blocks ``[S, Kt', r / s2]`` of
+        learners ``idx`` with their ``q`` kernel rows ``kt_rows`` (n, q, Mp): the transposed
+        block ``[S; Kt; r' / s2]`` of each is Fortran-ordered, as :meth:`_whiten` takes it."""
+        n, q, mp = kt_rows.shape
+        inv = 1.0 / (self.noise_variance[idx] * self._scale[idx])
+        st = self._stats[idx]
+        buf = np.empty((n, mp, mp + q + 1))
+        buf[:, :, :mp] = st[:, :, 1:]
+        buf[:, :, mp : mp + q] = kt_rows.transpose(0, 2, 1)
+        np.multiply(st[:, :, 0], inv[:, None], out=buf[:, :, mp + q])
+        return inv, buf
 
-    def _affine(self, k: int, kt: np.ndarray):
-        """``b`` (n, m+1), ``Sigma`` (n, m+1, m+1) of learner ``k`` from ``Kt`` (n, m+1, Mp):
-        ``G = L^-1 Kt'``, ``H = L_D^-1 G``, ``b = H' c``,
-        ``Sigma = diag(s) - G'G + H'H`` (eq. 20 in whitened form)."""
-        n, c, mp = kt.shape
-        rhs = np.asfortranarray(kt.reshape(n * c, mp).T)
-        g = dtrsm(1.0, self._l_oo[k], rhs, 0, 1, 0, 0, 0)  # (Mp, n c)
-        h = dtrsm(1.0, self._l_d[k], g, 0, 1, 0, 0, 0)
-        gt = g.T.reshape(n, c, mp)
-        ht = h.T.reshape(n, c, mp)
-        mean = ht @ self._cvec[k]
-        sig = np.matmul(ht, ht.transpose(0, 2, 1)) - np.matmul(gt, gt.transpose(0, 2, 1))
+    def _whiten(self, k: int, xt: np.ndarray, inv: float) -> np.ndarray:
+        """Eq. 20 in whitened form (triangular solves only) for learner ``k`` from the
+        Fortran-ordered rows ``xt = [S; Kt; r' / s2]`` (Mp + q + 1, Mp), with ``L = chol(K_oo)``:
+        ``xt`` becomes ``[S L^-T; G'; (L^-1 r / s2)']`` in place (``G = L^-1 Kt'``); unless
+        fresh, the posterior cache is refreshed: ``D = I + L^-1 S L^-T / s2`` (``>= I``),
+        ``L_D = chol(D)``, ``c = L_D^-1 L^-1 r / s2``. Returns ``[H'; c']`` (q + 1, Mp),
+        ``H = L_D^-1 G``."""
+        mp = self._mp
+        upper = self._l_oo[k].T  # L' (Fortran-ordered): X L' = B solves in place, no copy
+        dtrsm(1.0, upper, xt, 1, 0, 0, 0, 1)
+        if self._fresh[k]:
+            return dtrsm(1.0, self._l_d[k].T, xt[mp:], 1, 0, 0, 0, 0)
+        # (S L^-T)' = L^-1 S (S symmetric); dpotrf reads the lower triangle only
+        d = dtrsm(inv, upper, xt[:mp].T, 1, 0, 0, 0, 0)  # L^-1 S L^-T / s2
+        d.T.reshape(-1)[:: mp + 1] += 1.0
+        l_d, info = dpotrf(d, lower=1, clean=1, overwrite_a=1)
+        if info != 0:
+            d = dtrsm(inv, upper, xt[:mp].T, 1, 0, 0, 0, 0)
+            d += np.eye(mp)
+            l_d = jittered_cholesky(d, name="I + L^-1 S L^-T / s2")
+        self._l_d[k] = l_d
+        out = dtrsm(1.0, l_d, xt[mp:], 1, 1, 1, 0, 0)
+        self._cvec[k] = out[-1]
+        self._fresh[k] = True
+        return out
+
+    def _moments(self, idx: np.ndarray, gt: np.ndarray, ht: np.ndarray, cv: np.ndarray):
+        """``b = H' c`` (n, m+1) and ``Sigma = diag(s) - G'G + H'H`` (n, m+1, m+1) from
+        ``G'``, ``H'`` (n, m+1, Mp) and ``c`` (n, Mp) (eq. 20 in whitened form); learner
+        ``idx[j]`` gives row ``j``'s prior variances ``s``."""
+        n, c, _ = gt.shape
+        mean = np.matmul(ht, cv[:, :, None])[:, :, 0]
+        sig = np.matmul(ht, ht.transpose(0, 2, 1))
+        sig -= np.matmul(gt, gt.transpose(0, 2, 1))
         sig += sig.transpose(0, 2, 1)
         sig *= 0.5
-        i = np.arange(c)
-        sig[:, i, i] += self.var[k]
+        sig.reshape(n, c * c)[:, :: c + 1] += self.var[idx]
         return mean, sig
 
     def predict_affine(self, xi: np.ndarray, rows: np.ndarray | None = None):
@@ -353,17 +373,15 @@ class AFVSGPBank:
         of ``Delta B^(r)`` (eq. 20). ``xi`` must be finite (the caller checks)."""
         idx = np.arange(self.n_learners) if rows is None else np.asarray(rows, dtype=int)
         xi = np.asarray(xi, dtype=np.float64).reshape(len(idx), self.input_dim)
-        c = self._c
+        c, mp = self._c, self._mp
         kt = self._kt(rows, xi)
-        stale = idx[~self._fresh[idx]]
-        if stale.size:
-            self._refresh(np.unique(stale))
+        inv, buf = self._stats_block(idx, kt)
         n = len(idx)
-        mean = np.empty((n, c))
-        sig = np.empty((n, c, c))
+        hc = np.empty((n, c + 1, mp))  # [H'; c'] per row
         for j, k in enumerate(idx):
-            mean[j : j + 1], sig[j : j + 1] = self._affine(k, kt[j : j + 1])
-        return mean, sig
+            hc[j] = self._whiten(k, buf[j].T, inv[j])
+        gt = buf[:, :, mp : mp + c].transpose(0, 2, 1)
+        return self._moments(idx, gt, hc[:, :c], hc[:, c])
 
     def predict_points(self, k: int, xi: np.ndarray):
         """``b`` (N, m+1) and ``Sigma`` (N, m+1, m+1) of learner ``k`` at N finite points
@@ -380,9 +398,12 @@ class AFVSGPBank:
             e = np.concatenate([self._exponent_direct(np.array([k]), x[None]) for x in xi])
         kt = np.exp(e)
         kt *= self._ubt[k]
-        if not self._fresh[k]:
-            self._refresh(np.array([k]))
-        return self._affine(k, kt)
+        idx = np.array([k])
+        inv, buf = self._stats_block(idx, kt.reshape(1, n * c, mp))
+        hc = self._whiten(k, buf[0].T, inv[0])
+        gt = buf[0, :, mp : mp + n * c].T.reshape(n, c, mp)
+        ht = hc[: n * c].reshape(n, c, mp)
+        return self._moments(np.full(n, k), gt, ht, np.broadcast_to(hc[n * c], (n, mp)))
 
     # ------------------------------------------------------------------ update
     def update(self, xi: np.ndarray, u: np.ndarray, z: np.ndarray) -> np.ndarray:
@@ -446,9 +467,8 @@ class AFVSGPBank:
             self._stats[rows] = stats
         self._wk[idx, slot] = k_new
         self._wz[idx, slot] = z
-        self._wx[idx, slot, :b] = xi
-        self._wx[idx, slot, b:] = xi * xi
-        self._wub[idx, slot] = ub
+        self._wxt[idx, :, slot] = xi
+        self._wubt[idx, :, slot] = ub
         self._head[sel] = slot
         self._count[sel] = cnt + ~full
         self.n_seen_[sel] += 1
@@ -478,26 +498,23 @@ class AFVSGPBank:
 
     # ------------------------------------------------------------------ inducing set
     def _window_column(self, k: int, xi: np.ndarray, ub: np.ndarray) -> np.ndarray:
-        """``k(x_t, (xi, ub))`` for learner ``k``'s window samples, from the stored
-        ``[x, x^2]`` rows (slot order)."""
-        cnt, b = self._count[k], self.input_dim
-        il2 = self.inv_ls2[k]  # (c, b)
-        wx = self._wx[k, :cnt]
-        coef = np.empty((2 * b, self._c))
-        coef[:b] = (il2 * xi).T
-        coef[b:] = -0.5 * il2.T
-        e = wx @ coef
-        e += self.log_var[k] - 0.5 * (il2 @ (xi * xi))
-        np.minimum(e, self.log_var[k], out=e)
+        """``k(x_t, (xi, ub))`` for learner ``k``'s window samples (slot order), from the
+        differences: ``sum_i ub_i ub_t,i s_i exp(-|(x_t - xi) / l_i|^2 / 2)``."""
+        cnt = self._count[k]
+        d = self._wxt[k, :, :cnt] - xi[:, None]  # (b, cnt)
+        d *= d
+        e = np.matmul(-0.5 * self.inv_ls2[k], d)  # (c, cnt), <= 0
+        e += self.log_var[k][:, None]
         np.exp(e, out=e)
-        e *= self._wub[k, :cnt]
-        return e @ ub
+        e *= self._wubt[k, :, :cnt]
+        return ub @ e
 
     def _consider_add(self, k: int, xi: np.ndarray, ub: np.ndarray, kss: float,
                       k_new: np.ndarray) -> bool:
         """Add the newest sample of learner ``k`` as an inducing point (eqs. 29-30),
         replacing the least informative one (eq. 28) when the set is full. True if the
-        inducing set changed."""
+        inducing set changed. The new point goes last; a dropped point's slot is closed up,
+        so the inducing order is that of arrival."""
         m = int(self.n_inducing_[k])
         low = self._l_oo[k, :m, :m]
         kn = k_new[:m]
@@ -509,48 +526,76 @@ class AFVSGPBank:
         cnt = self._count[k]
         col = self._window_column(k, xi, ub)
         lc = self._weights(k) * col
-        wk = self._wk[k, :cnt, :m]
-        stats = np.empty((m + 1, m + 2))  # enlarged [r, S] (eq. 30)
-        stats[:m, : m + 1] = self._stats[k, :m, : m + 1]
-        stats[m, 1 : m + 1] = stats[:m, m + 1] = lc @ wk
-        stats[m, m + 1] = lc @ col
+        srow = lc @ self._wk[k, :cnt, :m]  # the new row of S (eq. 30)
+        sdiag = float(lc @ col)
         jit = self.jitter[k]
-        low_e = np.zeros((m + 1, m + 1))
-        low_e[:m, :m] = low
-        low_e[m, :m] = lvec
-        low_e[m, m] = math.sqrt(d + jit)
+        dd = d + jit  # the new pivot of chol(K_oo) squared
+        st = self._stats[k]
         drop = None
         if m + 1 > self.num_inducing:
-            linv = dtrtri(low_e, lower=1)[0]
-            kinv = linv.T @ linv
-            score = ((kinv @ stats[:, 1:]) * kinv).sum(axis=1) / np.diag(kinv)
+            # eq. 28 on the enlarged set: K_e^-1 by the bordered inverse (w = K_oo^-1 k_new)
+            w = self._koo_inv[k, :m, :m] @ kn
+            kinv = np.empty((m + 1, m + 1))
+            np.multiply.outer(w, w / dd, out=kinv[:m, :m])
+            kinv[:m, :m] += self._koo_inv[k, :m, :m]
+            kinv[m, :m] = kinv[:m, m] = -w / dd
+            kinv[m, m] = 1.0 / dd
+            se = np.empty((m + 1, m + 1))
+            se[:m, :m] = st[:m, 1 : m + 1]
+            se[m, :m] = se[:m, m] = srow
+            se[m, m] = sdiag
+            score = ((kinv @ se) * kinv).sum(axis=1) / np.diag(kinv)
             j = int(np.argmin(score[:m]))  # eq. 28: least informative old point
             if score[m] - score[j] <= self.swap_margin * kss:
                 return False  # not informative enough: state unchanged
             drop = j
-        stats[m, 0] = lc @ self._wz[k, :cnt]
-        koo = np.empty((m + 1, m + 1))
-        koo[:m, :m] = self._koo[k, :m, :m]
-        koo[m, :m] = koo[:m, m] = kn
-        koo[m, m] = kss + jit
-        xo = np.concatenate([self._ind_xi[k, :m], xi[None]])
-        ubo = np.concatenate([self._ind_ub[k, :m], ub[None]])
+        r_new = float(lc @ self._wz[k, :cnt])
         self.n_added_[k] += 1
+        koo = self._koo[k]
         wk_k = self._wk[k]
-        if drop is not None:
-            keep = np.r_[0:drop, drop + 1 : m + 1]
-            xo, ubo, koo = xo[keep], ubo[keep], koo[np.ix_(keep, keep)]
-            stats = stats[np.ix_(keep, np.r_[0, keep + 1])]
-            low_e, info = dpotrf(koo, lower=1, clean=1)  # O(M^3 / 3): cheaper than a loop
-            if info != 0:
-                low_e = jittered_cholesky(koo, name="K_oo")
+        a = self._amat[k].reshape(self._c, self._mp, -1)
+        if drop is None:
+            pos = m
+        else:  # close up slot drop: every per-point array moves down by one from drop + 1
+            pos, j = m - 1, drop
             self.n_removed_[k] += 1
-            wk_k[:cnt, drop : m - 1] = wk_k[:cnt, drop + 1 : m]  # the window's kernel columns
-            wk_k[:cnt, m - 1] = col
+            self._ind_xi[k, j:pos] = self._ind_xi[k, j + 1 : m]
+            self._ind_ub[k, j:pos] = self._ind_ub[k, j + 1 : m]
+            a[:, j:pos] = a[:, j + 1 : m]
+            self._ubt[k, :, j:pos] = self._ubt[k, :, j + 1 : m]
+            koo[j:pos, :m] = koo[j + 1 : m, :m]
+            koo[:pos, j:pos] = koo[:pos, j + 1 : m]
+            st[j:pos] = st[j + 1 : m]
+            st[:pos, j + 1 : m] = st[:pos, j + 2 : m + 1]
+            wk_k[:cnt, j:pos] = wk_k[:cnt, j + 1 : m]
+            kn = np.concatenate((kn[:j], kn[j + 1 :]))
+            srow = np.concatenate((srow[:j], srow[j + 1 :]))
+        mm = pos + 1
+        # the new point in slot pos (eqs. 29-30)
+        self._ind_xi[k, pos] = xi
+        self._ind_ub[k, pos] = ub
+        il2 = self.inv_ls2[k]
+        sx = il2 * xi  # (c, b)
+        b = self.input_dim
+        a[:, pos, :b] = sx
+        a[:, pos, b : 2 * b] = -0.5 * il2
+        a[:, pos, 2 * b] = self.log_var[k] - 0.5 * (sx @ xi)
+        self._ubt[k, :, pos] = ub
+        koo[pos, :pos] = koo[:pos, pos] = kn
+        koo[pos, pos] = kss + jit
+        st[pos, 0] = r_new
+        st[pos, 1:mm] = st[:pos, mm] = srow
+        st[pos, mm] = sdiag
+        wk_k[:cnt, pos] = col
+        lo = self._l_oo[k]
+        if drop is None:  # the bordered factor
+            lo[pos, :pos] = lvec
+            lo[pos, pos] = math.sqrt(dd)
         else:
-            wk_k[:cnt, m] = col
-        self._set_inducing(k, xo, ubo, koo, low_e)
-        mm = len(xo)
-        self._stats[k] = 0.0
-        self._stats[k, :mm, : mm + 1] = stats
+            low_n, info = dpotrf(koo[:mm, :mm], lower=1, clean=1)  # O(M^3 / 3)
+            if info != 0:
+                low_n = jittered_cholesky(koo[:mm, :mm], name="K_oo")
+            lo[:mm, :mm] = low_n
+        self.n_inducing_[k] = mm
+        self._set_koo_inv(k)
         return True
