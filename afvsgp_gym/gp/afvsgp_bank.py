@@ -118,7 +118,7 @@ class AFVSGPBank:
         self.n_inducing_ = np.zeros(K, dtype=int)
         self._ind_xi = np.zeros((K, mp, b))
         self._ind_ub = np.zeros((K, mp, c))
-        self._amat = np.zeros((K, c * mp, 2 * b + 1))  # exponent rows, see _set_inducing
+        self._amat = np.zeros((K, c * mp, b + 1))  # exponent rows, see _set_inducing
         self._ubt = np.zeros((K, c, mp))
         self._koo = np.zeros((K, mp, mp))
         self._l_oo = np.zeros((K, mp, mp))
@@ -229,13 +229,13 @@ class AFVSGPBank:
         self._ind_ub[k] = 0.0
         self._ind_xi[k, :m] = xo
         self._ind_ub[k, :m] = ubo
-        # exponent of k_i(x, o_j) = log s_i - |o_j/l_i|^2/2 + (o_j/l_i^2).x - (1/(2 l_i^2)).x^2
-        a = self._amat[k].reshape(self._c, mp, 2 * b + 1)
+        # exponent of k_i(x, o_j) = log s_i - |o_j/l_i|^2/2 + (o_j/l_i^2).x - (1/(2 l_i^2)).x^2:
+        # rows [o_j/l_i^2, log s_i - |o_j/l_i|^2/2]; the x^2 term is the same for every j
+        a = self._amat[k].reshape(self._c, mp, b + 1)
         a[:] = 0.0
         s = xo[None, :, :] * il2[:, None, :]  # (c, m, b)
         a[:, :m, :b] = s
-        a[:, :m, b:2 * b] = -0.5 * il2[:, None, :]
-        a[:, :m, 2 * b] = self.log_var[k][:, None] - 0.5 * np.einsum("imd,md->im", s, xo)
+        a[:, :m, b] = self.log_var[k][:, None] - 0.5 * np.einsum("imd,md->im", s, xo)
         self._ubt[k] = 0.0
         self._ubt[k, :, :m] = ubo.T
         eye = np.eye(mp)
@@ -292,12 +292,13 @@ class AFVSGPBank:
     def _kt(self, rows, xi: np.ndarray) -> np.ndarray:
         """``Kt`` (k, m+1, Mp) of learners ``rows`` at their points ``xi`` (k, b) (eq. 21)."""
         n, b = xi.shape
-        feat = np.empty((n, 2 * b + 1, 1))
-        feat[:, :b, 0] = xi
-        feat[:, b:2 * b, 0] = xi * xi
-        feat[:, 2 * b, 0] = 1.0
+        feat = np.empty((n, 1, b + 1))
+        feat[:, 0, :b] = xi
+        feat[:, 0, b] = 1.0
         amat = self._amat if rows is None else self._amat[rows]
-        e = np.matmul(amat, feat).reshape(n, self._c, self._mp)
+        il2 = self.inv_ls2 if rows is None else self.inv_ls2[rows]
+        e = np.matmul(feat, amat.transpose(0, 2, 1)).reshape(n, self._c, self._mp)
+        e += np.matmul(il2, (-0.5 * xi * xi)[:, :, None])  # (n, c, 1): the x^2 term
         if not math.isfinite(float(e.sum())):  # huge |xi|: x^2 overflows in the expansion
             idx = np.arange(self.n_learners) if rows is None else np.asarray(rows)
             e = self._exponent_direct(idx, xi)
@@ -389,11 +390,11 @@ class AFVSGPBank:
         xi = np.asarray(xi, dtype=np.float64)
         n, b = xi.shape
         c, mp = self._c, self._mp
-        feat = np.empty((n, 2 * b + 1))
+        feat = np.empty((n, b + 1))
         feat[:, :b] = xi
-        feat[:, b:2 * b] = xi * xi
-        feat[:, 2 * b] = 1.0
+        feat[:, b] = 1.0
         e = (feat @ self._amat[k].T).reshape(n, c, mp)
+        e += ((-0.5 * xi * xi) @ self.inv_ls2[k].T)[:, :, None]  # the x^2 term
         if not math.isfinite(float(e.sum())):  # huge |xi|: x^2 overflows in the expansion
             e = np.concatenate([self._exponent_direct(np.array([k]), x[None]) for x in xi])
         kt = np.exp(e)
@@ -578,8 +579,7 @@ class AFVSGPBank:
         sx = il2 * xi  # (c, b)
         b = self.input_dim
         a[:, pos, :b] = sx
-        a[:, pos, b : 2 * b] = -0.5 * il2
-        a[:, pos, 2 * b] = self.log_var[k] - 0.5 * (sx @ xi)
+        a[:, pos, b] = self.log_var[k] - 0.5 * (sx @ xi)
         self._ubt[k, :, pos] = ub
         koo[pos, :pos] = koo[:pos, pos] = kn
         koo[pos, pos] = kss + jit
