@@ -29,11 +29,17 @@ SOLVED = ("Solved", "AlmostSolved")
 KINDS = ("qp", "socp", "fallback_qp", "fallback_socp")
 
 
-def settings(tol: float) -> clarabel.DefaultSettings:
-    """Clarabel settings for reusable solvers with gap and feasibility tolerance ``tol``."""
+def settings(tol: float, strictly_convex: bool = False) -> clarabel.DefaultSettings:
+    """Clarabel settings for reusable solvers with gap and feasibility tolerance ``tol``.
+
+    ``strictly_convex``: the objective's ``P`` is positive definite (``P = I``: the filter's
+    programs), so the KKT matrix ``[P, A'; A, -W'W]`` is quasi-definite at every iterate and
+    its LDL' factorisation exists without the static regularisation (turned off: ~18 % of
+    the solve time on the whole-arm programs; the dynamic regularisation stays on)."""
     s = clarabel.DefaultSettings()
     s.verbose = False
     s.presolve_enable = False  # required for data updates
+    s.static_regularization_enable = not strictly_convex
     s.chordal_decomposition_enable = False
     s.tol_gap_abs = tol
     s.tol_gap_rel = tol
@@ -140,7 +146,8 @@ class ConePrograms:
         if solver is None:
             A = self._matrix(kind, k, values)
             solver = clarabel.DefaultSolver(
-                self._hessian(kind), q, A, b, self._cones(kind, k), settings(self.tol)
+                self._hessian(kind), q, A, b, self._cones(kind, k),
+                settings(self.tol, strictly_convex=not kind.startswith("fallback")),
             )
             self._solvers[key] = solver
         else:
