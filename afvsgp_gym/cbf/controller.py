@@ -112,6 +112,19 @@ def cone_matrix(sigma: np.ndarray, beta: float) -> np.ndarray:
     return (beta * np.sqrt(np.maximum(w, 0.0)))[:, None] * v.T
 
 
+def cone_matrices(sigma: np.ndarray, beta: float) -> np.ndarray:
+    """:func:`cone_matrix` of every ``Sigma`` in the stack ``sigma`` (k, m+1, m+1): one
+    batched Cholesky when all are numerically positive definite, else one by one."""
+    sym = 0.5 * (sigma + sigma.transpose(0, 2, 1))
+    try:
+        low = np.linalg.cholesky(sym)
+    except np.linalg.LinAlgError:
+        return np.array([cone_matrix(s, beta) for s in sym])
+    out = low.transpose(0, 2, 1)
+    out *= beta
+    return out
+
+
 def chance_margins(u: np.ndarray, a0: np.ndarray, a: np.ndarray, G: np.ndarray) -> np.ndarray:
     """``a0 + a @ u - ||G ubar||`` per constraint (eq. 05)."""
     gu = G[:, :, 0] + G[:, :, 1:] @ u
@@ -291,8 +304,7 @@ class SafetyController:
                 u_nom = self._excite(u_nom, pred_rows, sig, a0[where], a[where])
                 if self.config.beta > 0:
                     G = np.zeros((len(rows), m + 1, m + 1))
-                    for j, s in zip(where, sig, strict=True):
-                        G[j] = cone_matrix(s, self.config.beta)
+                    G[where] = cone_matrices(sig, self.config.beta)
             except Exception as exc:  # a learner failure must not stop the loop
                 self.last_error = f"{type(exc).__name__}: {exc}"
                 a0 = np.full(len(rows), np.nan)

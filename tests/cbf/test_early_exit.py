@@ -102,3 +102,24 @@ def test_cone_matrix_factors_the_covariance(seed):
             want = beta * np.sqrt(max(ubar @ sig @ ubar, 0.0))
             got = np.linalg.norm(G @ ubar)
             assert got == pytest.approx(want, rel=1e-6, abs=1e-7 * beta * np.sqrt(np.trace(sig)))
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_cone_matrices_equal_cone_matrix_row_by_row(seed):
+    """The batched factor equals the one-at-a-time one (Cholesky rows), and a stack with an
+    indefinite member falls back to the eigen-factor for every member."""
+    from afvsgp_gym.cbf.controller import cone_matrices, cone_matrix
+
+    rng = np.random.default_rng(700 + seed)
+    L = rng.normal(size=(6, 8, 8))
+    sig = L @ L.transpose(0, 2, 1)
+    got = cone_matrices(sig, 2.5)
+    want = np.array([cone_matrix(s, 2.5) for s in sig])
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12 * np.abs(want).max())
+    sig[2] = sig[2] - 2.0 * np.linalg.eigvalsh(sig[2]).max() * np.eye(8)  # indefinite
+    got = cone_matrices(sig, 2.5)
+    assert np.all(np.isfinite(got))
+    for g, s in zip(got, sig, strict=True):
+        w = np.linalg.eigvalsh(0.5 * (s + s.T))
+        np.testing.assert_allclose(np.linalg.eigvalsh(g.T @ g), 6.25 * np.maximum(w, 0.0),
+                                   atol=1e-9 * 6.25 * np.abs(w).max())
