@@ -123,6 +123,22 @@ def certify(u, u_nom, margins, tol: Tolerance, active, lam, grads, low, high) ->
     return _distance_bound_ok(u, u - u_nom - lam @ grads, comp, low, high)
 
 
+def certify_halfspaces(u, u_nom, c, tol, active, lam, a_active, low, high) -> bool:
+    """:func:`certify` for half-spaces only (the QP, paper eq. 04): ``c = a0 + a u`` and
+    ``tol`` the tolerances of every constraint (arrays), ``active`` the indices with a
+    multiplier ``lam`` and ``a_active`` their rows (the same test)."""
+    if not float((c + tol).min()) >= 0.0:  # also False for NaN
+        return False
+    lam_l = lam.tolist()
+    if not min(lam_l, default=0.0) >= 0.0:
+        return False
+    comp = 0.0
+    for li, ci, ti in zip(lam_l, c[active].tolist(), tol[active].tolist(), strict=True):
+        if ci > ti:
+            comp += li * ci
+    return _distance_bound_ok(u, u - u_nom - lam @ a_active, comp, low, high)
+
+
 def certify_one(u, u_nom, c: float, tol: float, lam: float, grad, low, high) -> bool:
     """:func:`certify` for a program with one constraint: its margin ``c``, tolerance ``tol``,
     multiplier ``lam`` and gradient ``grad`` at ``u`` (plain floats; the same test)."""
@@ -201,6 +217,7 @@ def project_halfspace_box(u_nom, a0: float, a, low, high):
 
 
 _M_TEMPLATES: dict[tuple[int, int], np.ndarray] = {}
+_E_LAST: dict[int, np.ndarray] = {}  # e_{m+1} (read only)
 
 
 def _public_nnls(A, b, maxiter):
@@ -235,7 +252,7 @@ def _pick_nnls():
 _nnls = _pick_nnls()
 
 
-def project_polyhedron_box(u_nom, a0, a, low, high):
+def project_polyhedron_box(u_nom, a0, a, low, high, norms=None):
     """``(u, lam)``: projection of ``u_nom`` onto ``{a0 + a u >= 0} ∩ [low, high]``, any k.
 
     With ``x = u - u_nom`` this is the least-distance program ``min ||x|| s.t. E x >= f``
@@ -245,7 +262,8 @@ def project_polyhedron_box(u_nom, a0, a, low, high):
     (Lawson and Hanson, ch. 23). ``"infeasible"`` when ``r[m] = 0`` and ``y`` is a Farkas
     certificate: ``y >= 0``, ``f'y = 1 - r[m] > 0`` and ``|E'y| R < f'y`` for the largest
     ``|x| = R`` in the box, so ``y'(Ex - f) < 0`` for every ``x`` there (no point satisfies
-    ``Ex >= f``). None if the solver fails or neither holds.
+    ``Ex >= f``). None if the solver fails or neither holds. ``norms``: the row norms of
+    ``a`` with zeros replaced by 1, if the caller has them.
     """
     k, m = a.shape
     tpl = _M_TEMPLATES.get((k, m))
@@ -255,15 +273,20 @@ def project_polyhedron_box(u_nom, a0, a, low, high):
         tpl[:m, k + m :] = -np.eye(m)
         tpl = _M_TEMPLATES[(k, m)] = tpl
     M = tpl.copy()
-    norms = np.sqrt(np.einsum("ij,ij->i", a, a))
-    norms[norms == 0.0] = 1.0
+    if norms is None:
+        norms = np.sqrt(np.einsum("ij,ij->i", a, a))
+        norms[norms == 0.0] = 1.0
     an = a / norms[:, None]
     M[:m, :k] = an.T
-    M[m, :k] = -(an @ u_nom + a0 / norms)
+    f = an @ u_nom
+    f += a0 / norms
+    M[m, :k] = -f
     M[m, k : k + m] = low - u_nom
     M[m, k + m :] = u_nom - high
-    e = np.zeros(m + 1)
-    e[m] = 1.0
+    e = _E_LAST.get(m)
+    if e is None:
+        e = _E_LAST[m] = np.zeros(m + 1)
+        e[m] = 1.0
     try:
         y = _nnls(M, e, 10 * (k + 2 * m))
     except (RuntimeError, ValueError):

@@ -47,6 +47,8 @@ FEASIBILITY_TOL = 1e-8
 WORKING_SET_ROUNDS = 3
 #: Cones added to the working set per round: the most violated ones (relative to scale).
 WORKING_SET_ADD = 2
+#: Working-set rounds of the QP's least-distance fast path before clarabel.
+QP_WORKING_SET_ROUNDS = 4
 
 
 @dataclass(frozen=True)
@@ -220,15 +222,29 @@ class SOCPFilter:
             if not G.any():  # no cone (or NaN, caught below by the margins)
                 G = None
         uc = u_nom.clip(self.low, self.high)
-        marg = self.margins(uc, a0, a, G)
+        if G is None:
+            marg = a @ uc
+            marg += a0
+        else:
+            marg = self.margins(uc, a0, a, G)
         # any NaN/inf in the data makes a margin (or u_nom's sum) non-finite
         if not math.isfinite(float(marg.sum()) + float(u_nom.sum())):
             return self._invalid(u_nom, a0, a, G, t0, backup)
         if k == 0 or float(marg.min()) >= 0.0:  # the filter is inactive
             return SOCPResult(uc, True, "inactive", marg, time.perf_counter() - t0)
+        if G is None and self.fast_path:
+            try:
+                found = self._fast_qp(u_nom, a0, a, marg)
+            except Exception:  # an uncertified case: clarabel decides
+                found = None
+            if found == "infeasible":  # certified by Farkas: no clarabel solve to confirm it
+                return self._fallback("infeasible", u_nom, uc, a0, a, G, None, t0, backup)
+            if found is not None:
+                u, path, marg = found
+                return SOCPResult(u, True, f"certified:{path}", marg, time.perf_counter() - t0)
         tol = fastpath.Tolerance(a0, a, G, self.bound_norm)
         working = None
-        if self.fast_path:
+        if self.fast_path and G is not None:
             try:
                 found = self._fast(u_nom, uc, a0, a, G, marg, tol)
             except Exception:  # an uncertified case: clarabel decides
@@ -308,33 +324,62 @@ class SOCPFilter:
             dist = -marg[violated] / np.sqrt(np.einsum("ki,ki->k", grad, grad))
         return violated[np.argsort(-dist, kind="stable")]
 
+    def _fast_qp(self, u_nom, a0, a, marg):
+        """``(u, path, margins at u)`` from a certified fast path of the QP (paper eq. 04,
+        ``G = None``), ``"infeasible"`` (a Farkas certificate) or None.
+
+        One violated half-space at the clipped proposal: its projection. Otherwise the
+        least-distance program over a working set of half-spaces, starting with those
+        violated at the clipped proposal (the others are satisfied there), enlarged by those
+        its answer violates, ``QP_WORKING_SET_ROUNDS`` times at most: an answer satisfying
+        every constraint is certified against the whole program (its multipliers, zero for
+        the others, in :func:`fastpath.certify_halfspaces`), and an infeasible working set
+        (a Farkas certificate for its rows) proves the whole program infeasible."""
+        low, high = self.low, self.high
+        norms = np.sqrt(np.einsum("ij,ij->i", a, a))
+        tol = norms * self.bound_norm
+        tol += np.abs(a0)
+        tol *= fastpath.FEAS_TOL  # fastpath.constraint_scales(a0, a, None, R) * FEAS_TOL
+        work = np.flatnonzero(marg < 0.0)
+        if work.size == 1:
+            i = int(work[0])
+            sol = fastpath.project_halfspace_box(u_nom, float(a0[i]), a[i], low, high)
+            if sol is not None:
+                u, lam = sol
+                c = a @ u
+                c += a0
+                if fastpath.certify_halfspaces(u, u_nom, c, tol, work, np.array([lam]),
+                                               a[work], low, high):
+                    return u, "halfspace", c
+        norms[norms == 0.0] = 1.0
+        for _ in range(QP_WORKING_SET_ROUNDS):
+            sol = fastpath.project_polyhedron_box(u_nom, a0[work], a[work], low, high,
+                                                  norms[work])
+            if sol is None or isinstance(sol, str):  # "infeasible": for the whole program
+                return sol
+            u, lam = sol
+            c = a @ u
+            c += a0
+            act = np.flatnonzero(lam)
+            idx = work[act]
+            if fastpath.certify_halfspaces(u, u_nom, c, tol, idx, lam[act], a[idx], low,
+                                           high):
+                return u, "polyhedron", c
+            bad = np.flatnonzero(c + tol < 0.0)
+            if bad.size == 0:
+                return None  # feasible but not certified
+            grown = np.union1d(work, bad)
+            if grown.size == work.size:
+                return None  # the working set's answer violates its own rows
+            work = grown
+        return None
+
     def _fast(self, u_nom, uc, a0, a, G, marg, tol):
-        """``(u, path, margins at u)`` from a certified fast path, ``"infeasible"`` (a Farkas
-        certificate of the QP), the working set of cones for clarabel (an index array), or
-        None."""
+        """``(u, path, margins at u)`` from a certified fast path with cones, or the working
+        set of cones for clarabel (an index array), or None."""
         low, high = self.low, self.high
         if G is not None and a0.size == 1:
             return self._one_cone(u_nom, float(a0[0]), a[0], G[0], tol)
-        violated = np.flatnonzero(marg < 0.0)
-        if G is None:
-            if violated.size == 1:
-                i = int(violated[0])
-                sol = fastpath.project_halfspace_box(u_nom, float(a0[i]), a[i], low, high)
-                if sol is not None:
-                    u, lam = sol
-                    c = a @ u + a0
-                    if fastpath.certify(u, u_nom, c, tol, violated, np.array([lam]),
-                                        a[violated], low, high):
-                        return u, "halfspace", c
-            sol = fastpath.project_polyhedron_box(u_nom, a0, a, low, high)
-            if sol is None or sol == "infeasible":
-                return sol
-            u, lam = sol
-            c = a @ u + a0
-            act = np.flatnonzero(lam)
-            if fastpath.certify(u, u_nom, c, tol, act, lam[act], a[act], low, high):
-                return u, "polyhedron", c
-            return None
         # several cones: the projection onto the farthest one answers the program when that
         # cone is the only one binding at the optimum; else it starts clarabel's working set
         order = self._farthest_cones(uc, a0, a, G, marg)

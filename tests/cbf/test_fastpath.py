@@ -258,3 +258,31 @@ def test_nnls_routine_equals_scipys_public_nnls():
         b = rng.normal(size=8)
         np.testing.assert_allclose(fastpath._nnls(A, b, 10 * A.shape[1]), nnls(A, b)[0],
                                    rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_certify_halfspaces_is_certify(seed):
+    """The half-space certificate with every tolerance given is the general one's test: the
+    same verdict on the optimum and on perturbed points and multipliers."""
+    rng = np.random.default_rng(1300 + seed)
+    m, k = 7, int(rng.integers(2, 40))
+    low, high = -np.ones(m), np.ones(m)
+    a = rng.normal(size=(k, m))
+    a0 = -(a @ rng.uniform(-0.5, 0.5, m)) + rng.uniform(0.0, 0.5, k)
+    u_nom = rng.uniform(-2.0, 2.0, m)
+    sol = fastpath.project_polyhedron_box(u_nom, a0, a, low, high)
+    if sol is None or isinstance(sol, str):
+        return
+    u, lam = sol
+    tol = _tol(a0, a, None, np.sqrt(m))
+    tol_arr = fastpath.FEAS_TOL * fastpath.constraint_scales(a0, a, None, np.sqrt(m))
+    act = np.flatnonzero(lam)
+    for du, dl in [(0.0, 0.0), (1e-6, 0.0), (0.0, 1e-6), (1e-12, 0.0), (0.0, -2.0)]:
+        v = np.clip(u + du * rng.normal(size=m), low, high)
+        mult = lam[act] * (1.0 + dl) if dl > -1 else -lam[act]
+        c = a @ v + a0
+        assert fastpath.certify_halfspaces(v, u_nom, c, tol_arr, act, mult, a[act], low,
+                                           high) == fastpath.certify(v, u_nom, c, tol, act,
+                                                                     mult, a[act], low, high)
+    c = a @ u + a0
+    assert fastpath.certify_halfspaces(u, u_nom, c, tol_arr, act, lam[act], a[act], low, high)

@@ -331,3 +331,74 @@ def test_many_cones_infeasible_is_flagged_like_the_whole_program(seed):
     assert not ref.feasible
     assert not res.feasible and res.status.startswith("fallback:")
     assert np.all(np.isfinite(res.u)) and np.all(res.u >= low) and np.all(res.u <= high)
+
+
+def _spy_least_distance_sizes(monkeypatch):
+    """Record the number of half-spaces of every least-distance (NNLS) solve."""
+    from afvsgp_gym.cbf import fastpath
+
+    sizes = []
+    inner = fastpath.project_polyhedron_box
+
+    def spy(u_nom, a0, a, low, high, norms=None):
+        sizes.append(a0.size)
+        return inner(u_nom, a0, a, low, high, norms)
+
+    monkeypatch.setattr(fastpath, "project_polyhedron_box", spy)
+    return sizes
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_qp_working_set_answer_is_the_whole_programs_optimum(seed, monkeypatch):
+    """The QP's fast path solves the half-spaces violated at the clipped proposal (enlarged
+    by those its answer violates); the certified answer is the whole program's optimum:
+    clarabel on every half-space at a tight tolerance, and SLSQP; a Farkas verdict on a
+    working set is also clarabel's."""
+    rng = np.random.default_rng(900 + seed)
+    m, K = 7, int(rng.integers(20, 60))
+    low, high = -np.ones(m), np.ones(m)
+    a = rng.normal(size=(K, m))
+    u_star = rng.uniform(-0.5, 0.5, m)
+    a0 = -(a @ u_star) + rng.uniform(0.0, 1.0, K)
+    if seed % 4 == 3:  # two contradicting half-spaces among the others
+        a[1] = -a[0]
+        a0[1] = -a0[0] - 1.0
+    u_nom = rng.uniform(-1.5, 1.5, m)
+    sizes = _spy_least_distance_sizes(monkeypatch)
+    res = SOCPFilter(low, high).solve(u_nom, a0, a)
+    ref = SOCPFilter(low, high, fast_path=False, tol=1e-11).solve(u_nom, a0, a)
+    assert res.feasible == ref.feasible
+    if not res.feasible:
+        assert res.status == "fallback:infeasible" and not ref.feasible
+        return
+    if res.status == "inactive":
+        return
+    assert res.status.startswith("certified:")
+    assert np.all(a0 + a @ res.u >= -1e-12 * (np.abs(a0) + np.linalg.norm(a, axis=1) * 3))
+    np.testing.assert_allclose(res.u, ref.u, atol=1e-5)
+    slsqp = _slsqp(u_nom, a0, a, None, low, high)
+    if slsqp is not None:
+        assert 0.5 * np.sum((res.u - u_nom) ** 2) <= slsqp.fun + 1e-9
+    assert all(s < K for s in sizes)
+
+
+def test_qp_working_set_grows_and_stays_exact(monkeypatch):
+    """Across random QPs some working sets are enlarged (the answer on the half-spaces
+    violated at the clipped proposal violates another one); those answers equal clarabel's
+    on the whole program."""
+    grown = 0
+    for seed in range(40):
+        rng = np.random.default_rng(1100 + seed)
+        m, K = 7, 30
+        low, high = -np.ones(m), np.ones(m)
+        a = rng.normal(size=(K, m))
+        a0 = -(a @ rng.uniform(-0.3, 0.3, m)) + rng.uniform(0.0, 0.5, K)
+        u_nom = rng.uniform(-2.0, 2.0, m)
+        sizes = _spy_least_distance_sizes(monkeypatch)
+        res = SOCPFilter(low, high).solve(u_nom, a0, a)
+        if len(sizes) > 1:
+            grown += 1
+            assert sizes[1] > sizes[0] and res.status == "certified:polyhedron"
+            ref = SOCPFilter(low, high, fast_path=False, tol=1e-11).solve(u_nom, a0, a)
+            np.testing.assert_allclose(res.u, ref.u, atol=1e-5)
+    assert grown >= 3
