@@ -238,11 +238,14 @@ def cbfpy_comparison(n_barriers: int, n: int, seed: int = 0, block: int = 50) ->
     blocks of ``block`` states, each solved by ours and then by every cbfpy configuration
     (``block=1`` interleaves every call; the code of one filter then evicts the other's from
     the caches, which costs ours about as much as its solve, see benchmarks/solver.md).
-    Median / p99 per call (first call of each apart, ``first_call_s``) over all states, the
-    active ones (our clipped proposal unsafe) and the active feasible ones; the largest
-    difference of the actions and each one's worst constraint violation (box excess, or
-    ``-c_i / scale_i`` with :func:`~afvsgp_gym.cbf.fastpath.constraint_scales`) over the
-    states where our program is feasible."""
+    ``ours_with_backup``: ours given a backup action (a joint-damping brake, as the env
+    wrapper passes one), returned flagged on infeasible states instead of the
+    max-worst-margin fallback. Median / p99 per call (first call of each apart,
+    ``first_call_s``) over all states, the active ones (our clipped proposal unsafe) and the
+    active feasible ones; the largest difference of the actions and each one's worst
+    constraint violation (box excess, or ``-c_i / scale_i`` with
+    :func:`~afvsgp_gym.cbf.fastpath.constraint_scales`) over the states where our program is
+    feasible."""
     import jax.numpy as jnp
 
     from afvsgp_gym.cbf.fastpath import constraint_scales
@@ -250,7 +253,8 @@ def cbfpy_comparison(n_barriers: int, n: int, seed: int = 0, block: int = 50) ->
     arm, (q, qd, o, u_des), inst = make_instances(n_barriers, n, learned=False, seed=seed)
     fns = cbfpy_filters(arm)
     f = SOCPFilter(-np.ones(M), np.ones(M))
-    names = ["ours", *fns]
+    brake = np.clip(-qd, -1.0, 1.0)  # a joint-damping brake as the backup action
+    names = ["ours", "ours_with_backup", *fns]
     times = {k: np.empty(n) for k in names}
     actions = {k: np.empty((n, M)) for k in names}
     active, feasible = np.zeros(n, dtype=bool), np.zeros(n, dtype=bool)
@@ -266,6 +270,12 @@ def cbfpy_comparison(n_barriers: int, n: int, seed: int = 0, block: int = 50) ->
             times["ours"][j] = time.perf_counter() - t0
             actions["ours"][j] = res.u
             active[j], feasible[j] = res.status != "inactive", res.feasible
+        for j in idx:
+            u0, a0, a, _ = inst[j]
+            t0 = time.perf_counter()
+            res = f.solve(u0, a0, a, backup=brake[j])
+            times["ours_with_backup"][j] = time.perf_counter() - t0
+            actions["ours_with_backup"][j] = res.u
         for name, fn in fns.items():
             for j in idx:
                 t0 = time.perf_counter()
@@ -281,7 +291,7 @@ def cbfpy_comparison(n_barriers: int, n: int, seed: int = 0, block: int = 50) ->
             u = actions[name][j]
             excess = float(np.maximum(np.abs(u) - 1.0, 0.0).max())
             worst[name] = max(worst[name], excess, float(-np.min((a0 + a @ u) / scales)))
-            if name != "ours":
+            if name in diff:
                 diff[name] = max(diff[name], float(np.abs(u - actions["ours"][j]).max()))
     out = {"active_fraction": float(active[1:].mean()),
            "feasible_fraction": float(feasible[1:].mean())}
