@@ -92,18 +92,18 @@ def wrap_env(env: Any, learner: str | None = None, filter_kwargs: dict | None = 
 def default_algo_kwargs(algo: str, timesteps: int, n_envs: int) -> dict[str, Any]:
     """Hyperparameters :func:`train` starts from (``algo_kwargs`` overrides them).
 
-    PPO: rollouts of 512 steps per env (fewer for short runs: a multiple of 64 so no
-    mini-batch is truncated), mini-batches of 256 (64 for short runs), 10 epochs,
-    gamma 0.98, two hidden layers of 64 units, initial action std exp(-0.5) = 0.61 (of the
-    [-1, 1] range; SB3's default 1 saturates half the actions). SAC: a 300k-transition
-    buffer, learning from 1,000 steps (half the run if shorter), gamma 0.98, two layers of
-    256 units.
+    PPO: rollouts of 256 steps per env (fewer for short runs: a multiple of 64 so no
+    mini-batch is truncated), mini-batches of 128 (64 for short runs), 10 epochs, learning
+    rate 6e-4, gamma 0.98, two hidden layers of 64 units, initial action std exp(-0.5) =
+    0.61 (of the [-1, 1] range; SB3's default 1 saturates half the actions). SAC: a
+    300k-transition buffer, learning from 1,000 steps (half the run if shorter), gamma 0.98,
+    two layers of 256 units.
     """
     if algo == "ppo":
-        n_steps = max(64, min(512, int(timesteps) // n_envs // 64 * 64))
-        batch = 256 if n_steps * n_envs >= 1024 else 64
+        n_steps = max(64, min(256, int(timesteps) // n_envs // 64 * 64))
+        batch = 128 if n_steps * n_envs >= 512 else 64
         return {"n_steps": n_steps, "batch_size": batch, "n_epochs": 10, "gamma": 0.98,
-                "gae_lambda": 0.95, "learning_rate": 3e-4, "ent_coef": 0.0,
+                "gae_lambda": 0.95, "learning_rate": 6e-4, "ent_coef": 0.0,
                 "policy_kwargs": {"net_arch": [64, 64], "log_std_init": -0.5}}
     return {"buffer_size": 300_000, "learning_starts": min(1000, int(timesteps) // 2),
             "batch_size": 256, "gamma": 0.98, "tau": 0.005, "learning_rate": 3e-4,
