@@ -3,8 +3,8 @@ the oracle filter and with no filter (same seeds), its training cost and held-ou
 
 One command runs everything (benchmarks/rl.md has the results and the design)::
 
-    python -m afvsgp_gym.benchmarks.rl            # full: 3 seeds x 3 conditions, < 2 h on 2 cores
-    python -m afvsgp_gym.benchmarks.rl --quick    # the pipeline in minutes (not the result)
+    python -m afvsgp_gym.benchmarks.rl          # full: 3 seeds x 3 conditions, 500k env steps
+    python -m afvsgp_gym.benchmarks.rl --quick  # the pipeline in minutes (not the result)
 
 For every condition and seed it trains with :func:`afvsgp_gym.agents.sb3.train` (two envs in
 ``SubprocVecEnv`` workers, one filter per worker, nominal model "zero"), then evaluates the
@@ -58,7 +58,7 @@ class RLBenchConfig:
     """Sizes of the benchmark (:meth:`quick` for the pipeline test)."""
 
     algo: str = "ppo"
-    timesteps: int = 150_000
+    timesteps: int = 50_000  # agent steps: 500k env steps at the env's action repeat of 10
     seeds: tuple[int, ...] = (0, 1, 2)
     conditions: tuple[str, ...] = ("afvsgp", "oracle", "unfiltered")
     n_envs: int = 2
