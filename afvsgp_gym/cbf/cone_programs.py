@@ -34,8 +34,8 @@ def settings(tol: float, strictly_convex: bool = False) -> clarabel.DefaultSetti
 
     ``strictly_convex``: the objective's ``P`` is positive definite (``P = I``: the filter's
     programs), so the KKT matrix ``[P, A'; A, -W'W]`` is quasi-definite at every iterate and
-    its LDL' factorisation exists without the static regularisation (turned off: ~18 % of
-    the solve time on the whole-arm programs; the dynamic regularisation stays on)."""
+    its LDL' factorisation exists without the static regularisation (turned off; the
+    dynamic regularisation stays on)."""
     s = clarabel.DefaultSettings()
     s.verbose = False
     s.presolve_enable = False  # required for data updates

@@ -33,11 +33,14 @@ FEAS_TOL = 1e-12
 DIST_TOL = 1e-9
 
 
-def constraint_scales(a0, a, G, bound_norm: float) -> np.ndarray:
+def constraint_scales(a0, a, G, bound_norm: float, norms=None) -> np.ndarray:
     """Size of the terms of ``c_i(u)`` anywhere in the box (``||u|| <= bound_norm``):
     ``|a0_i| + ||a_i|| bound_norm + ||G_i||_F sqrt(1 + bound_norm^2)``. Margins are compared
-    with tolerances relative to it (the rounding error of ``c_i`` is a multiple of it)."""
-    s = np.abs(a0) + np.sqrt(np.einsum("ij,ij->i", a, a)) * bound_norm
+    with tolerances relative to it (the rounding error of ``c_i`` is a multiple of it).
+    ``norms``: the row norms ``||a_i||``, if the caller has them."""
+    if norms is None:
+        norms = np.sqrt(np.einsum("ij,ij->i", a, a))
+    s = np.abs(a0) + norms * bound_norm
     if G is not None:
         s += np.sqrt(np.einsum("ijk,ijk->i", G, G)) * math.sqrt(1.0 + bound_norm**2)
     return s
@@ -113,14 +116,7 @@ def certify(u, u_nom, margins, tol: Tolerance, active, lam, grads, low, high) ->
         neg = np.flatnonzero(margins < 0.0)
         if not float((margins[neg] + tol.at(neg)).min()) >= 0.0:
             return False
-    lam_l = lam.tolist()
-    if not min(lam_l, default=0.0) >= 0.0:
-        return False
-    comp = 0.0
-    for li, ci, ti in zip(lam_l, margins[active].tolist(), tol.at(active).tolist(), strict=True):
-        if ci > ti:
-            comp += li * ci
-    return _distance_bound_ok(u, u - u_nom - lam @ grads, comp, low, high)
+    return _multipliers_ok(u, u_nom, lam, margins[active], tol.at(active), grads, low, high)
 
 
 def certify_halfspaces(u, u_nom, c, tol, active, lam, a_active, low, high) -> bool:
@@ -129,14 +125,20 @@ def certify_halfspaces(u, u_nom, c, tol, active, lam, a_active, low, high) -> bo
     multiplier ``lam`` and ``a_active`` their rows (the same test)."""
     if not float((c + tol).min()) >= 0.0:  # also False for NaN
         return False
+    return _multipliers_ok(u, u_nom, lam, c[active], tol[active], a_active, low, high)
+
+
+def _multipliers_ok(u, u_nom, lam, c_active, tol_active, grads, low, high) -> bool:
+    """The multiplier part of :func:`certify`: ``lam >= 0`` and the distance bound, with the
+    active margins within their tolerance of zero counted as zero."""
     lam_l = lam.tolist()
     if not min(lam_l, default=0.0) >= 0.0:
         return False
     comp = 0.0
-    for li, ci, ti in zip(lam_l, c[active].tolist(), tol[active].tolist(), strict=True):
+    for li, ci, ti in zip(lam_l, c_active.tolist(), tol_active.tolist(), strict=True):
         if ci > ti:
             comp += li * ci
-    return _distance_bound_ok(u, u - u_nom - lam @ a_active, comp, low, high)
+    return _distance_bound_ok(u, u - u_nom - lam @ grads, comp, low, high)
 
 
 def certify_one(u, u_nom, c: float, tol: float, lam: float, grad, low, high) -> bool:

@@ -251,8 +251,6 @@ class SOCPFilter:
                 found = None
             if isinstance(found, np.ndarray):
                 working = found
-            elif found == "infeasible":  # certified: no clarabel solve to confirm it
-                return self._fallback("infeasible", u_nom, uc, a0, a, G, None, t0, backup)
             elif found is not None:
                 u, path, marg = found
                 return SOCPResult(u, True, f"certified:{path}", marg, time.perf_counter() - t0)
@@ -306,9 +304,7 @@ class SOCPFilter:
             u, marg, bad = self._accepted(u, a0, a, G, tol)
             if bad.size == 0:
                 return u, status, marg
-            if bad.size > WORKING_SET_ADD:
-                bad = bad[np.argsort(marg[bad] / tol.at(bad))[:WORKING_SET_ADD]]
-            working = np.union1d(working, bad)
+            working = np.union1d(working, _most_violated(bad, marg, tol))
         return self._solve_whole(u_nom, a0, a, G, tol)
 
     def _farthest_cones(self, uc, a0, a, G, marg) -> np.ndarray:
@@ -337,9 +333,8 @@ class SOCPFilter:
         (a Farkas certificate for its rows) proves the whole program infeasible."""
         low, high = self.low, self.high
         norms = np.sqrt(np.einsum("ij,ij->i", a, a))
-        tol = norms * self.bound_norm
-        tol += np.abs(a0)
-        tol *= fastpath.FEAS_TOL  # fastpath.constraint_scales(a0, a, None, R) * FEAS_TOL
+        tol = fastpath.constraint_scales(a0, a, None, self.bound_norm, norms)
+        tol *= fastpath.FEAS_TOL
         work = np.flatnonzero(marg < 0.0)
         if work.size == 1:
             i = int(work[0])
@@ -375,10 +370,10 @@ class SOCPFilter:
         return None
 
     def _fast(self, u_nom, uc, a0, a, G, marg, tol):
-        """``(u, path, margins at u)`` from a certified fast path with cones, or the working
-        set of cones for clarabel (an index array), or None."""
+        """``(u, path, margins at u)`` from a certified fast path with cones (``G`` not
+        None), or the working set of cones for clarabel (an index array), or None."""
         low, high = self.low, self.high
-        if G is not None and a0.size == 1:
+        if a0.size == 1:
             return self._one_cone(u_nom, float(a0[0]), a[0], G[0], tol)
         # several cones: the projection onto the farthest one answers the program when that
         # cone is the only one binding at the optimum; else it starts clarabel's working set
@@ -392,10 +387,7 @@ class SOCPFilter:
         if fastpath.certify(u, u_nom, c, tol, np.array([i]), np.array([lam]),
                             grad[None], low, high):
             return u, path, c
-        bad = np.flatnonzero(c < 0.0)
-        if bad.size > WORKING_SET_ADD:
-            bad = bad[np.argsort(c[bad] / tol.at(bad))[:WORKING_SET_ADD]]
-        return np.union1d([i], bad)
+        return np.union1d([i], _most_violated(np.flatnonzero(c < 0.0), c, tol))
 
     def _project_one(self, u_nom, a0: float, a, G):
         """``(u, lam, c(u), grad c(u), path)``: the projection of ``u_nom`` onto one
@@ -493,3 +485,11 @@ class SOCPFilter:
         if valid is not None:
             marg = np.where(valid, marg, np.nan)
         return SOCPResult(u, False, status, marg, time.perf_counter() - t0)
+
+
+def _most_violated(idx: np.ndarray, c: np.ndarray, tol: fastpath.Tolerance) -> np.ndarray:
+    """The ``WORKING_SET_ADD`` constraints of ``idx`` most violated relative to their scale
+    (margins ``c``), or all of ``idx`` if there are no more."""
+    if idx.size <= WORKING_SET_ADD:
+        return idx
+    return idx[np.argsort(c[idx] / tol.at(idx))[:WORKING_SET_ADD]]
