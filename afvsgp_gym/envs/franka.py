@@ -325,6 +325,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         else:
             self.nominal_mj_model = self.model if self.nominal_model == "exact" else None
             self.nominal_mj_data = None
+        self._obstacle_key = None
         self._build_scenario(None)
         self._steps = 0
         self._invalidate_barriers()
@@ -345,10 +346,8 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         self._sphere_body_ids = np.array([m.body(b).id for b in bodies])
         self._sphere_offsets = offsets
         self._sphere_radii = radii
-        n_s, nv = len(spheres), m.nv
-        self._jacp = np.zeros((n_s, 3, nv))
-        self._jdotp = np.zeros((n_s, 3, nv))
-        self._ee_jac = np.zeros((3, nv))
+        self._sphere_bodies = self._sphere_body_ids.tolist()
+        n_s = len(spheres)
         self.n_barriers = n_s * self.n_obstacles
         self.barrier_names = tuple(
             f"{s.body.removeprefix('panda0_')}[{i}]/obstacle{o}"
@@ -466,9 +465,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         d.ctrl[:] = 0.0
         self._place_markers()
         mujoco.mj_forward(self.model, d)
-        self._spheres = self._sphere_kinematics()
-        mujoco.mj_jacSite(self.model, d, self._ee_jac, None, self._site)
-        self._ee = (d.site_xpos[self._site].copy(), self._ee_jac @ d.qvel)
+        self._spheres, self._ee = self._point_kinematics()
         self._geometry = self._pair_geometry()
         self._invalidate_barriers()
 
@@ -487,66 +484,104 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         rot = data.xmat[body].reshape(-1, 3, 3)
         return data.xpos[body] + np.matmul(rot, self._sphere_offsets[:, :, None])[:, :, 0]
 
-    def _sphere_kinematics(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Sphere centres p (S, 3), velocities v (S, 3), Jacobians J (S, 3, nv) and the
-        velocity-product accelerations J' q' (S, 3): MuJoCo's point Jacobian and its time
-        derivative at each centre (``mj_jac``, ``mj_jacDot``)."""
+    def _point_kinematics(self) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, np.ndarray]]:
+        """Safety spheres ``(p (S, 3), v (S, 3), J (S, 3, nv), J' q' (S, 3))`` from MuJoCo's
+        point Jacobian and its time derivative at each centre (``mj_jac``, ``mj_jacDot``),
+        and the end-effector site's ``(p, v)``. The Jacobians share one fresh buffer
+        (``_ee_jac`` is its last block), so one product with ``q'`` gives every velocity."""
         m, d = self.model, self.data
         p = self._sphere_centres(d)
-        jac, jdot = self._jacp, self._jdotp
-        for i, b in enumerate(self._sphere_body_ids.tolist()):
-            mujoco.mj_jac(m, d, jac[i], None, p[i], b)
-            mujoco.mj_jacDot(m, d, jdot[i], None, p[i], b)
-        qd = d.qvel
-        return p, jac @ qd, jac.copy(), jdot @ qd
-
-    def _pair_geometry(self):
-        """Kinematic part of every (sphere, obstacle) barrier, shared by all models."""
-        p, v, _, _ = self._spheres
-        po = np.array([s[0] for s in self._obstacle_states])
-        vo = np.array([s[1] for s in self._obstacle_states])
-        ao = np.array([s[2] for s in self._obstacle_states])
         n_s = p.shape[0]
-        radius = (self._obstacle_radii[:, None] + self._sphere_radii[None, :]).ravel()
-        d = (p[None, :, :] - po[:, None, :]).reshape(-1, 3)
-        vr = (v[None, :, :] - vo[:, None, :]).reshape(-1, 3)
-        h, hd, n, curv = sphere_barriers(d, vr, radius)
-        q = np.broadcast_to(np.concatenate([self.data.qpos, self.data.qvel]), (len(h), 14))
-        xi = np.concatenate([q, d, vr], axis=1)
-        a_obs = np.repeat(ao, n_s, axis=0)
-        return h, hd, n, curv, xi, a_obs
+        jac = np.empty((2 * n_s + 1, 3, m.nv))  # [J_s ..., J_s' ..., J_ee]
+        for i, b in enumerate(self._sphere_bodies):
+            mujoco.mj_jac(m, d, jac[i], None, p[i], b)
+            mujoco.mj_jacDot(m, d, jac[n_s + i], None, p[i], b)
+        self._ee_jac = jac[-1]
+        mujoco.mj_jacSite(m, d, self._ee_jac, None, self._site)
+        vel = jac @ d.qvel
+        spheres = (p, vel[:n_s], jac[:n_s], vel[n_s : 2 * n_s])
+        return spheres, (d.site_xpos[self._site].copy(), vel[-1])
+
+    def _obstacle_constants(self) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+        """What stays fixed while ``self.obstacles`` is the same list (rebuilt when the list
+        is replaced): the pair radii ``r_o + r_s`` (O S,), the stacked states (O, 3, 3) of
+        obstacles that are all static (else None) and the squared contact reach of the arm
+        geoms (O, G)."""
+        key = self.obstacles
+        if self._obstacle_key is not key:
+            radii = self._obstacle_radii
+            rad = (radii[:, None] + self._sphere_radii[None, :]).ravel()
+            static = None
+            if all(ob.duration == 0.0 for ob in key):
+                static = np.array([ob.state(0.0) for ob in key])
+            reach = self._arm_rbound[None, :] + np.array([ob.radius for ob in key])[:, None]
+            self._obstacle_const = (rad, static, reach * reach)
+            self._obstacle_key = key
+        return self._obstacle_const
+
+    def _pair_geometry(self) -> tuple[np.ndarray, ...]:
+        """Kinematic part of every (sphere, obstacle) barrier, shared by all models:
+        ``[h, h']`` (K, 2), ``n``, curvature, features ``xi`` (K, 20) and the obstacle
+        accelerations per pair (None when every obstacle is static)."""
+        p, v, _, _ = self._spheres
+        rad, static = self._obstacle_constants()[:2]
+        st = np.array(self._obstacle_states) if static is None else static
+        n_s = p.shape[0]
+        d = (p[None, :, :] - st[:, None, 0, :]).reshape(-1, 3)
+        vr = (v[None, :, :] - st[:, None, 1, :]).reshape(-1, 3)
+        h, hd, n, curv = sphere_barriers(d, vr, rad)
+        k = len(h)
+        derivs = np.empty((k, 2))
+        derivs[:, 0] = h
+        derivs[:, 1] = hd
+        xi = np.empty((k, 20))
+        xi[:, :7] = self.data.qpos
+        xi[:, 7:14] = self.data.qvel
+        xi[:, 14:17] = d
+        xi[:, 17:] = vr
+        derivs.flags.writeable = xi.flags.writeable = False
+        a_obs = None if static is not None else np.repeat(st[:, 2], n_s, axis=0)
+        return derivs, n, curv, xi, a_obs
+
+    def _zero_terms(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """Read-only ``lf = 0`` (k,) and ``lg = 0`` (k, 7), made once."""
+        zero = getattr(self, "_zeros", None)
+        if zero is None or len(zero[0]) != k:
+            zero = self._zeros = (np.zeros(k), np.zeros((k, 7)))
+            for arr in zero:
+                arr.flags.writeable = False
+        return zero
 
     def _compute_barriers(self, kind: str) -> BarrierSet:
-        h, hd, n, curv, xi, a_obs = self._geometry
-        k = len(h)
+        derivs, n, curv, xi, a_obs = self._geometry
+        k = len(curv)
         if kind == "zero":
-            lf, lg = np.zeros(k), np.zeros((k, 7))
+            return BarrierSet(derivs, *self._zero_terms(k), xi)
+        _, _, jac, bias = self._spheres
+        n_s = jac.shape[0]
+        ns = n.reshape(-1, n_s, 3)  # (obstacles, spheres, 3)
+        if kind == "kinematic":
+            acc, lg = bias, np.zeros((k, 7))
         else:
-            _, _, jac, bias = self._spheres
-            n_s = jac.shape[0]
-            ns = n.reshape(-1, n_s, 3)  # (obstacles, spheres, 3)
-            if kind == "kinematic":
-                acc, lg = bias, np.zeros((k, 7))
-            else:
-                m, d = self.model, self.data
-                if kind == "perturbed" and self.nominal_mj_data is not None:
-                    m, d = self.nominal_mj_model, self.nominal_mj_data
-                    d.qpos[:] = self.data.qpos
-                    d.qvel[:] = self.data.qvel
-                    d.ctrl[:] = 0.0
-                    mujoco.mj_forward(m, d)
-                flat = jac.reshape(3 * n_s, -1)
-                jminv = np.empty_like(flat)
-                mujoco.mj_solveM(m, d, jminv, flat)  # rows J M^-1 (M symmetric)
-                acc = jac @ d.qacc + bias
-                gain = jminv.reshape(n_s, 3, -1) * self.action_scale
-                lg = np.einsum("osi,sij->osj", ns, gain).reshape(k, -1)
-            lf = np.einsum("osi,si->os", ns, acc).ravel() - np.einsum("ki,ki->k", n, a_obs) + curv
-        derivs = np.stack([h, hd], axis=1)
-        terms = BarrierSet(derivs, lf, lg, xi)
-        for arr in (derivs, lf, lg, xi):
-            arr.flags.writeable = False
-        return terms
+            m, d = self.model, self.data
+            if kind == "perturbed" and self.nominal_mj_data is not None:
+                m, d = self.nominal_mj_model, self.nominal_mj_data
+                d.qpos[:] = self.data.qpos
+                d.qvel[:] = self.data.qvel
+                d.ctrl[:] = 0.0
+                mujoco.mj_forward(m, d)
+            flat = jac.reshape(3 * n_s, -1)
+            jminv = np.empty_like(flat)
+            mujoco.mj_solveM(m, d, jminv, flat)  # rows J M^-1 (M symmetric)
+            acc = jac @ d.qacc + bias
+            gain = jminv.reshape(n_s, 3, -1) * self.action_scale
+            lg = np.einsum("osi,sij->osj", ns, gain).reshape(k, -1)
+        lf = np.einsum("osi,si->os", ns, acc).ravel()
+        if a_obs is not None:  # static obstacles: a_o = 0
+            lf -= np.einsum("ki,ki->k", n, a_obs)
+        lf += curv
+        lf.flags.writeable = lg.flags.writeable = False
+        return BarrierSet(derivs, lf, lg, xi)
 
     def backup_action(self) -> np.ndarray:
         """Model-free brake for the safety filter's backup: joint damping torque
@@ -578,11 +613,11 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
 
     def _contact(self) -> bool:
         m, d = self.model, self.data
+        reach2 = self._obstacle_constants()[2]
+        pos = d.geom_xpos[self._arm_geoms]
         for k, g_obs in enumerate(self._obstacle_geoms):
-            po = self._obstacle_states[k][0]
-            diff = d.geom_xpos[self._arm_geoms] - po
-            reach = self._arm_rbound + self.obstacles[k].radius
-            near = np.einsum("ij,ij->i", diff, diff) < reach * reach
+            diff = pos - self._obstacle_states[k][0]
+            near = np.einsum("ij,ij->i", diff, diff) < reach2[k]
             if not near.any():
                 continue
             for g in self._arm_geoms[near]:

@@ -415,3 +415,41 @@ def test_backup_action_is_a_saturated_joint_brake(normalize):
         env.step(env.backup_action().astype(np.float32))
         speeds.append(np.linalg.norm(env.data.qvel))
     assert max(speeds[100:]) < 0.2 * np.linalg.norm(qd)
+
+
+@pytest.mark.parametrize("spheres", ["ee", "arm"])
+def test_static_obstacle_shortcut_equals_general_terms(spheres):
+    """All obstacles static: the stacked states are cached and a_o = 0 drops out of lf; the
+    terms equal those of the general path (states stacked per step, a_o subtracted)."""
+    env = FrankaObstacleEnv("static", safety_spheres=spheres, nominal_model="kinematic")
+    env.reset(seed=0)
+    env.set_state(fm.Q_HOME + 0.05, np.full(7, 0.3))
+    fast = [env.barrier_terms(m) for m in ("true", "nominal")]
+    rad, static, reach2 = env._obstacle_constants()
+    assert static is not None
+    env._obstacle_const = (rad, None, reach2)  # force the general path at the same state
+    env._geometry = env._pair_geometry()
+    env._invalidate_barriers()
+    for t, m in zip(fast, ("true", "nominal"), strict=True):
+        g = env.barrier_terms(m)
+        for a, b in ((t.derivatives, g.derivatives), (t.lf, g.lf), (t.lg, g.lg), (t.xi, g.xi)):
+            np.testing.assert_array_equal(a, b)
+
+
+def test_obstacle_constants_follow_new_obstacles():
+    """The random scenario replaces its obstacle every reset: radii, positions and the
+    contact reach used by the barriers follow it."""
+    env = FrankaObstacleEnv("random", safety_spheres="ee")
+    radii = set()
+    for seed in range(6):
+        env.reset(seed=seed)
+        ob = env.obstacles[0]
+        radii.add(ob.radius)
+        po = env._obstacle_states[0][0]
+        p = env.data.site_xpos[env._site]
+        h = env.barrier_terms("true").h[0]
+        np.testing.assert_allclose(h, np.linalg.norm(p - po) - ob.radius - env.ee_radius,
+                                   rtol=1e-12)
+        reach = env._arm_rbound + ob.radius
+        np.testing.assert_array_equal(env._obstacle_constants()[2][0], reach * reach)
+    assert len(radii) > 1
