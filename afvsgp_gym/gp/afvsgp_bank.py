@@ -179,6 +179,8 @@ class AFVSGPBank:
         """Spread the periodic rebuilds so that at most a few learners rebuild in one step."""
         K = self.n_learners
         self._since_refresh = (np.arange(K) * self._refresh_every) // K
+        self._synced = bool((self._head == self._head[0]).all()
+                            and (self._count == self._count[0]).all())
 
     @classmethod
     def stack(cls, banks: Sequence[AFVSGPBank],
@@ -430,52 +432,26 @@ class AFVSGPBank:
         else:
             rows = idx = sel = np.flatnonzero(ok)
             xi, z = xi[rows], z[rows]
-        ub = np.concatenate([[1.0], u])
+        ub = np.empty(self._c)
+        ub[0] = 1.0
+        ub[1:] = u
         kt = self._kt(rows, xi)  # (k, c, Mp)
         k_new = np.matmul(ub, kt)  # (k, Mp)
         kss = self.var[sel] @ (ub * ub)
         # sliding window with forgetting (eqs. 25-26, docs/equations.md); phi S in the scale
         scale = self._scale[sel] * self._inv_phi
         self._scale[sel] = scale
-        cnt = self._count[sel]
-        full = cnt == self.window
-        slot = np.where(full, self._head[sel] + 1, cnt)
-        slot[slot == self.window] = 0
-        stats = self._stats[sel] if rows is not None else self._stats
-        # the new sample in, the sample leaving a full window out: one batched rank-2 product
-        n = len(idx)
-        left = np.zeros((n, self._mp, 2))
-        right = np.zeros((n, 2, self._mp + 1))
-        left[:, :, 0] = k_new
-        right[:, 0, 0] = z
-        right[:, 0, 1:] = k_new
-        right[:, 0] *= scale[:, None]
-        if full.all():  # once the windows have filled: basic slicing
-            k_old = self._wk[idx, slot]
-            left[:, :, 1] = k_old
-            right[:, 1, 0] = self._wz[idx, slot]
-            right[:, 1, 1:] = k_old
-            right[:, 1] *= (-self._phi_p * scale)[:, None]
-        elif full.any():
-            fi, fs = idx[full], slot[full]
-            k_old = self._wk[fi, fs]
-            left[full, :, 1] = k_old
-            right[full, 1, 0] = self._wz[fi, fs]
-            right[full, 1, 1:] = k_old
-            right[full, 1] *= (-self._phi_p * scale[full])[:, None]
-        stats += np.matmul(left, right)
-        if rows is not None:
-            self._stats[rows] = stats
-        self._wk[idx, slot] = k_new
-        self._wz[idx, slot] = z
-        self._wxt[idx, :, slot] = xi
-        self._wubt[idx, :, slot] = ub
-        self._head[sel] = slot
-        self._count[sel] = cnt + ~full
+        if rows is None and getattr(self, "_synced", False):
+            self._slide_synced(xi, ub, z, k_new, scale)
+        else:
+            self._synced = False  # a learner skipped a sample: the rings may differ from here
+            self._slide(idx, rows, sel, xi, ub, z, k_new, scale)
         self.n_seen_[sel] += 1
         self._fresh[sel] = False
-        since = self._since_refresh[sel] + 1
-        self._since_refresh[sel] = since
+        since = self._since_refresh[sel]  # a view when every learner is updated
+        since += 1
+        if rows is not None:
+            self._since_refresh[rows] = since
         if since.max() >= self._refresh_every:
             for k in idx[since >= self._refresh_every]:
                 self._rebuild_stats(k)
@@ -496,6 +472,69 @@ class AFVSGPBank:
                 for j in order:
                     self._consider_add(int(idx[j]), xi[j], ub, float(kss[j]), k_new[j])
         return ok
+
+    def _rank2(self, n: int, k_new: np.ndarray, z: np.ndarray, scale: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray]:
+        """Factors ``left`` (n, Mp, 2), ``right`` (n, 2, Mp + 1) of the window's rank-2
+        change of ``[r, S]``: the new sample (column 0, scaled) in; column 1 is left to the
+        caller (the sample leaving a full window, else zero)."""
+        left = np.zeros((n, self._mp, 2))
+        right = np.zeros((n, 2, self._mp + 1))
+        left[:, :, 0] = k_new
+        np.multiply(z, scale, out=right[:, 0, 0])
+        np.multiply(k_new, scale[:, None], out=right[:, 0, 1:])
+        return left, right
+
+    def _slide_synced(self, xi: np.ndarray, ub: np.ndarray, z: np.ndarray, k_new: np.ndarray,
+                      scale: np.ndarray) -> None:
+        """The window step of every learner when all share one ring position (the usual
+        case): one slot for all, so basic slicing in place of per-learner indices."""
+        cnt, P = int(self._count[0]), self.window
+        full = cnt == P
+        slot = (int(self._head[0]) + 1) % P if full else cnt
+        left, right = self._rank2(self.n_learners, k_new, z, scale)
+        if full:
+            k_old = self._wk[:, slot]
+            left[:, :, 1] = k_old
+            f = -self._phi_p * scale
+            np.multiply(self._wz[:, slot], f, out=right[:, 1, 0])
+            np.multiply(k_old, f[:, None], out=right[:, 1, 1:])
+        self._stats += np.matmul(left, right)
+        self._wk[:, slot] = k_new
+        self._wz[:, slot] = z
+        self._wxt[:, :, slot] = xi
+        self._wubt[:, :, slot] = ub
+        self._head[:] = slot
+        if not full:
+            self._count += 1
+
+    def _slide(self, idx: np.ndarray, rows, sel, xi: np.ndarray, ub: np.ndarray, z: np.ndarray,
+               k_new: np.ndarray, scale: np.ndarray) -> None:
+        """The window step of learners ``idx`` (``rows``/``sel``: None/slice or ``idx``),
+        each at its own ring position."""
+        cnt = self._count[sel]
+        full = cnt == self.window
+        slot = np.where(full, self._head[sel] + 1, cnt)
+        slot[slot == self.window] = 0
+        stats = self._stats[sel] if rows is not None else self._stats
+        # the new sample in, the sample leaving a full window out: one batched rank-2 product
+        left, right = self._rank2(len(idx), k_new, z, scale)
+        if full.any():
+            fi, fs = idx[full], slot[full]
+            k_old = self._wk[fi, fs]
+            left[full, :, 1] = k_old
+            f = -self._phi_p * scale[full]
+            right[full, 1, 0] = self._wz[fi, fs] * f
+            right[full, 1, 1:] = k_old * f[:, None]
+        stats += np.matmul(left, right)
+        if rows is not None:
+            self._stats[rows] = stats
+        self._wk[idx, slot] = k_new
+        self._wz[idx, slot] = z
+        self._wxt[idx, :, slot] = xi
+        self._wubt[idx, :, slot] = ub
+        self._head[sel] = slot
+        self._count[sel] = cnt + ~full
 
     # ------------------------------------------------------------------ inducing set
     def _window_column(self, k: int, xi: np.ndarray, ub: np.ndarray) -> np.ndarray:

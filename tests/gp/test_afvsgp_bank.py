@@ -151,3 +151,32 @@ def test_at_most_one_inducing_change_per_step_keeps_the_posterior_exact():
     _assert_equals_batch_posterior(bank, streams, u, n, seed=6)
     with pytest.raises(ValueError, match="max_inducing_candidates"):
         AFVSGPBank.from_learners(_learners(streams[:1], u), max_inducing_candidates=0)
+
+
+def test_shared_ring_step_equals_the_per_learner_step():
+    """Learners at one ring position take the window step with basic slicing; forcing the
+    per-learner indexed step on a copy gives the same state bit for bit, through the window
+    filling, wrapping and inducing changes (same arithmetic, other indexing). One skipped
+    sample leaves the rings apart and the bank on the per-learner step."""
+    n = 4 * P
+    streams = _streams(n)
+    u = streams[0][1]
+    bank = AFVSGPBank.from_learners(_learners(streams, u))
+    bank._count[:], bank._head[:] = 10, 9  # windows part filled: filling, then wrapping
+    bank._stagger()
+    assert bank._synced
+    ref = copy.deepcopy(bank)
+    ref._synced = False
+    for i in range(P, n):
+        xi, z = _rows(streams, i)
+        bank.update(xi, u[i], z)
+        ref.update(xi, u[i], z)
+        ref._synced = False
+    assert bank._synced and bank.n_added_.min() > 0
+    for name, value in vars(ref).items():
+        if isinstance(value, np.ndarray):
+            np.testing.assert_array_equal(getattr(bank, name), value, err_msg=name)
+    xi, z = _rows(streams, 5)
+    z[2] = np.nan
+    bank.update(xi, u[5], z)
+    assert not bank._synced
