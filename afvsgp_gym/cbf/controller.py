@@ -411,11 +411,11 @@ class SafetyController:
         """Residual observer with the prediction the filter used for this very action."""
         pred, self._pending = self._pending, None
         if pred is None or pred.mean is None:
-            self.residuals.update(np.zeros(0, dtype=int), np.zeros(0), np.zeros(0))
+            self.residuals.reset()  # no barrier predicted: every bias returns to 0
             return
         d = pred.action - u  # the applied action may be a float32 copy of the filtered one
         if not float(d @ d) <= 1e-12 * (1.0 + float(u @ u)):
-            self.residuals.update(np.zeros(0, dtype=int), np.zeros(0), np.zeros(0))
+            self.residuals.reset()
             return
         ubar = np.concatenate([[1.0], u])
         self.residuals.update(pred.rows, pred.mean @ ubar, z[pred.rows])
