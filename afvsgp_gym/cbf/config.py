@@ -49,8 +49,10 @@ class FilterConfig:
         Std of the Gaussian noise added to the proposal during warm-up, as a fraction of the
         half range of the action bounds.
     online_exploration : float
-        Std of the noise added after warm-up (same units), for persistent excitation, at the
-        steps where it is needed (see ``exploration_threshold``).
+        Largest std of the noise added after warm-up (same units), for persistent
+        excitation, at the steps where it is needed (see ``exploration_threshold``); the
+        std is this times ``min(1, rho)``, ``rho`` the relative uncertainty of the learned
+        action gain (see :meth:`SafetyController._excite`).
     exploration_threshold : float
         After warm-up the proposal is excited only when, for some barrier in the program, the
         predicted standard deviation of ``Delta B`` at the proposal is above this many of its
@@ -87,7 +89,7 @@ class FilterConfig:
     activation_distance: float = float("inf")
     warmup_samples: int = 200
     exploration_noise: float = 0.3
-    online_exploration: float = 0.05
+    online_exploration: float = 0.4
     exploration_threshold: float = 1.0
     residual_correction: float = DEFAULT_RESIDUAL_CORRECTION
     relax_to_mean: bool = True

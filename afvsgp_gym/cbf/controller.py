@@ -34,7 +34,7 @@ import numpy as np
 from scipy.linalg.lapack import dpotrf
 
 from afvsgp_gym.cbf.config import FilterConfig
-from afvsgp_gym.cbf.exploration import Exploration
+from afvsgp_gym.cbf.exploration import Exploration, relative_gain_uncertainty
 from afvsgp_gym.cbf.hocbf import HOCBF
 from afvsgp_gym.cbf.learners import REGISTRY, check_learner_name, make_bank
 from afvsgp_gym.cbf.measurement import measure_all
@@ -341,12 +341,18 @@ class SafetyController:
 
     def _excite(self, u_nom: np.ndarray, rows: np.ndarray, sig: np.ndarray, a0: np.ndarray,
                 a: np.ndarray) -> np.ndarray:
-        """Online exploration only where it is needed: for some barrier in the program the
-        model is uncertain at the proposal (predicted standard deviation of ``Delta B`` above
-        ``exploration_threshold`` noise standard deviations) and that uncertainty decides
-        the action (the mean margin ``a0 + a @ u`` is below ``2 beta`` standard deviations:
-        the chance constraint binds or nearly does). A proposal that is safe with margin, or
-        with a confident model, passes unchanged."""
+        """Online exploration only where it is needed, and only as much as it is needed.
+
+        Where: for some barrier in the program the model is uncertain at the proposal
+        (predicted standard deviation of ``Delta B`` above ``exploration_threshold`` noise
+        standard deviations) and that uncertainty decides the action (the mean margin
+        ``a0 + a @ u`` is below ``2 beta`` standard deviations). How much: the noise's std is
+        ``online_exploration * min(1, rho)``, ``rho`` the largest relative uncertainty of the
+        action gain among those barriers, ``sqrt(trace(H Sigma_uu H)) / ||H a||`` (``Sigma_uu``
+        the action block of the eq. 51 covariance, ``a`` the constraint's gradient in the
+        action, nominal plus learned, ``H`` the half range of the bounds): exploration is for
+        identifying the gain, so a prior that gives it (a small ``rho``) excites less. A
+        proposal that is safe with margin, or with a confident model, passes unchanged."""
         if self.exploration.online_noise <= 0 or not np.all(np.isfinite(u_nom)):
             return u_nom
         u = np.clip(u_nom, self.low, self.high)
@@ -355,9 +361,12 @@ class SafetyController:
         noise = np.sqrt(self.bank.noise_variance(rows))
         uncertain = std > self.config.exploration_threshold * noise
         deciding = a0 + a @ u < 2.0 * max(self.config.beta, 1.0) * std
-        if np.any(uncertain & deciding):
-            return self.exploration.perturb(u_nom, warm=False)
-        return u_nom
+        gated = np.flatnonzero(uncertain & deciding)
+        if not len(gated):
+            return u_nom
+        rho = relative_gain_uncertainty(sig[gated], a[gated], self.exploration.half_range)
+        scale = float(np.max(np.where(np.isnan(rho), 1.0, rho)))
+        return self.exploration.perturb(u_nom, warm=False, scale=scale)
 
     # ------------------------------------------------------------------ learning
     def observe(self, terms_before, u_applied, terms_after, dt: float) -> np.ndarray:

@@ -1,11 +1,11 @@
 """Exploration noise added to the proposal of a learning filter (Algorithm 1).
 
 During warm-up the proposal gets Gaussian noise of std ``warmup_noise`` (a fraction of the
-half range of the action bounds) so the action gain becomes identifiable. After warm-up a
-smaller ``online_noise`` is added only where it is needed (the controller decides: a barrier
-in the program whose learned model is uncertain at the proposal); a safe proposal with a
-confident model passes unchanged. The noisy proposal is then filtered, so the constraints
-still hold.
+half range of the action bounds) so the action gain becomes identifiable. After warm-up
+noise of std up to ``online_noise`` is added only where it is needed (the controller decides:
+a barrier in the program whose learned model is uncertain at the proposal, the std scaled by
+how uncertain its action gain is); a safe proposal with a confident model passes unchanged.
+The noisy proposal is then filtered, so the constraints still hold.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import math
 
 import numpy as np
 
-__all__ = ["Exploration"]
+__all__ = ["Exploration", "relative_gain_uncertainty"]
 
 
 class Exploration:
@@ -32,10 +32,29 @@ class Exploration:
         """A fresh stream derived from ``seed`` (reproducible episodes)."""
         self._rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x5AFE]))
 
-    def perturb(self, u: np.ndarray, warm: bool) -> np.ndarray:
-        """``clip(u + noise)``; ``u`` unchanged when the noise is 0 or ``u`` is not finite."""
-        std = self.warmup_noise if warm else self.online_noise
+    @property
+    def half_range(self) -> np.ndarray:
+        """(m,) half range of the action bounds (the unit of the noise)."""
+        return self._half_range
+
+    def perturb(self, u: np.ndarray, warm: bool, scale: float = 1.0) -> np.ndarray:
+        """``clip(u + noise)``, the online noise's std multiplied by ``scale`` in [0, 1];
+        ``u`` unchanged when the noise is 0 or ``u`` is not finite."""
+        std = self.warmup_noise if warm else self.online_noise * min(max(scale, 0.0), 1.0)
         if std <= 0 or not math.isfinite(float(u.sum())):
             return u
         noisy = u + std * self._half_range * self._rng.standard_normal(u.shape[0])
         return np.clip(noisy, self.low, self.high)
+
+
+def relative_gain_uncertainty(sigma: np.ndarray, gain: np.ndarray,
+                              half_range: np.ndarray) -> np.ndarray:
+    """``rho_k = sqrt(trace(H Sigma_uu,k H)) / ||H a_k||`` per barrier: the predicted standard
+    deviation of the learned action gain against the gain itself, both over the action
+    bounds (``H = diag(half_range)``, ``Sigma_uu`` the action block of the eq. 51 covariance
+    ``sigma`` (k, m+1, m+1), ``a`` (k, m) the constraint's gradient in the action). ``inf``
+    where the gain is zero (nothing known), NaN where the inputs are not finite."""
+    var = np.einsum("kii,i->k", sigma[:, 1:, 1:], half_range * half_range)
+    norm = np.linalg.norm(gain * half_range, axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.sqrt(np.maximum(var, 0.0)) / norm

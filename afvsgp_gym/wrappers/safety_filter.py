@@ -26,9 +26,11 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
     seeded episode is reproducible.
 
     With a learning learner the applied action carries exploration noise: during warm-up
-    (``exploration_noise``, the nominal-only filter) and, by default, a small persistent
-    excitation afterwards (``online_exploration`` = 0.05 of the half range), added to the
-    proposal before the projection; set it to 0 for a pure projection. With the nominal "zero"
+    (``exploration_noise``, the nominal-only filter) and, by default, a persistent excitation
+    afterwards where the learned model is uncertain and decides the action (std up to
+    ``online_exploration`` = 0.4 of the half range, scaled by the relative uncertainty of the
+    learned action gain), added to the proposal before the projection; set it to 0 for a pure
+    projection. With the nominal "zero"
     model nothing can be certified during warm-up: the env must keep obstacles away then (the
     provided scenarios do, for a tracking agent), or pass a recorded ``dataset``.
 

@@ -115,3 +115,47 @@ def test_online_exploration_only_where_the_uncertainty_decides(disc):
     quiet, excited = ctrls[0.0].filter(u, [near]), ctrls[0.05].filter(u, [near])
     assert quiet.n_active == excited.n_active == 1
     assert not np.allclose(quiet.u, excited.u)  # the noisy proposal was filtered instead
+
+
+def test_relative_gain_uncertainty_against_its_definition():
+    """rho = sqrt(E||H e||^2) / ||H a|| for e ~ N(0, Sigma_uu): the closed form against the
+    trace written out and a large-sample mean; zero gain gives inf, NaN stays NaN."""
+    from afvsgp_gym.cbf.exploration import relative_gain_uncertainty
+
+    rng = np.random.default_rng(3)
+    m = 3
+    root = rng.normal(size=(m + 1, m + 1))
+    sigma = (root @ root.T)[None]
+    gain = np.array([[0.5, -2.0, 1.0]])
+    half = np.array([1.0, 10.0, 0.1])
+    rho = relative_gain_uncertainty(sigma, gain, half)
+    suu = sigma[0, 1:, 1:]
+    expected = np.sqrt(sum(half[i] ** 2 * suu[i, i] for i in range(m))) / np.sqrt(
+        sum((half[i] * gain[0, i]) ** 2 for i in range(m)))
+    np.testing.assert_allclose(rho, [expected], rtol=1e-14)
+    draws = rng.multivariate_normal(np.zeros(m), suu, size=200_000) * half
+    mc = np.sqrt(np.mean(np.sum(draws**2, axis=1))) / np.linalg.norm(half * gain[0])
+    np.testing.assert_allclose(rho[0], mc, rtol=0.01)  # 200k draws: ~0.2 % standard error
+    assert relative_gain_uncertainty(sigma, np.zeros((1, m)), half)[0] == np.inf
+    assert np.isnan(relative_gain_uncertainty(sigma, np.full((1, m), np.nan), half)[0])
+
+
+def test_online_exploration_smaller_where_the_gain_is_known():
+    """The same uncertain, deciding barrier: the exploration noise shrinks with the relative
+    uncertainty of the action gain (a large known gain), and is capped at online_exploration."""
+    ctrl = SafetyController(-np.ones(2), np.ones(2), learner="afvsgp", warmup_samples=30, seed=0,
+                            online_exploration=0.4, learner_kwargs={"num_inducing": 10})
+    rows = np.array([0])
+    sig = np.diag([1.0, 0.01, 0.01])[None]  # std of the gain 0.1 per action
+    u = np.zeros(2)
+    a0 = np.array([-1.0])  # deciding: the mean margin is negative
+    ctrl.bank.noise_variance = lambda rows: np.full(len(rows), 1e-4)  # uncertain
+
+    def spread(gain: np.ndarray) -> float:
+        ctrl.reseed(7)
+        return float(np.std([ctrl._excite(u, rows, sig, a0, gain) for _ in range(2000)]))
+
+    big, small = spread(np.array([[100.0, 0.0]])), spread(np.array([[0.01, 0.0]]))
+    # rho = sqrt(0.02) / 100 and sqrt(0.02) / 0.01 (capped at 1): std 0.4 rho and 0.4
+    np.testing.assert_allclose(small, 0.4, rtol=0.05)
+    np.testing.assert_allclose(big, 0.4 * np.sqrt(0.02) / 100.0, rtol=0.05)
