@@ -595,14 +595,14 @@ def _have_cbfpy() -> bool:
 
 
 def run(quick: bool = False, cbfpy: bool | None = None, cbfpy_only: bool = False,
-        block: int = 50) -> dict[str, float]:
-    """Filter vs clarabel at 1 / 21 / 100 barriers, known model and learned; with ``cbfpy``
-    (default: when it is installed) also cbfpy's configurations on the known-model states
-    (``cbfpy_only``: only those)."""
+        block: int = 50, barriers=(1, 21, 100)) -> dict[str, float]:
+    """Filter vs clarabel at 1 / 21 / 100 barriers (or those in ``barriers``), known model and
+    learned; with ``cbfpy`` (default: when it is installed) also cbfpy's configurations on the
+    known-model states (``cbfpy_only``: only those)."""
     cbfpy = _have_cbfpy() if cbfpy is None else cbfpy
     n = 200 if quick else 2000
     out: dict[str, float] = {}
-    for K in (1, 21, 100):
+    for K in barriers:
         if cbfpy:
             for key, val in cbfpy_comparison(K, n, block=block).items():
                 out[f"K{K}_qp_{key}"] = val
@@ -625,6 +625,8 @@ def main(argv=None) -> None:
     parser.add_argument("--no-cbfpy", action="store_true", help="skip cbfpy even if installed")
     parser.add_argument("--cbfpy-only", action="store_true",
                         help="only cbfpy against our known-model filter")
+    parser.add_argument("--barriers", type=int, nargs="+", default=[1, 21, 100],
+                        metavar="K", help="numbers of barriers to run (default: 1 21 100)")
     parser.add_argument("--block", type=int, default=50,
                         help="states per block of the cbfpy comparison (1: every call "
                              "interleaved)")
@@ -659,7 +661,7 @@ def main(argv=None) -> None:
             print(f"recorded_{key:<34} {val:.6g}")
         return
     res = run(quick=args.quick, cbfpy=False if args.no_cbfpy else None,
-              cbfpy_only=args.cbfpy_only, block=args.block)
+              cbfpy_only=args.cbfpy_only, block=args.block, barriers=args.barriers)
     width = max(len(k) for k in res)
     for key, val in res.items():
         txt = f"{val * 1e6:10.1f} us" if key.endswith("_s") else f"{val:10.4g}"

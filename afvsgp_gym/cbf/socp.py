@@ -158,15 +158,13 @@ class SOCPFilter:
         out = np.asarray(a, dtype=np.float64) @ u + np.asarray(a0, dtype=np.float64)
         if G is not None:
             G = np.asarray(G, dtype=np.float64)
-            if G.shape[0] == 1:  # one cone: fewer numpy calls
-                g = G[0]
-                v = g[:, 1:] @ u
-                v += g[:, 0]
-                out -= math.sqrt(float(v @ v))
-                return out
             ubar = np.empty(self.m + 1)
             ubar[0] = 1.0
             ubar[1:] = u
+            if G.shape[0] == 1:  # one cone: fewer numpy calls
+                v = G[0].dot(ubar)
+                out -= math.sqrt(float(v.dot(v)))
+                return out
             v = G @ ubar
             out -= np.sqrt(np.einsum("ki,ki->k", v, v))
         return out
@@ -219,18 +217,19 @@ class SOCPFilter:
                         f"G must have shape ({k}, {m + 1}, {m + 1}) or be None. Got: {G.shape}"
                     )
                 G = G.reshape(k, m + 1, m + 1)
-            if not G.any():  # no cone (or NaN, caught below by the margins)
+            if float(np.vdot(G, G)) == 0.0 and not G.any():  # no cone (NaN: caught below)
                 G = None
-        uc = u_nom.clip(self.low, self.high)
+        uc = fastpath.clip(u_nom, self.low, self.high)
         if G is None:
             marg = a @ uc
             marg += a0
         else:
             marg = self.margins(uc, a0, a, G)
         # any NaN/inf in the data makes a margin (or u_nom's sum) non-finite
-        if not math.isfinite(float(marg.sum()) + float(u_nom.sum())):
+        total = float(marg[0]) if k == 1 else float(marg.sum())
+        if not math.isfinite(total + sum(u_nom.tolist())):
             return self._invalid(u_nom, a0, a, G, t0, backup)
-        if k == 0 or float(marg.min()) >= 0.0:  # the filter is inactive
+        if k == 0 or (total if k == 1 else float(marg.min())) >= 0.0:  # the filter is inactive
             return SOCPResult(uc, True, "inactive", marg, time.perf_counter() - t0)
         if G is None and self.fast_path:
             try:
@@ -269,7 +268,7 @@ class SOCPFilter:
     def _accepted(self, u, a0, a, G, tol):
         """``(u, margins)`` of a solver answer clipped to the box, and the constraints it
         violates beyond ``FEASIBILITY_TOL`` of their scale (empty: accepted)."""
-        u = u.clip(self.low, self.high)
+        u = fastpath.clip(u, self.low, self.high)
         marg = self.margins(u, a0, a, G)
         if float(marg.min()) >= 0.0:
             return u, marg, np.zeros(0, dtype=int)
@@ -412,12 +411,17 @@ class SOCPFilter:
     def _one_cone(self, u_nom, a0: float, a, G, tol):
         """``(u, "cone", margins at u)`` for a program with one (non-zero) cone (paper eq. 05
         with k = 1, the end-effector barrier's case), certified; or None."""
-        found = self._project_one(u_nom, a0, a, G)
-        if found is None:
+        sol = fastpath.project_cone_box(u_nom, a0, a, G, self.low, self.high)
+        if sol is None:
             return None
-        u, lam, c, grad, path = found
+        u, lam = sol
+        c, grad = fastpath.cone_margin_gradient(u, a0, a, G)
+        if lam == 0.0:
+            grad = a
+        elif grad is None:
+            return None
         if fastpath.certify_one(u, u_nom, c, tol.one(0), lam, grad, self.low, self.high):
-            return u, path, np.array([c])
+            return u, "cone", np.array([c])
         return None
 
     def _run_qpsolvers(self, u_nom, a0, a):
