@@ -22,8 +22,8 @@ from afvsgp_gym.envs.safety_spheres import (
 from afvsgp_gym.envs.scenario import (
     CyclicReference,
     ObstacleSpec,
+    pair_barriers,
     parse_obstacles,
-    sphere_barriers,
 )
 from afvsgp_gym.types import BarrierSet
 from afvsgp_gym.validation import check_choice, check_real
@@ -423,7 +423,8 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
             obstacles = [ObstacleSpec(centre, radius)]
         else:
             obstacles = [ObstacleSpec(centre, radius, centre + start_off, t_w, speed)]
-        self.obstacles = obstacles if self._user_obstacles is None else self._user_obstacles
+        # a fresh tuple per scenario: _obstacle_constants is keyed on its identity
+        self.obstacles = tuple(obstacles if self._user_obstacles is None else self._user_obstacles)
         if self._user_obstacles is None and self.scenario == "random":
             # visual sphere follows the drawn radius
             self.model.geom_size[self._obstacle_geoms[0], 0] = radius
@@ -503,8 +504,8 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         return spheres, (d.site_xpos[self._site].copy(), vel[-1])
 
     def _obstacle_constants(self) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
-        """What stays fixed while ``self.obstacles`` is the same list (rebuilt when the list
-        is replaced): the pair radii ``r_o + r_s`` (O S,), the stacked states (O, 3, 3) of
+        """What stays fixed while ``self.obstacles`` is the same tuple (rebuilt when a new one
+        is set): the pair radii ``r_o + r_s`` (O S,), the stacked states (O, 3, 3) of
         obstacles that are all static (else None) and the squared contact reach of the arm
         geoms (O, G)."""
         key = self.obstacles
@@ -526,19 +527,15 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         p, v, _, _ = self._spheres
         rad, static = self._obstacle_constants()[:2]
         st = np.array(self._obstacle_states) if static is None else static
-        n_s = p.shape[0]
-        d = (p[None, :, :] - st[:, None, 0, :]).reshape(-1, 3)
-        vr = (v[None, :, :] - st[:, None, 1, :]).reshape(-1, 3)
-        h, hd, n, curv = sphere_barriers(d, vr, rad)
-        k = len(h)
-        derivs = np.empty((k, 2))
-        derivs[:, 0] = h
-        derivs[:, 1] = hd
-        xi = np.empty((k, 20))
-        xi[:, :7] = self.data.qpos
-        xi[:, 7:14] = self.data.qvel
-        xi[:, 14:17] = d
-        xi[:, 17:] = vr
+        n_o, n_s = len(st), p.shape[0]
+        k = n_o * n_s
+        feat = np.empty((n_o, n_s, 20))  # obstacle-major rows of xi
+        feat[:, :, :7] = self.data.qpos
+        feat[:, :, 7:14] = self.data.qvel
+        np.subtract(p, st[:, None, 0], out=feat[:, :, 14:17])  # d
+        np.subtract(v, st[:, None, 1], out=feat[:, :, 17:])  # d'
+        xi = feat.reshape(k, 20)
+        derivs, n, curv = pair_barriers(xi[:, 14:].reshape(k, 2, 3), rad)
         derivs.flags.writeable = xi.flags.writeable = False
         a_obs = None if static is not None else np.repeat(st[:, 2], n_s, axis=0)
         return derivs, n, curv, xi, a_obs
