@@ -345,6 +345,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         bodies, offsets, radii = sphere_arrays(spheres)
         self._sphere_body_ids = np.array([m.body(b).id for b in bodies])
         self._sphere_offsets = offsets
+        self._sphere_offset_cols = np.ascontiguousarray(offsets[:, :, None])  # (S, 3, 1)
         self._sphere_radii = radii
         self._sphere_bodies = self._sphere_body_ids.tolist()
         n_s = len(spheres)
@@ -482,8 +483,9 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
     def _sphere_centres(self, data: mujoco.MjData) -> np.ndarray:
         """(S, 3) safety-sphere centres at the kinematics of ``data``."""
         body = self._sphere_body_ids
-        rot = data.xmat[body].reshape(-1, 3, 3)
-        return data.xpos[body] + np.matmul(rot, self._sphere_offsets[:, :, None])[:, :, 0]
+        p = np.matmul(data.xmat[body].reshape(-1, 3, 3), self._sphere_offset_cols).reshape(-1, 3)
+        p += data.xpos[body]
+        return p
 
     def _point_kinematics(self) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, np.ndarray]]:
         """Safety spheres ``(p (S, 3), v (S, 3), J (S, 3, nv), J' q' (S, 3))`` from MuJoCo's
@@ -558,7 +560,8 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         n_s = jac.shape[0]
         ns = n.reshape(-1, n_s, 3)  # (obstacles, spheres, 3)
         if kind == "kinematic":
-            acc, lg = bias, np.zeros((k, 7))
+            lf = np.matmul(ns[:, :, None, :], bias[:, :, None]).reshape(k)
+            lg = np.zeros((k, 7))
         else:
             m, d = self.model, self.data
             if kind == "perturbed" and self.nominal_mj_data is not None:
@@ -570,10 +573,13 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
             flat = jac.reshape(3 * n_s, -1)
             jminv = np.empty_like(flat)
             mujoco.mj_solveM(m, d, jminv, flat)  # rows J M^-1 (M symmetric)
-            acc = jac @ d.qacc + bias
-            gain = jminv.reshape(n_s, 3, -1) * self.action_scale
-            lg = np.einsum("osi,sij->osj", ns, gain).reshape(k, -1)
-        lf = np.einsum("osi,si->os", ns, acc).ravel()
+            # per sphere [a_free, J M^-1 diag(action scale)] (3, 1 + 7): one product with n
+            acc_gain = np.empty((n_s, 3, 8))
+            np.matmul(jac, d.qacc, out=acc_gain[:, :, 0])
+            acc_gain[:, :, 0] += bias
+            np.multiply(jminv.reshape(n_s, 3, -1), self.action_scale, out=acc_gain[:, :, 1:])
+            lflg = np.matmul(ns[:, :, None, :], acc_gain).reshape(k, 8)
+            lf, lg = lflg[:, 0], lflg[:, 1:]
         if a_obs is not None:  # static obstacles: a_o = 0
             lf -= np.einsum("ki,ki->k", n, a_obs)
         lf += curv
