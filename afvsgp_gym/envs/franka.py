@@ -22,8 +22,8 @@ from afvsgp_gym.envs.safety_spheres import (
 from afvsgp_gym.envs.scenario import (
     CyclicReference,
     ObstacleSpec,
-    pair_barriers,
     parse_obstacles,
+    sphere_barriers,
 )
 from afvsgp_gym.types import BarrierSet
 from afvsgp_gym.validation import check_choice, check_real
@@ -529,15 +529,19 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         p, v, _, _ = self._spheres
         rad, static = self._obstacle_constants()[:2]
         st = np.array(self._obstacle_states) if static is None else static
-        n_o, n_s = len(st), p.shape[0]
-        k = n_o * n_s
-        feat = np.empty((n_o, n_s, 20))  # obstacle-major rows of xi
-        feat[:, :, :7] = self.data.qpos
-        feat[:, :, 7:14] = self.data.qvel
-        np.subtract(p, st[:, None, 0], out=feat[:, :, 14:17])  # d
-        np.subtract(v, st[:, None, 1], out=feat[:, :, 17:])  # d'
-        xi = feat.reshape(k, 20)
-        derivs, n, curv = pair_barriers(xi[:, 14:].reshape(k, 2, 3), rad)
+        n_s = p.shape[0]
+        d = (p[None, :, :] - st[:, None, 0, :]).reshape(-1, 3)
+        vr = (v[None, :, :] - st[:, None, 1, :]).reshape(-1, 3)
+        h, hd, n, curv = sphere_barriers(d, vr, rad)
+        k = len(h)
+        derivs = np.empty((k, 2))
+        derivs[:, 0] = h
+        derivs[:, 1] = hd
+        xi = np.empty((k, 20))
+        xi[:, :7] = self.data.qpos
+        xi[:, 7:14] = self.data.qvel
+        xi[:, 14:17] = d
+        xi[:, 17:] = vr
         derivs.flags.writeable = xi.flags.writeable = False
         a_obs = None if static is not None else np.repeat(st[:, 2], n_s, axis=0)
         return derivs, n, curv, xi, a_obs
@@ -560,8 +564,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         n_s = jac.shape[0]
         ns = n.reshape(-1, n_s, 3)  # (obstacles, spheres, 3)
         if kind == "kinematic":
-            lf = np.matmul(ns[:, :, None, :], bias[:, :, None]).reshape(k)
-            lg = np.zeros((k, 7))
+            acc, lg = bias, np.zeros((k, 7))
         else:
             m, d = self.model, self.data
             if kind == "perturbed" and self.nominal_mj_data is not None:
@@ -573,13 +576,10 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
             flat = jac.reshape(3 * n_s, -1)
             jminv = np.empty_like(flat)
             mujoco.mj_solveM(m, d, jminv, flat)  # rows J M^-1 (M symmetric)
-            # per sphere [a_free, J M^-1 diag(action scale)] (3, 1 + 7): one product with n
-            acc_gain = np.empty((n_s, 3, 8))
-            np.matmul(jac, d.qacc, out=acc_gain[:, :, 0])
-            acc_gain[:, :, 0] += bias
-            np.multiply(jminv.reshape(n_s, 3, -1), self.action_scale, out=acc_gain[:, :, 1:])
-            lflg = np.matmul(ns[:, :, None, :], acc_gain).reshape(k, 8)
-            lf, lg = lflg[:, 0], lflg[:, 1:]
+            acc = jac @ d.qacc + bias
+            gain = jminv.reshape(n_s, 3, -1) * self.action_scale
+            lg = np.einsum("osi,sij->osj", ns, gain).reshape(k, -1)
+        lf = np.einsum("osi,si->os", ns, acc).ravel()
         if a_obs is not None:  # static obstacles: a_o = 0
             lf -= np.einsum("ki,ki->k", n, a_obs)
         lf += curv

@@ -182,29 +182,11 @@ def sphere_barriers(
     ``n = d/|d|`` and ``h'' = n . (a - a_obs) + curvature``,
     ``curvature = (|v_rel|^2 - (n . v_rel)^2) / |d|``.
     """
-    rel = np.stack((d, v_rel), axis=1)
-    hh, n, curv = pair_barriers(rel, radius)
-    return hh[:, 0], hh[:, 1], n, curv
-
-
-def pair_barriers(
-    rel: np.ndarray, radius: np.ndarray, out: np.ndarray | None = None
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`sphere_barriers` from the stacked ``rel = [d, v_rel]`` (K, 2, n): one Gram
-    product gives ``d.d``, ``d.v_rel`` and ``v_rel.v_rel``. Returns ``[h, h']`` (K, 2, in
-    ``out`` if given), ``n`` (K, n) and the curvature (K,)."""
-    k = rel.shape[0]
-    g = np.matmul(rel, rel.transpose(0, 2, 1)).reshape(k, 4)  # [d.d, d.v, v.d, v.v]
-    dist = np.sqrt(g[:, 0])
-    np.maximum(dist, 1e-9, out=dist)
-    inv = 1.0 / dist
-    hh = np.empty((k, 2)) if out is None else out
-    np.subtract(dist, radius, out=hh[:, 0])
-    ndv = np.multiply(g[:, 1], inv, out=hh[:, 1])
-    curv = ndv * ndv
-    np.subtract(g[:, 3], curv, out=curv)
-    curv *= inv
-    return hh, rel[:, 0] * inv[:, None], curv
+    dist = np.maximum(np.sqrt(np.einsum("ki,ki->k", d, d)), 1e-9)
+    n = d / dist[:, None]
+    ndv = np.einsum("ki,ki->k", n, v_rel)
+    curv = (np.einsum("ki,ki->k", v_rel, v_rel) - ndv * ndv) / dist
+    return dist - radius, ndv, n, curv
 
 
 def check_action(action, shape: tuple[int, ...]) -> np.ndarray:
