@@ -119,7 +119,7 @@ class AFVSGPBank:
         self.n_inducing_ = np.zeros(K, dtype=int)
         self._ind_xi = np.zeros((K, mp, b))
         self._ind_ub = np.zeros((K, mp, c))
-        self._amat = np.zeros((K, c * mp, 2 * b + 1))  # exponent rows, see _set_inducing
+        self._amat = np.zeros((K, c * mp, b + 1))  # exponent rows, see _set_inducing
         self._ubt = np.zeros((K, c, mp))
         self._koo = np.zeros((K, mp, mp))
         self._l_oo = np.zeros((K, mp, mp))
@@ -233,15 +233,13 @@ class AFVSGPBank:
         self._ind_ub[k] = 0.0
         self._ind_xi[k, :m] = xo
         self._ind_ub[k, :m] = ubo
-        # exponent of k_i(x, o_j) = log s_i - |o_j/l_i|^2/2 + (o_j/l_i^2).x - (1/(2 l_i^2)).x^2
-        # (eq. 21) is the row [o_j/l_i^2, log s_i - |o_j/l_i|^2/2, -1/(2 l_i^2)] times the
-        # features [x, 1, x^2]; padded slots keep the x^2 part (their kernel columns are zero)
-        a = self._amat[k].reshape(self._c, mp, 2 * b + 1)
+        # exponent of k_i(x, o_j) = log s_i - |o_j/l_i|^2/2 + (o_j/l_i^2).x - (1/(2 l_i^2)).x^2:
+        # rows [o_j/l_i^2, log s_i - |o_j/l_i|^2/2]; the x^2 term is the same for every j
+        a = self._amat[k].reshape(self._c, mp, b + 1)
         a[:] = 0.0
         s = xo[None, :, :] * il2[:, None, :]  # (c, m, b)
         a[:, :m, :b] = s
         a[:, :m, b] = self.log_var[k][:, None] - 0.5 * np.einsum("imd,md->im", s, xo)
-        a[:, :, b + 1 :] = -0.5 * il2[:, None, :]
         self._ubt[k] = 0.0
         self._ubt[k, :, :m] = ubo.T
         eye = np.eye(mp)
@@ -295,22 +293,16 @@ class AFVSGPBank:
         return c_oo, c_sig
 
     # ------------------------------------------------------------------ kernel rows
-    @staticmethod
-    def _features(xi: np.ndarray) -> np.ndarray:
-        """``[x, 1, x^2]`` (n, 2b + 1) of points ``xi`` (n, b): the kernel exponents are one
-        product with ``_amat``."""
-        n, b = xi.shape
-        feat = np.empty((n, 2 * b + 1))
-        feat[:, :b] = xi
-        feat[:, b] = 1.0
-        np.multiply(xi, xi, out=feat[:, b + 1 :])
-        return feat
-
     def _kt(self, rows, xi: np.ndarray) -> np.ndarray:
         """``Kt`` (k, m+1, Mp) of learners ``rows`` at their points ``xi`` (k, b) (eq. 21)."""
-        n = len(xi)
+        n, b = xi.shape
+        feat = np.empty((n, 1, b + 1))
+        feat[:, 0, :b] = xi
+        feat[:, 0, b] = 1.0
         amat = self._amat if rows is None else self._amat[rows]
-        e = np.matmul(amat, self._features(xi)[:, :, None]).reshape(n, self._c, self._mp)
+        il2 = self.inv_ls2 if rows is None else self.inv_ls2[rows]
+        e = np.matmul(feat, amat.transpose(0, 2, 1)).reshape(n, self._c, self._mp)
+        e += np.matmul(il2, (-0.5 * xi * xi)[:, :, None])  # (n, c, 1): the x^2 term
         if not math.isfinite(float(e.sum())):  # huge |xi|: x^2 overflows in the expansion
             idx = np.arange(self.n_learners) if rows is None else np.asarray(rows)
             e = self._exponent_direct(idx, xi)
@@ -400,9 +392,13 @@ class AFVSGPBank:
         """``b`` (N, m+1) and ``Sigma`` (N, m+1, m+1) of learner ``k`` at N finite points
         ``xi`` (N, b) (eq. 20): one kernel product, two triangular solves for all points."""
         xi = np.asarray(xi, dtype=np.float64)
-        n = len(xi)
+        n, b = xi.shape
         c, mp = self._c, self._mp
-        e = (self._features(xi) @ self._amat[k].T).reshape(n, c, mp)
+        feat = np.empty((n, b + 1))
+        feat[:, :b] = xi
+        feat[:, b] = 1.0
+        e = (feat @ self._amat[k].T).reshape(n, c, mp)
+        e += ((-0.5 * xi * xi) @ self.inv_ls2[k].T)[:, :, None]  # the x^2 term
         if not math.isfinite(float(e.sum())):  # huge |xi|: x^2 overflows in the expansion
             e = np.concatenate([self._exponent_direct(np.array([k]), x[None]) for x in xi])
         kt = np.exp(e)
