@@ -345,6 +345,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         bodies, offsets, radii = sphere_arrays(spheres)
         self._sphere_body_ids = np.array([m.body(b).id for b in bodies])
         self._sphere_offsets = offsets
+        self._sphere_offset_cols = np.ascontiguousarray(offsets[:, :, None])  # (S, 3, 1)
         self._sphere_radii = radii
         self._sphere_bodies = self._sphere_body_ids.tolist()
         n_s = len(spheres)
@@ -423,7 +424,8 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
             obstacles = [ObstacleSpec(centre, radius)]
         else:
             obstacles = [ObstacleSpec(centre, radius, centre + start_off, t_w, speed)]
-        self.obstacles = obstacles if self._user_obstacles is None else self._user_obstacles
+        # a fresh tuple per scenario: _obstacle_constants is keyed on its identity
+        self.obstacles = tuple(obstacles if self._user_obstacles is None else self._user_obstacles)
         if self._user_obstacles is None and self.scenario == "random":
             # visual sphere follows the drawn radius
             self.model.geom_size[self._obstacle_geoms[0], 0] = radius
@@ -481,8 +483,9 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
     def _sphere_centres(self, data: mujoco.MjData) -> np.ndarray:
         """(S, 3) safety-sphere centres at the kinematics of ``data``."""
         body = self._sphere_body_ids
-        rot = data.xmat[body].reshape(-1, 3, 3)
-        return data.xpos[body] + np.matmul(rot, self._sphere_offsets[:, :, None])[:, :, 0]
+        p = np.matmul(data.xmat[body].reshape(-1, 3, 3), self._sphere_offset_cols).reshape(-1, 3)
+        p += data.xpos[body]
+        return p
 
     def _point_kinematics(self) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, np.ndarray]]:
         """Safety spheres ``(p (S, 3), v (S, 3), J (S, 3, nv), J' q' (S, 3))`` from MuJoCo's
@@ -503,8 +506,8 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         return spheres, (d.site_xpos[self._site].copy(), vel[-1])
 
     def _obstacle_constants(self) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
-        """What stays fixed while ``self.obstacles`` is the same list (rebuilt when the list
-        is replaced): the pair radii ``r_o + r_s`` (O S,), the stacked states (O, 3, 3) of
+        """What stays fixed while ``self.obstacles`` is the same tuple (rebuilt when a new one
+        is set): the pair radii ``r_o + r_s`` (O S,), the stacked states (O, 3, 3) of
         obstacles that are all static (else None) and the squared contact reach of the arm
         geoms (O, G)."""
         key = self.obstacles

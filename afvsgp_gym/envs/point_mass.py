@@ -250,7 +250,7 @@ class PointMassObstacleEnv(ObstacleTask, gym.Env):
             obstacles = [ObstacleSpec(end, radius, start, t_w, speed)]
         if self._user_obstacles is not None:
             obstacles = self._user_obstacles
-        self.obstacles = obstacles
+        self.obstacles = tuple(obstacles)
         self.reference = CyclicReference(
             center=np.zeros(self.dim),
             axis1=e1,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -213,12 +214,12 @@ class FrankaObstacleReachEnv(FrankaObstacleEnv):
         """The default task (before any reset): a goal 0.55 m to the left of the ready
         end-effector and the obstacles parked far away; :meth:`reset_model` draws tasks."""
         self.reference = _Goal(self.reference_center + np.array([0.0, 0.55, -0.1]))
-        self.obstacles = list(self._user_obstacles)
+        self.obstacles = tuple(self._user_obstacles)
         self._obstacle_radii = np.array([ob.radius for ob in self.obstacles])
 
-    def _set_task(self, goal: np.ndarray, obstacles: list[ObstacleSpec]) -> None:
+    def _set_task(self, goal: np.ndarray, obstacles: Sequence[ObstacleSpec]) -> None:
         self.reference = _Goal(np.asarray(goal, dtype=np.float64))
-        self.obstacles = obstacles
+        self.obstacles = tuple(obstacles)  # a fresh tuple: the obstacle constants follow it
         self._obstacle_radii = np.array([ob.radius for ob in obstacles])
         for g, ob in zip(self._obstacle_geoms, obstacles, strict=True):
             self.model.geom_size[g, 0] = ob.radius
@@ -299,7 +300,7 @@ class FrankaObstacleReachEnv(FrankaObstacleEnv):
         self.data.qpos[:] = self.q_home + noise
         self.data.qvel[:] = 0.0
         self.data.warning.number[:] = 0
-        self._set_task(self.goal, list(self._user_obstacles))  # parked while drawing
+        self._set_task(self.goal, self._user_obstacles)  # parked while drawing
         self._after_state_change()
         goal, obstacles = self._draw_task(self.np_random)
         self._set_task(goal, obstacles)

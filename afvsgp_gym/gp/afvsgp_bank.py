@@ -66,8 +66,8 @@ class FittedState:
 
 
 #: Per-learner arrays (leading axis K), concatenated by :meth:`AFVSGPBank.stack`.
-_STACKED = ("inv_ls2", "var", "log_var", "noise_variance", "jitter", "n_inducing_", "_ind_xi",
-            "_ind_ub", "_amat", "_ubt", "_koo", "_l_oo", "_koo_inv", "_stats",
+_STACKED = ("inv_ls2", "var", "_var_diag", "log_var", "noise_variance", "jitter", "n_inducing_",
+            "_ind_xi", "_ind_ub", "_amat", "_ubt", "_koo", "_l_oo", "_koo_inv", "_stats",
             "_scale", "_wz", "_wk", "_wxt", "_wubt", "_head", "_count", "_l_d", "_cvec",
             "_fresh", "n_seen_", "n_added_", "n_removed_")
 
@@ -111,6 +111,7 @@ class AFVSGPBank:
         self.inv_ls2 = np.array([st.kernel._inv_ls ** 2 for st in states])  # (K, c, b)
         self.var = np.array([st.kernel._var for st in states])  # (K, c)
         self.log_var = np.log(self.var)
+        self._var_diag = self.var[:, :, None] * np.eye(self._c)  # diag(s) of eq. 20
         self.noise_variance = np.array([float(st.noise_variance) for st in states])
         self.jitter = np.array([float(st.jitter) for st in states])
         self.kernels = [st.kernel.clone() for st in states]
@@ -165,6 +166,7 @@ class AFVSGPBank:
         self.forgetting = phi = float(settings.forgetting)
         self.num_inducing = int(settings.num_inducing)
         self.add_threshold = float(settings.add_threshold)
+        self._add_floor = max(self.add_threshold, 1e-6)  # d > max(a, 1e-6) k_ss (eq. 27)
         self.swap_margin = float(settings.swap_margin)
         self.adapt_inducing = bool(settings.adapt_inducing)
         self._refresh_every = P if settings.refresh_every is None else int(settings.refresh_every)
@@ -357,18 +359,18 @@ class AFVSGPBank:
         self._fresh[k] = True
         return out
 
-    def _moments(self, idx: np.ndarray, gt: np.ndarray, ht: np.ndarray, cv: np.ndarray):
+    def _moments(self, idx: np.ndarray, gt: np.ndarray, hc: np.ndarray):
         """``b = H' c`` (n, m+1) and ``Sigma = diag(s) - G'G + H'H`` (n, m+1, m+1) from
-        ``G'``, ``H'`` (n, m+1, Mp) and ``c`` (n, Mp) (eq. 20 in whitened form); learner
-        ``idx[j]`` gives row ``j``'s prior variances ``s``."""
-        n, c, _ = gt.shape
-        mean = np.matmul(ht, cv[:, :, None])[:, :, 0]
-        sig = np.matmul(ht, ht.transpose(0, 2, 1))
-        sig -= np.matmul(gt, gt.transpose(0, 2, 1))
+        ``G'`` (n, m+1, Mp) and ``[H'; c']`` (n, m+2, Mp) (eq. 20 in whitened form): one Gram
+        of ``[H'; c']`` gives ``H'H`` and ``H'c``; learner ``idx[j]`` gives row ``j``'s prior
+        variances ``s``."""
+        c = gt.shape[1]
+        f = np.matmul(hc, hc.transpose(0, 2, 1))
+        sig = np.subtract(f[:, :c, :c], np.matmul(gt, gt.transpose(0, 2, 1)))
         sig += sig.transpose(0, 2, 1)
         sig *= 0.5
-        sig.reshape(n, c * c)[:, :: c + 1] += self.var[idx]
-        return mean, sig
+        sig += self._var_diag[idx]
+        return f[:, :c, c], sig
 
     def predict_affine(self, xi: np.ndarray, rows: np.ndarray | None = None):
         """``b`` (k, m+1) and ``Sigma`` (k, m+1, m+1) of the learners ``rows`` (default all)
@@ -384,7 +386,7 @@ class AFVSGPBank:
         for j, k in enumerate(idx):
             hc[j] = self._whiten(k, buf[j].T, inv[j])
         gt = buf[:, :, mp : mp + c].transpose(0, 2, 1)
-        return self._moments(idx, gt, hc[:, :c], hc[:, c])
+        return self._moments(idx, gt, hc)
 
     def predict_points(self, k: int, xi: np.ndarray):
         """``b`` (N, m+1) and ``Sigma`` (N, m+1, m+1) of learner ``k`` at N finite points
@@ -405,8 +407,10 @@ class AFVSGPBank:
         inv, buf = self._stats_block(idx, kt.reshape(1, n * c, mp))
         hc = self._whiten(k, buf[0].T, inv[0])
         gt = buf[0, :, mp : mp + n * c].T.reshape(n, c, mp)
-        ht = hc[: n * c].reshape(n, c, mp)
-        return self._moments(np.full(n, k), gt, ht, np.broadcast_to(hc[n * c], (n, mp)))
+        hcn = np.empty((n, c + 1, mp))  # [H'; c'] per point
+        hcn[:, :c] = hc[: n * c].reshape(n, c, mp)
+        hcn[:, c] = hc[n * c]
+        return self._moments(np.full(n, k), gt, hcn)
 
     # ------------------------------------------------------------------ update
     def update(self, xi: np.ndarray, u: np.ndarray, z: np.ndarray) -> np.ndarray:
@@ -422,16 +426,21 @@ class AFVSGPBank:
             raise ValueError(
                 f"update needs xi ({K}, {b}), u ({self.action_dim},), z ({K},). Got: "
                 f"{xi.shape}, {u.shape}, {z.shape}")
-        if not np.isfinite(u).all():
-            raise ValueError("u contains NaN or inf")
-        ok = np.isfinite(z + xi.sum(axis=1))
-        if not ok.any():
-            return ok
-        if ok.all():  # the common case: basic slicing, no fancy-index copies of the state
-            rows, idx, sel = None, np.arange(K), slice(None)
+        total = xi.sum(axis=1)
+        total += z
+        if math.isfinite(float(total.sum()) + float(u.sum())):  # every sample finite
+            ok, rows, idx, sel = np.empty(K, dtype=bool), None, None, slice(None)
+            ok.fill(True)
         else:
-            rows = idx = sel = np.flatnonzero(ok)
-            xi, z = xi[rows], z[rows]
+            if not np.isfinite(u).all():
+                raise ValueError("u contains NaN or inf")
+            ok = np.isfinite(total)
+            if not ok.any():
+                return ok
+            rows, idx, sel = None, None, slice(None)
+            if not ok.all():
+                rows = idx = sel = np.flatnonzero(ok)
+                xi, z = xi[rows], z[rows]
         ub = np.empty(self._c)
         ub[0] = 1.0
         ub[1:] = u
@@ -445,7 +454,7 @@ class AFVSGPBank:
             self._slide_synced(xi, ub, z, k_new, scale)
         else:
             self._synced = False  # a learner skipped a sample: the rings may differ from here
-            self._slide(idx, rows, sel, xi, ub, z, k_new, scale)
+            self._slide(np.arange(K) if idx is None else idx, rows, sel, xi, ub, z, k_new, scale)
         self.n_seen_[sel] += 1
         self._fresh[sel] = False
         since = self._since_refresh[sel]  # a view when every learner is updated
@@ -453,33 +462,44 @@ class AFVSGPBank:
         if rows is not None:
             self._since_refresh[rows] = since
         if since.max() >= self._refresh_every:
+            idx = np.arange(K) if idx is None else idx
             for k in idx[since >= self._refresh_every]:
                 self._rebuild_stats(k)
                 self._since_refresh[k] = 0
         if scale.max() > 1e100:
+            idx = np.arange(K) if idx is None else idx
             for k in idx[scale > 1e100]:
                 self._renormalise(k)
         if self.adapt_inducing:
-            quad = (k_new * np.matmul(self._koo_inv[sel], k_new[:, :, None])[:, :, 0]).sum(1)
-            d = kss - quad  # eq. 27 residual, weight 1
-            cand = (d > self.add_threshold * kss) & (d > self.noise_variance[sel]) & (
-                d > 1e-6 * kss)
-            if cand.any():
-                order = np.flatnonzero(cand)
-                if self.max_inducing_candidates is not None:
-                    order = order[np.argsort(-d[order] / kss[order])]
-                    order = order[: self.max_inducing_candidates]
-                for j in order:
-                    self._consider_add(int(idx[j]), xi[j], ub, float(kss[j]), k_new[j])
+            self._add_candidates(idx, sel, xi, ub, kss, k_new)
         return ok
 
-    def _rank2(self, n: int, k_new: np.ndarray, z: np.ndarray, scale: np.ndarray
-               ) -> tuple[np.ndarray, np.ndarray]:
+    def _add_candidates(self, idx, sel, xi: np.ndarray, ub: np.ndarray, kss: np.ndarray,
+                        k_new: np.ndarray) -> None:
+        """Offer the new samples whose eq. 27 residual ``d = k_ss - k' K_oo^-1 k`` (weight
+        1) exceeds ``add_threshold k_ss``, ``1e-6 k_ss`` and the noise variance to
+        :meth:`_consider_add` (largest relative residual first, at most
+        ``max_inducing_candidates``)."""
+        ktk = np.matmul(self._koo_inv[sel], k_new[:, :, None])
+        d = kss - np.matmul(k_new[:, None, :], ktk).ravel()
+        cand = d > np.maximum(self._add_floor * kss, self.noise_variance[sel])  # kss > 0
+        if cand.any():
+            idx = np.arange(self.n_learners) if idx is None else idx
+            order = np.flatnonzero(cand)
+            if self.max_inducing_candidates is not None:
+                order = order[np.argsort(-d[order] / kss[order])]
+                order = order[: self.max_inducing_candidates]
+            for j in order:
+                self._consider_add(int(idx[j]), xi[j], ub, float(kss[j]), k_new[j])
+
+    def _rank2(self, n: int, k_new: np.ndarray, z: np.ndarray, scale: np.ndarray,
+               full: bool) -> tuple[np.ndarray, np.ndarray]:
         """Factors ``left`` (n, Mp, 2), ``right`` (n, 2, Mp + 1) of the window's rank-2
         change of ``[r, S]``: the new sample (column 0, scaled) in; column 1 is left to the
-        caller (the sample leaving a full window, else zero)."""
-        left = np.zeros((n, self._mp, 2))
-        right = np.zeros((n, 2, self._mp + 1))
+        caller (the sample leaving a full window: uninitialised if ``full``, else zero)."""
+        new = np.empty if full else np.zeros
+        left = new((n, self._mp, 2))
+        right = new((n, 2, self._mp + 1))
         left[:, :, 0] = k_new
         np.multiply(z, scale, out=right[:, 0, 0])
         np.multiply(k_new, scale[:, None], out=right[:, 0, 1:])
@@ -492,7 +512,7 @@ class AFVSGPBank:
         cnt, P = int(self._count[0]), self.window
         full = cnt == P
         slot = (int(self._head[0]) + 1) % P if full else cnt
-        left, right = self._rank2(self.n_learners, k_new, z, scale)
+        left, right = self._rank2(self.n_learners, k_new, z, scale, full)
         if full:
             k_old = self._wk[:, slot]
             left[:, :, 1] = k_old
@@ -518,7 +538,7 @@ class AFVSGPBank:
         slot[slot == self.window] = 0
         stats = self._stats[sel] if rows is not None else self._stats
         # the new sample in, the sample leaving a full window out: one batched rank-2 product
-        left, right = self._rank2(len(idx), k_new, z, scale)
+        left, right = self._rank2(len(idx), k_new, z, scale, bool(full.all()))
         if full.any():
             fi, fs = idx[full], slot[full]
             k_old = self._wk[fi, fs]

@@ -453,3 +453,17 @@ def test_obstacle_constants_follow_new_obstacles():
         reach = env._arm_rbound + ob.radius
         np.testing.assert_array_equal(env._obstacle_constants()[2][0], reach * reach)
     assert len(radii) > 1
+
+
+def test_obstacles_are_a_fresh_tuple_per_scenario():
+    """``obstacles`` cannot be changed in place (the obstacle constants are keyed on it);
+    a user list is copied into a new tuple per scenario."""
+    user = [{"position": [0.4, 0.2, 0.4], "radius": 0.05}]
+    env = FrankaObstacleEnv("static", safety_spheres="ee", obstacles=user)
+    first = env.obstacles
+    assert isinstance(first, tuple)
+    env._build_scenario(None)
+    assert isinstance(env.obstacles, tuple) and env.obstacles is not first
+    assert env.obstacles == first
+    with pytest.raises(TypeError):
+        env.obstacles[0] = env.obstacles[0]
