@@ -398,28 +398,17 @@ class SOCPFilter:
         else:
             sol = fastpath.project_halfspace_box(u_nom, a0, a, self.low, self.high)
             path = "halfspace"
-        if sol is None:
-            return None
-        u, lam = sol
-        c, grad = fastpath.cone_margin_gradient(u, a0, a, G)
-        if lam == 0.0:
-            grad = a
-        elif grad is None:
-            return None
-        return u, lam, c, grad, path
+        out = _with_margin(sol, a0, a, G)
+        return None if out is None else (*out, path)
 
     def _one_cone(self, u_nom, a0: float, a, G, tol):
         """``(u, "cone", margins at u)`` for a program with one (non-zero) cone (paper eq. 05
         with k = 1, the end-effector barrier's case), certified; or None."""
-        sol = fastpath.project_cone_box(u_nom, a0, a, G, self.low, self.high)
-        if sol is None:
+        out = _with_margin(fastpath.project_cone_box(u_nom, a0, a, G, self.low, self.high),
+                           a0, a, G)
+        if out is None:
             return None
-        u, lam = sol
-        c, grad = fastpath.cone_margin_gradient(u, a0, a, G)
-        if lam == 0.0:
-            grad = a
-        elif grad is None:
-            return None
+        u, lam, c, grad = out
         if fastpath.certify_one(u, u_nom, c, tol.one(0), lam, grad, self.low, self.high):
             return u, "cone", np.array([c])
         return None
@@ -497,3 +486,18 @@ def _most_violated(idx: np.ndarray, c: np.ndarray, tol: fastpath.Tolerance) -> n
     if idx.size <= WORKING_SET_ADD:
         return idx
     return idx[np.argsort(c[idx] / tol.at(idx))[:WORKING_SET_ADD]]
+
+
+def _with_margin(sol, a0, a, G):
+    """``(u, lam, c(u), grad c(u))`` of a one-constraint projection ``sol = (u, lam)`` (the
+    constraint's own gradient when it is inactive, ``lam = 0``); None if ``sol`` is None or
+    the cone's gradient is undefined at ``u`` (its apex)."""
+    if sol is None:
+        return None
+    u, lam = sol
+    c, grad = fastpath.cone_margin_gradient(u, a0, a, G)
+    if lam == 0.0:
+        grad = a
+    elif grad is None:
+        return None
+    return u, lam, c, grad
