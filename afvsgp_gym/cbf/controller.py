@@ -365,8 +365,7 @@ class SafetyController:
         if not len(gated):
             return u_nom
         rho = relative_gain_uncertainty(sig[gated], a[gated], self.exploration.half_range)
-        scale = float(np.max(np.where(np.isnan(rho), 1.0, rho)))
-        return self.exploration.perturb(u_nom, warm=False, scale=scale)
+        return self.exploration.perturb(u_nom, warm=False, scale=float(rho.max()))
 
     # ------------------------------------------------------------------ learning
     def observe(self, terms_before, u_applied, terms_after, dt: float) -> np.ndarray:

@@ -38,9 +38,10 @@ class Exploration:
         return self._half_range
 
     def perturb(self, u: np.ndarray, warm: bool, scale: float = 1.0) -> np.ndarray:
-        """``clip(u + noise)``, the online noise's std multiplied by ``scale`` in [0, 1];
-        ``u`` unchanged when the noise is 0 or ``u`` is not finite."""
-        std = self.warmup_noise if warm else self.online_noise * min(max(scale, 0.0), 1.0)
+        """``clip(u + noise)``, the online noise's std multiplied by ``scale`` clipped to
+        [0, 1] (NaN counts as 1); ``u`` unchanged when the noise is 0 or ``u`` is not finite."""
+        scale = max(scale, 0.0) if scale < 1.0 else 1.0  # NaN fails the comparison: 1
+        std = self.warmup_noise if warm else self.online_noise * scale
         if std <= 0 or not math.isfinite(float(u.sum())):
             return u
         noisy = u + std * self._half_range * self._rng.standard_normal(u.shape[0])

@@ -67,12 +67,9 @@ class ObstacleTask:
     def barrier_terms(self, model: str = "nominal") -> BarrierSet:
         """The ``n_barriers`` barriers' terms at the current state (one ``BarrierTerms`` per
         barrier when indexed): ``"true"`` plant or the ``"nominal"`` model."""
-        if model == "nominal":
-            kind = self.nominal_model
-        elif model == "true":
-            kind = "exact"
-        else:
+        if model != "nominal" and model != "true":
             check_choice("model", model, BARRIER_MODELS)
+        kind = "exact" if model == "true" else self.nominal_model
         cache = self._barrier_cache
         terms = cache.get(kind)
         if terms is None:

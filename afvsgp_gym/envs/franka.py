@@ -326,6 +326,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
             self.nominal_mj_model = self.model if self.nominal_model == "exact" else None
             self.nominal_mj_data = None
         self._obstacle_key = None
+        self._zeros: tuple[np.ndarray, np.ndarray] | None = None
         self._build_scenario(None)
         self._steps = 0
         self._invalidate_barriers()
@@ -548,7 +549,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
 
     def _zero_terms(self, k: int) -> tuple[np.ndarray, np.ndarray]:
         """Read-only ``lf = 0`` (k,) and ``lg = 0`` (k, 7), made once."""
-        zero = getattr(self, "_zeros", None)
+        zero = self._zeros
         if zero is None or len(zero[0]) != k:
             zero = self._zeros = (np.zeros(k), np.zeros((k, 7)))
             for arr in zero:

@@ -159,3 +159,22 @@ def test_online_exploration_smaller_where_the_gain_is_known():
     # rho = sqrt(0.02) / 100 and sqrt(0.02) / 0.01 (capped at 1): std 0.4 rho and 0.4
     np.testing.assert_allclose(small, 0.4, rtol=0.05)
     np.testing.assert_allclose(big, 0.4 * np.sqrt(0.02) / 100.0, rtol=0.05)
+
+
+def test_exploration_scale_is_clipped_and_nan_means_full_noise():
+    """perturb's scale: above 1 (or inf, or NaN from an undefined rho) gives the full online
+    noise, at most 0 none; the same seeded draw either way."""
+    from afvsgp_gym.cbf.exploration import Exploration
+
+    def draw(scale: float) -> np.ndarray:
+        ex = Exploration(-np.ones(3), np.ones(3), 0.3, 0.2, seed=0)
+        ex.reseed(5)
+        return ex.perturb(np.zeros(3), warm=False, scale=scale)
+
+    full = draw(1.0)
+    assert np.all(np.isfinite(full)) and np.any(full != 0.0)
+    for scale in (2.0, np.inf, np.nan):
+        np.testing.assert_array_equal(draw(scale), full)
+    np.testing.assert_array_equal(draw(0.5), draw(1.0) * 0.5)
+    for scale in (0.0, -1.0):
+        np.testing.assert_array_equal(draw(scale), np.zeros(3))
