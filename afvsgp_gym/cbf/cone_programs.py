@@ -10,13 +10,14 @@ Clarabel solves ``min 1/2 x'Px + q'x  s.t.  Ax + s = b, s in K``. For ``k`` cons
 and the max-worst-margin programs ``"fallback_qp"`` / ``"fallback_socp"`` add a variable
 ``t`` (``min -t + eps/2 ||u - u_nom||^2``, ``+t`` in each constraint's first row).
 
-A solver object is built once per ``(kind, k)`` and afterwards only its values change
+A solver object is built once per ``(kind, k)`` (on first use, or ahead of the control
+loop by :meth:`ConePrograms.prepare`) and afterwards only its values change
 (``DefaultSolver.update``; this needs presolve off). The box block keeps its two non-zeros
 per column; a constraint's rows are dense in ``u`` (a Cholesky factor ``G`` is triangular,
-an eigen-factor is not). Determinism: a reused solver keeps the data equilibration of the
-instance it was built with, so the same instance solved by a fresh and by a reused solver
-agrees to the solver's tolerance (~1e-9), not bit for bit; a given sequence of calls on a new
-:class:`~afvsgp_gym.cbf.SOCPFilter` is reproducible.
+an eigen-factor is not). Data equilibration is off: a reused solver would keep the scaling of
+the instance it was built with, so with it on the same instance gave different answers (at the
+solver's tolerance) from a fresh and from a reused solver. Off, an instance's answer depends on
+the instance only, whichever solver object solves it.
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ def settings(tol: float, strictly_convex: bool = False) -> clarabel.DefaultSetti
     s = clarabel.DefaultSettings()
     s.verbose = False
     s.presolve_enable = False  # required for data updates
+    s.equilibrate_enable = False  # a reused solver would keep its first instance's scaling
     s.static_regularization_enable = not strictly_convex
     s.chordal_decomposition_enable = False
     s.tol_gap_abs = tol
@@ -134,23 +136,40 @@ class ConePrograms:
             return np.append(-self.fallback_eps * u_nom, -1.0)
         return -u_nom
 
+    def prepare(self, kind: str, sizes) -> None:
+        """Build the solvers of program ``kind`` for every ``k`` in ``sizes`` now, so that the
+        control loop only updates them (a build costs ~3x an update and solve). The
+        placeholder data are never solved: only the sparsity pattern is kept."""
+        if kind not in KINDS:
+            raise ValueError(f"kind must be one of {KINDS}. Got: {kind!r}")
+        m = self.m
+        for k in sizes:
+            k = int(k)
+            if k < 1:
+                raise ValueError(f"sizes must be >= 1. Got: {k}")
+            if (kind, k) not in self._solvers:
+                G = None if kind.endswith("qp") else np.ones((k, m + 1, m + 1))
+                self._build(kind, np.zeros(m), np.ones(k), np.ones((k, m)), G)
+
+    def _build(self, kind: str, u_nom, a0, a, G) -> clarabel.DefaultSolver:
+        values, b = self._fill(kind, a0, a, G)
+        solver = clarabel.DefaultSolver(
+            self._hessian(kind), self._linear(kind, u_nom),
+            self._matrix(kind, a0.size, values), b, self._cones(kind, a0.size),
+            settings(self.tol, strictly_convex=not kind.startswith("fallback")),
+        )
+        self._solvers[(kind, a0.size)] = solver
+        return solver
+
     # ------------------------------------------------------------------ solve
     def solve(self, kind: str, u_nom, a0, a, G=None) -> tuple[np.ndarray, str]:
         """Solve program ``kind`` (one of :data:`KINDS`) for the data; ``(x, status)`` with
         ``x`` the solver's primal solution (``u``, then ``t`` for a fallback)."""
-        k = a0.size
-        values, b = self._fill(kind, a0, a, G)
-        q = self._linear(kind, u_nom)
-        key = (kind, k)
-        solver = self._solvers.get(key)
+        solver = self._solvers.get((kind, a0.size))
         if solver is None:
-            A = self._matrix(kind, k, values)
-            solver = clarabel.DefaultSolver(
-                self._hessian(kind), q, A, b, self._cones(kind, k),
-                settings(self.tol, strictly_convex=not kind.startswith("fallback")),
-            )
-            self._solvers[key] = solver
+            solver = self._build(kind, u_nom, a0, a, G)
         else:
-            solver.update(q=q, b=b, A=values)
+            values, b = self._fill(kind, a0, a, G)
+            solver.update(q=self._linear(kind, u_nom), b=b, A=values)
         sol = solver.solve()
         return np.asarray(sol.x, dtype=np.float64), str(sol.status)

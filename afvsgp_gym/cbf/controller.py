@@ -26,6 +26,7 @@ step (eq. 48), feeds the residual observer with the prediction the filter used (
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, replace
 from typing import Any
@@ -35,6 +36,7 @@ from scipy.linalg.lapack import dpotrf
 
 from afvsgp_gym.cbf.config import FilterConfig
 from afvsgp_gym.cbf.exploration import Exploration, relative_gain_uncertainty
+from afvsgp_gym.cbf.fastpath import clip
 from afvsgp_gym.cbf.hocbf import HOCBF
 from afvsgp_gym.cbf.learners import REGISTRY, check_learner_name, make_bank
 from afvsgp_gym.cbf.measurement import measure_all
@@ -171,6 +173,9 @@ class SafetyController:
         self.bank = make_bank(self.learner_name, self.n_barriers, self.action_dim,
                               cfg.learner_kwargs, cfg.shared_hyperparameters)
         self.learns = self.bank.learns
+        self.socp.prepare(self.n_barriers, cones=False)  # the QP: known model, mean fallback
+        if self.learns and cfg.beta > 0:
+            self.socp.prepare(self.n_barriers, cones=True)
         self.exploration = Exploration(self.low, self.high, cfg.exploration_noise,
                                        cfg.online_exploration, cfg.seed)
         self.residuals = ResidualObserver(self.n_barriers, cfg.residual_correction)
@@ -353,10 +358,12 @@ class SafetyController:
         action, nominal plus learned, ``H`` the half range of the bounds): exploration is for
         identifying the gain, so a prior that gives it (a small ``rho``) excites less. A
         proposal that is safe with margin, or with a confident model, passes unchanged."""
-        if self.exploration.online_noise <= 0 or not np.all(np.isfinite(u_nom)):
+        if self.exploration.online_noise <= 0 or not math.isfinite(float(u_nom.sum())):
             return u_nom
-        u = np.clip(u_nom, self.low, self.high)
-        ubar = np.concatenate([[1.0], u])
+        u = clip(u_nom, self.low, self.high)
+        ubar = np.empty(u.size + 1)
+        ubar[0] = 1.0
+        ubar[1:] = u
         std = np.sqrt(np.maximum(((sig @ ubar) * ubar).sum(axis=1), 0.0))
         noise = np.sqrt(self.bank.noise_variance(rows))
         uncertain = std > self.config.exploration_threshold * noise

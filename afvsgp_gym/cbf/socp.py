@@ -153,6 +153,12 @@ class SOCPFilter:
         self.programs = ConePrograms(low, high, self.tol, self.fallback_regularization)
 
     # ------------------------------------------------------------------ public
+    def prepare(self, n_constraints: int, cones: bool = True) -> None:
+        """Build clarabel's solver objects for 1 to ``n_constraints`` constraints (with cones
+        or, ``cones=False``, half-spaces) before the control loop, which then only updates
+        them; a solve otherwise builds one on the first program of each size."""
+        self.programs.prepare("socp" if cones else "qp", range(1, int(n_constraints) + 1))
+
     def margins(self, u, a0, a, G=None) -> np.ndarray:
         """``a0 + a @ u - ||G ubar||`` for every constraint."""
         out = np.asarray(a, dtype=np.float64) @ u + np.asarray(a0, dtype=np.float64)

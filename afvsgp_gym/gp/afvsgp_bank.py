@@ -573,8 +573,7 @@ class AFVSGPBank:
                       k_new: np.ndarray) -> bool:
         """Add the newest sample of learner ``k`` as an inducing point (eqs. 29-30),
         replacing the least informative one (eq. 28) when the set is full. True if the
-        inducing set changed. The new point goes last; a dropped point's slot is closed up,
-        so the inducing order is that of arrival."""
+        inducing set changed. The new point goes last, or into the dropped point's slot."""
         m = int(self.n_inducing_[k])
         low = self._l_oo[k, :m, :m]
         kn = k_new[:m]
@@ -611,41 +610,30 @@ class AFVSGPBank:
             drop = j
         r_new = float(lc @ self._wz[k, :cnt])
         self.n_added_[k] += 1
-        koo = self._koo[k]
-        wk_k = self._wk[k]
-        a = self._amat[k].reshape(self._c, self._mp, -1)
-        if drop is None:
-            pos = m
-        else:  # close up slot drop: every per-point array moves down by one from drop + 1
-            pos, j = m - 1, drop
+        if drop is None:  # the new point goes last
+            pos, mm = m, m + 1
+            krow, srow = np.append(kn, kss + jit), np.append(srow, sdiag)
+        else:  # the new point takes the dropped point's slot
+            pos, mm = drop, m
             self.n_removed_[k] += 1
-            self._ind_xi[k, j:pos] = self._ind_xi[k, j + 1 : m]
-            self._ind_ub[k, j:pos] = self._ind_ub[k, j + 1 : m]
-            a[:, j:pos] = a[:, j + 1 : m]
-            self._ubt[k, :, j:pos] = self._ubt[k, :, j + 1 : m]
-            koo[j:pos, :m] = koo[j + 1 : m, :m]
-            koo[:pos, j:pos] = koo[:pos, j + 1 : m]
-            st[j:pos] = st[j + 1 : m]
-            st[:pos, j + 1 : m] = st[:pos, j + 2 : m + 1]
-            wk_k[:cnt, j:pos] = wk_k[:cnt, j + 1 : m]
-            kn = np.concatenate((kn[:j], kn[j + 1 :]))
-            srow = np.concatenate((srow[:j], srow[j + 1 :]))
-        mm = pos + 1
+            krow = kn.copy()
+            krow[pos] = kss + jit
+            srow[pos] = sdiag
         # the new point in slot pos (eqs. 29-30)
         self._ind_xi[k, pos] = xi
         self._ind_ub[k, pos] = ub
         il2 = self.inv_ls2[k]
         sx = il2 * xi  # (c, b)
         b = self.input_dim
+        a = self._amat[k].reshape(self._c, self._mp, -1)
         a[:, pos, :b] = sx
         a[:, pos, b] = self.log_var[k] - 0.5 * (sx @ xi)
         self._ubt[k, :, pos] = ub
-        koo[pos, :pos] = koo[:pos, pos] = kn
-        koo[pos, pos] = kss + jit
+        koo = self._koo[k]
+        koo[pos, :mm] = koo[:mm, pos] = krow
         st[pos, 0] = r_new
-        st[pos, 1:mm] = st[:pos, mm] = srow
-        st[pos, mm] = sdiag
-        wk_k[:cnt, pos] = col
+        st[pos, 1 : mm + 1] = st[:mm, pos + 1] = srow
+        self._wk[k, :cnt, pos] = col
         lo = self._l_oo[k]
         if drop is None:  # the bordered factor
             lo[pos, :pos] = lvec

@@ -402,3 +402,31 @@ def test_qp_working_set_grows_and_stays_exact(monkeypatch):
             ref = SOCPFilter(low, high, fast_path=False, tol=1e-11).solve(u_nom, a0, a)
             np.testing.assert_allclose(res.u, ref.u, atol=1e-5)
     assert grown >= 3
+
+
+@pytest.mark.parametrize("kind", ["qp", "socp", "fallback_qp", "fallback_socp"])
+def test_answer_does_not_depend_on_the_solver_object(kind):
+    """A solver built ahead by ``prepare``, one reused across instances and one built for the
+    instance give the same answer bit for bit (no data equilibration), for every size."""
+    from afvsgp_gym.cbf.cone_programs import ConePrograms
+
+    rng = np.random.default_rng(11)
+    m = 4
+    low, high = -np.ones(m), np.ones(m)
+    prepared = ConePrograms(low, high, 1e-8, 1e-4)
+    prepared.prepare(kind, range(1, 6))
+    reused = ConePrograms(low, high, 1e-8, 1e-4)
+    cone = kind.endswith("socp")
+    for _ in range(3):
+        for k in range(1, 6):
+            _, _, u_nom, a0, a, G = _random_instance(rng, m, k, cone=cone)
+            G = G if cone else None
+            fresh = ConePrograms(low, high, 1e-8, 1e-4).solve(kind, u_nom, a0, a, G)
+            for programs in (prepared, reused):
+                x, status = programs.solve(kind, u_nom, a0, a, G)
+                assert status == fresh[1]
+                np.testing.assert_array_equal(x, fresh[0])
+    with pytest.raises(ValueError, match="kind"):
+        prepared.prepare("lp", [1])
+    with pytest.raises(ValueError, match="sizes"):
+        prepared.prepare(kind, [0])
