@@ -1,9 +1,9 @@
 """Whole-arm filter timing: the filtered step against the number of barriers.
 
-``python -m afvsgp_gym.benchmarks.arm [--quick] [--steps N]`` runs the nominal tracker behind
-``SafetyFilter(learner)`` on the static Franka scenario (nominal "zero") with 1, 7, 21 and 42
-barriers (the end-effector sphere; the 7 hand spheres; the 21 arm spheres; the arm with a
-second obstacle) and times, per control step after the warm-up, with ``perf_counter``:
+``python -m afvsgp_gym.benchmarks.arm [--quick] [--steps N] [--seeds S ...]`` runs the nominal
+tracker behind ``SafetyFilter(learner)`` on the static Franka scenario (nominal "zero") with
+1, 7, 21 and 42 barriers (the end-effector sphere; the 7 hand spheres; the 21 arm spheres; the
+arm with a second obstacle) and times, per control step after the warm-up, with ``perf_counter``:
 
 - ``step``: the filter's own work, ``SafetyController.filter`` (constraints, the learners'
   predictions for the barriers in the program, the cone program) plus
@@ -125,18 +125,21 @@ def time_config(spec: dict[str, Any], learner: str = "afvsgp", steps: int = 1500
     return res
 
 
-def run(quick: bool = False, steps: int | None = None, rounds: int = 2) -> dict[str, float]:
-    """Median and p99 (s) of the step and learner times per configuration, fit time, and the
-    ratios the issue asks for: K = 21 against K = 1 for the learners' per-step cost."""
+def run(quick: bool = False, steps: int | None = None, rounds: int = 2,
+        seeds: tuple[int, ...] = (0,)) -> dict[str, float]:
+    """Median and p99 (s) of the step and learner times per configuration (pooled over the
+    rounds and the episodes ``seeds``), fit time, and the ratios the issue asks for: K = 21
+    against K = 1 for the learners' per-step cost."""
     steps = steps or (300 if quick else 1500)
     rounds = 1 if quick else rounds
     acc: dict[str, dict[str, list]] = {}
     for _ in range(rounds):
-        for name, spec in CONFIGS.items():
-            r = time_config(spec, steps=steps)
-            d = acc.setdefault(name, {})
-            for k, v in r.items():
-                d.setdefault(k, []).append(v)
+        for seed in seeds:
+            for name, spec in CONFIGS.items():
+                r = time_config(spec, steps=steps, seed=seed)
+                d = acc.setdefault(name, {})
+                for k, v in r.items():
+                    d.setdefault(k, []).append(v)
     out: dict[str, float] = {}
     for name, d in acc.items():
         step = np.concatenate(d["step"])
@@ -160,9 +163,11 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--quick", action="store_true", help="300 steps, one round")
     p.add_argument("--steps", type=int, default=None, help="timed steps per episode")
     p.add_argument("--rounds", type=int, default=2, help="interleaved rounds")
+    p.add_argument("--seeds", type=int, nargs="+", default=[0],
+                   help="episode seeds, pooled (default: 0)")
     args = p.parse_args(argv)
     print(machine())
-    for k, v in run(args.quick, args.steps, args.rounds).items():
+    for k, v in run(args.quick, args.steps, args.rounds, tuple(args.seeds)).items():
         unit = " us" if k.endswith("_s") and "fit" not in k else ""
         val = v * 1e6 if unit else v
         print(f"{k:48s} {val:10.1f}{unit}" if unit else f"{k:48s} {val:10.3f}")
