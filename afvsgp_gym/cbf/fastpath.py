@@ -14,6 +14,10 @@ program with clarabel. An answer is used only after :func:`certify` accepted it.
   program as a non-negative least-squares problem, Lawson and Hanson 1974, ch. 23).
 - :func:`project_cone_box`: one second-order cone and the box (a scalar root of the cone's
   multiplier on a set of box faces, the faces chosen by a primal-dual active set).
+- :class:`MaxMarginLDP`, :func:`polish_max_margin`, :func:`certify_max_margin`: the
+  infeasible QP's max-worst-margin program (``min -t + eps/2 ||u - u_nom||^2`` s.t. ``a0 + a u
+  >= t`` and the box): its active set from a least-distance NNLS, the exact optimum on it,
+  and its certificate.
 
 Small arrays (m ~ 7) make numpy's per-call cost dominate: the code calls LAPACK directly
 (``dsyev``), keeps scalars as Python floats, multiplies with ``ndarray.dot`` (about half the

@@ -25,9 +25,12 @@ optimum of the whole program (whose feasible set lies inside the working set's),
 infeasible working set proves the whole program infeasible; after ``WORKING_SET_ROUNDS``
 rounds the whole program is solved. If the program is infeasible or the solve fails, a
 backup action or the action maximising the worst margin (``min -t + eps/2 ||u - u_nom||^2``)
-is returned, flagged infeasible. The returned action is always finite and inside the
-bounds, and one returned as feasible satisfies every constraint to ``1e-8`` of the
-constraint's scale (:func:`afvsgp_gym.cbf.fastpath.constraint_scales`).
+is returned, flagged infeasible; for half-spaces (the QP) that program is solved on a working
+set of them (the Farkas certificate's) and KKT-certified
+(:meth:`SOCPFilter._fast_max_margin`), clarabel solving it when that fails. The returned
+action is always finite and inside the bounds, and one returned as feasible satisfies every
+constraint to ``1e-8`` of the constraint's scale
+(:func:`afvsgp_gym.cbf.fastpath.constraint_scales`).
 """
 
 from __future__ import annotations
