@@ -14,6 +14,10 @@ program with clarabel. An answer is used only after :func:`certify` accepted it.
   program as a non-negative least-squares problem, Lawson and Hanson 1974, ch. 23).
 - :func:`project_cone_box`: one second-order cone and the box (a scalar root of the cone's
   multiplier on a set of box faces, the faces chosen by a primal-dual active set).
+- :class:`MaxMarginLDP`, :func:`polish_max_margin`, :func:`certify_max_margin`: the
+  infeasible QP's max-worst-margin program (``min -t + eps/2 ||u - u_nom||^2`` s.t. ``a0 + a u
+  >= t`` and the box): its active set from a least-distance NNLS, the exact optimum on it,
+  and its certificate.
 
 Small arrays (m ~ 7) make numpy's per-call cost dominate: the code calls LAPACK directly
 (``dsyev``), keeps scalars as Python floats, multiplies with ``ndarray.dot`` (about half the
@@ -26,7 +30,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.linalg.lapack import dsyev
+from scipy.linalg.lapack import dgetrf, dgetrs, dsyev
 from scipy.optimize import nnls
 
 #: Margin of a certified point: ``c_i(u) >= -FEAS_TOL * scale_i`` (rounding of ``c_i``).
@@ -613,3 +617,171 @@ class _ConeFaces:
                 return None
             return snap_to_box(u, low, high), eta * t
         return None
+
+
+_LDP_BOX: dict[int, np.ndarray] = {}  # the box's columns (read only)
+
+
+class MaxMarginLDP:
+    """Active sets of the max-worst-margin program
+
+        minimise  -t + eps/2 ||u - u_nom||^2   s.t.   a0 + a u >= t,   low <= u <= high
+
+    from the least-distance program with ``delta/2 (t - t_ref)^2`` added to the objective
+    (then strictly convex in ``(u, t)``): with ``z = (sqrt(eps) (u - u_nom), sqrt(delta) (t -
+    T))``, ``T = t_ref + 1/delta``, its objective is ``1/2 ||z||^2`` up to a constant, solved by
+    the NNLS of :func:`project_polyhedron_box` (row i: ``(a_i / sqrt(eps)) z_u - z_t /
+    sqrt(delta) >= T - a0_i - a_i u_nom``, normalised; the box in ``z_u``). The perturbation
+    changes the multipliers' sum from 1 to ``1 - delta (t - t_ref)``: the same active set
+    except near degenerate ties; :func:`polish_max_margin` then solves the exact program on
+    it. ``delta = eps / max ||a_i||^2`` balances the two parts of each row. The columns of
+    every half-space are computed once (:meth:`active_set` takes a working set of them).
+    ``norms``: the row norms of ``a`` with zeros replaced by 1."""
+
+    def __init__(self, u_nom, a0, a, low, high, eps: float, norms):
+        k, m = a.shape
+        big = float(norms.max())
+        delta = eps / (big * big)
+        inv_n = 1.0 / np.sqrt((norms * norms) * (1.0 / eps) + 1.0 / delta)
+        cols = np.empty((k, m + 1))
+        np.multiply(a, (inv_n * (1.0 / math.sqrt(eps)))[:, None], out=cols[:, :m])
+        cols[:, m] = inv_n * (-1.0 / math.sqrt(delta))
+        f = a.dot(u_nom)
+        f += a0
+        self.cols, self.inv_n = cols, inv_n
+        self.g = (1.0 / delta - f) * inv_n  # rhs at t_ref = 0
+        box = _LDP_BOX.get(m)
+        if box is None:
+            box = _LDP_BOX[m] = np.zeros((m + 2, 2 * m))
+            box[:m, :m] = np.eye(m)
+            box[:m, m:] = -np.eye(m)
+        box = box.copy()
+        se = math.sqrt(eps)
+        box[m + 1, :m] = se * (low - u_nom)
+        box[m + 1, m:] = se * (u_nom - high)
+        self.box = box
+        self.m = m
+        e = _E_LAST.get(m + 1)
+        if e is None:
+            e = _E_LAST[m + 1] = np.zeros(m + 2)
+            e[m + 1] = 1.0
+        self.e = e
+
+    def active_set(self, work, t_ref: float):
+        """``(rows, lower, upper)``: the binding half-spaces among ``work`` (indices) and
+        boolean masks of the box faces with a multiplier, for the program with only the
+        half-spaces ``work``; None if the NNLS fails."""
+        m, k = self.m, work.size
+        M = np.empty((m + 2, k + 2 * m))
+        M[: m + 1, :k] = self.cols[work].T
+        rhs = self.inv_n[work]
+        rhs *= t_ref
+        rhs += self.g[work]
+        M[m + 1, :k] = rhs
+        M[:, k:] = self.box
+        try:
+            y = _nnls(M, self.e, 10 * (k + 2 * m))
+        except (RuntimeError, ValueError):
+            return None
+        return work[y[:k] > 0.0], y[k : k + m] > 0.0, y[k + m :] > 0.0
+
+
+_BORDERED: dict[int, np.ndarray] = {}
+
+
+def polish_max_margin(u_nom, a0, a, low, high, eps: float, rows, lower, upper):
+    """``(u, t, mu)``: the exact optimum of the max-worst-margin program (see
+    :class:`MaxMarginLDP`) with the half-spaces ``rows`` binding (``a0_i + a_i u = t``) and
+    the coordinates in the masks ``lower`` / ``upper`` at those faces, the others free (F).
+
+    Stationarity ``eps (u_F - u_nom_F) = a_WF' mu``, ``sum mu = 1``; with ``nu = mu / eps``
+    the bordered system ``[[a_WF a_WF', -1], [1', 0]] (nu, t) = (-(a0_W + a_W u_base), 1 /
+    eps)``, ``u_base`` = ``u_nom`` with the fixed coordinates on their faces, and ``u_F =
+    u_base_F + a_WF' nu``. At an LP vertex ``nu`` is large (~1/eps) and ``a_WF' nu`` a
+    difference of large terms (rounding ~1e-11 in ``u``): one step of iterative refinement on
+    the binding margins makes them equal to rounding. None if the system is singular
+    (linearly dependent binding rows)."""
+    free = ~(lower | upper)
+    base = np.where(lower, low, np.where(upper, high, u_nom))
+    aw = a[rows]
+    af = aw[:, free]
+    w = rows.size
+    S = _BORDERED.get(w)
+    if S is None:
+        S = np.zeros((w + 1, w + 1))
+        S[:w, w] = -1.0
+        S[w, :w] = 1.0
+        _BORDERED[w] = S
+    S = S.copy()
+    S[:w, :w] = af.dot(af.T)
+    lu, piv, info = dgetrf(S, overwrite_a=1)
+    if info != 0:
+        return None
+    a0w = a0[rows]
+    rhs = np.empty(w + 1)
+    rhs[:w] = aw.dot(base)
+    rhs[:w] += a0w
+    rhs[:w] *= -1.0
+    rhs[w] = 1.0 / eps
+    x, info = dgetrs(lu, piv, rhs)
+    if info != 0:
+        return None
+    nu = x[:w]
+    u = base
+    u[free] += af.T.dot(nu)
+    # refinement: the residual of the binding margins and of the multipliers' sum
+    t = float(x[w])
+    rhs[:w] = aw.dot(u)
+    rhs[:w] += a0w
+    rhs[:w] -= t
+    rhs[:w] *= -1.0
+    rhs[w] = 1.0 / eps - float(nu.sum())
+    dx, info = dgetrs(lu, piv, rhs)
+    if info != 0:
+        return None
+    nu += dx[:w]
+    u[free] += af.T.dot(dx[:w])
+    nu *= eps
+    return u, t + float(dx[w]), nu
+
+
+def certify_max_margin(u, u_nom, c, tol, rows, mu, a_rows, low, high, eps: float) -> bool:
+    """KKT certificate of ``u`` (inside the box) for the max-worst-margin program (see
+    :class:`MaxMarginLDP`), with ``c = a0 + a u`` for every half-space, ``tol`` their
+    tolerances, ``rows`` the binding ones with multipliers ``mu`` and their rows ``a_rows``.
+
+    With ``t = min c`` the pair ``(u, t)`` is feasible. For ``mu >= 0``, ``sum mu = 1``, the
+    Lagrangian ``L(u) = eps/2 ||u - u_nom||^2 - mu'(a0 + a u)`` (``t`` drops out) bounds the
+    optimum from below over the box, the objective ``F(u) = -min c + eps/2 ||u - u_nom||^2``
+    is eps-strongly convex and ``F(u) - L(u) = mu'(c_rows - t)``, so
+
+        eps/2 ||u* - u||^2 <= F(u) - F* <= mu'(c_rows - t) + ||rho||^2 / (2 eps)
+
+    with ``rho`` the Lagrangian's gradient ``eps (u - u_nom) - a_rows' mu`` less its part
+    pushing inwards at a box face (as in :func:`certify`). Accepted when ``sum mu`` is 1 to
+    rounding and that bound is below ``DIST_TOL (1 + max|u|)``; a binding margin within its
+    tolerance of ``t`` counts as equal (the same backward-error convention as :func:`certify`).
+    """
+    mu_l = mu.tolist()
+    if not (min(mu_l, default=-1.0) >= 0.0 and abs(sum(mu_l) - 1.0) <= 1e-12 * len(mu_l)):
+        return False
+    t = float(c.min())
+    if t != t:  # NaN
+        return False
+    comp = 0.0
+    for mi, ci, ti in zip(mu_l, c[rows].tolist(), tol[rows].tolist(), strict=True):
+        if ci - t > ti:
+            comp += mi * (ci - t)
+    w = eps * (u - u_nom) - mu.dot(a_rows)
+    r2, umax = 0.0, 0.0
+    for wj, uj, lj, hj in zip(w.tolist(), u.tolist(), low.tolist(), high.tolist(),
+                              strict=True):
+        if uj <= lj:
+            wj = min(wj, 0.0)
+        elif uj >= hj:
+            wj = max(wj, 0.0)
+        elif not lj < uj < hj:  # NaN
+            return False
+        r2 += wj * wj
+        umax = max(umax, abs(uj))
+    return 2.0 * comp / eps + r2 / (eps * eps) <= (DIST_TOL * (1.0 + umax)) ** 2

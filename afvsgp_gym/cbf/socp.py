@@ -25,9 +25,12 @@ optimum of the whole program (whose feasible set lies inside the working set's),
 infeasible working set proves the whole program infeasible; after ``WORKING_SET_ROUNDS``
 rounds the whole program is solved. If the program is infeasible or the solve fails, a
 backup action or the action maximising the worst margin (``min -t + eps/2 ||u - u_nom||^2``)
-is returned, flagged infeasible. The returned action is always finite and inside the
-bounds, and one returned as feasible satisfies every constraint to ``1e-8`` of the
-constraint's scale (:func:`afvsgp_gym.cbf.fastpath.constraint_scales`).
+is returned, flagged infeasible; for half-spaces (the QP) that program is solved on a working
+set of them (the Farkas certificate's) and KKT-certified
+(:meth:`SOCPFilter._fast_max_margin`), clarabel solving it when that fails. The returned
+action is always finite and inside the bounds, and one returned as feasible satisfies every
+constraint to ``1e-8`` of the constraint's scale
+(:func:`afvsgp_gym.cbf.fastpath.constraint_scales`).
 """
 
 from __future__ import annotations
@@ -150,6 +153,8 @@ class SOCPFilter:
         self.fast_path = bool(fast_path)
         #: largest ``||u||`` in the box: the action scale of :func:`fastpath.constraint_scales`
         self.bound_norm = float(np.linalg.norm(np.maximum(np.abs(low), np.abs(high))))
+        #: smallest ``high - low``: coordinates this close (times 1e-12) outside count as in
+        self.box_width = float((high - low).min())
         self.programs = ConePrograms(low, high, self.tol, self.fallback_regularization)
 
     # ------------------------------------------------------------------ public
@@ -242,8 +247,9 @@ class SOCPFilter:
                 found = self._fast_qp(u_nom, a0, a, marg)
             except Exception:  # an uncertified case: clarabel decides
                 found = None
-            if found == "infeasible":  # certified by Farkas: no clarabel solve to confirm it
-                return self._fallback("infeasible", u_nom, uc, a0, a, G, None, t0, backup)
+            if found is not None and isinstance(found[0], str):  # certified by Farkas
+                return self._fallback("infeasible", u_nom, uc, a0, a, G, None, t0, backup,
+                                      rows=found[1])
             if found is not None:
                 u, path, marg = found
                 return SOCPResult(u, True, f"certified:{path}", marg, time.perf_counter() - t0)
@@ -327,7 +333,8 @@ class SOCPFilter:
 
     def _fast_qp(self, u_nom, a0, a, marg):
         """``(u, path, margins at u)`` from a certified fast path of the QP (paper eq. 04,
-        ``G = None``), ``"infeasible"`` (a Farkas certificate) or None.
+        ``G = None``), ``("infeasible", rows)`` (a Farkas certificate for the half-spaces
+        ``rows``, hence for the whole program) or None.
 
         One violated half-space at the clipped proposal: its projection. Otherwise the
         least-distance program over a working set of half-spaces, starting with those
@@ -355,8 +362,10 @@ class SOCPFilter:
         for _ in range(QP_WORKING_SET_ROUNDS):
             sol = fastpath.project_polyhedron_box(u_nom, a0[work], a[work], low, high,
                                                   norms[work])
-            if sol is None or isinstance(sol, str):  # "infeasible": for the whole program
-                return sol
+            if sol is None:
+                return None
+            if isinstance(sol, str):  # "infeasible": for the whole program
+                return sol, work
             u, lam = sol
             c = a @ u
             c += a0
@@ -419,6 +428,53 @@ class SOCPFilter:
             return u, "cone", np.array([c])
         return None
 
+    def _fast_max_margin(self, u_nom, uc, a0, a, rows=None):
+        """The max-worst-margin action of the QP (``min -t + eps/2 ||u - u_nom||^2`` s.t.
+        ``a0 + a u >= t``, the box), certified by :func:`fastpath.certify_max_margin`, or None.
+
+        A working set of half-spaces (``rows``, else all) is solved by
+        :class:`fastpath.MaxMarginLDP` (its active set) and
+        :func:`fastpath.polish_max_margin` (the exact optimum on that active set); an answer
+        whose worst margin is its own ``t`` (every other half-space satisfied at that margin)
+        is the optimum of the whole program, whose feasible set lies inside the working
+        set's. Otherwise the working set grows by the half-spaces the answer violates,
+        ``QP_WORKING_SET_ROUNDS`` times at most."""
+        low, high, eps = self.low, self.high, self.fallback_regularization
+        if not eps > 0.0:
+            return None
+        norms = np.sqrt(np.einsum("ij,ij->i", a, a))
+        tol = fastpath.constraint_scales(a0, a, None, self.bound_norm, norms)
+        tol *= fastpath.FEAS_TOL
+        norms[norms == 0.0] = 1.0
+        c = a @ uc
+        c += a0
+        t_ref = float(c.min())
+        work = np.arange(a0.size) if rows is None else rows
+        ldp = fastpath.MaxMarginLDP(u_nom, a0, a, low, high, eps, norms)
+        for _ in range(QP_WORKING_SET_ROUNDS):
+            found = ldp.active_set(work, t_ref)
+            if found is None:
+                return None
+            act, lower, upper = found
+            sol = fastpath.polish_max_margin(u_nom, a0, a, low, high, eps, act, lower, upper)
+            if sol is None:
+                return None
+            u, t, mu = sol
+            out = np.maximum(low - u, u - high)
+            if not float(out.max()) <= 1e-12 * self.box_width:  # a free coordinate left it
+                return None
+            u = fastpath.clip(u, low, high)
+            c = a @ u
+            c += a0
+            if fastpath.certify_max_margin(u, u_nom, c, tol, act, mu, a[act], low, high, eps):
+                return u
+            bad = np.flatnonzero(c - t + tol < 0.0)
+            grown = np.union1d(work, bad)
+            if grown.size == work.size:
+                return None  # the working set's answer does not certify
+            work, t_ref = grown, t
+        return None
+
     def _run_qpsolvers(self, u_nom, a0, a):
         import qpsolvers
         import scipy.sparse as sp
@@ -464,7 +520,11 @@ class SOCPFilter:
             return None
         return np.clip(ub, self.low, self.high)
 
-    def _fallback(self, status, u_nom, uc, a0, a, G, valid, t0, backup=None) -> SOCPResult:
+    def _fallback(self, status, u_nom, uc, a0, a, G, valid, t0, backup=None,
+                  rows=None) -> SOCPResult:
+        """The flagged backup action, or the max-worst-margin action: for half-spaces
+        (``G`` None) from :meth:`_fast_max_margin` when it is certified (``rows``: the
+        half-spaces of a Farkas certificate, its first working set), else clarabel's."""
         u = self._backup_action(backup)
         if u is not None:
             status = f"backup:{status}"
@@ -474,9 +534,18 @@ class SOCPFilter:
             u = uc
             kind = "fallback_qp" if G is None else "fallback_socp"
             try:
-                x, fb_status = self.programs.solve(kind, u_nom, a0, a, G)
-                if fb_status in SOLVED and np.all(np.isfinite(x[: self.m])):
-                    u = np.clip(x[: self.m], self.low, self.high)
+                found = None
+                if G is None and self.fast_path:
+                    try:
+                        found = self._fast_max_margin(u_nom, uc, a0, a, rows)
+                    except Exception:  # an uncertified case: clarabel decides
+                        found = None
+                if found is not None:
+                    u = found
+                else:
+                    x, fb_status = self.programs.solve(kind, u_nom, a0, a, G)
+                    if fb_status in SOLVED and np.all(np.isfinite(x[: self.m])):
+                        u = np.clip(x[: self.m], self.low, self.high)
                 status = f"fallback:{status}" if status != "invalid_input" else status
             except Exception as exc:
                 status = f"fallback_failed:{type(exc).__name__}"
