@@ -164,6 +164,14 @@ def _distance_bound_ok(u, w, comp: float, low, high) -> bool:
     """The distance bound of :func:`certify`: ``w = u - u_nom - grads' lam`` less the box
     multipliers it implies (its part pushing inwards at a face) is the Lagrangian's gradient
     ``rho``; ``||rho|| + sqrt(||rho||^2 + 2 comp) <= DIST_TOL (1 + max|u|)``."""
+    r2, umax = _box_residual(w, u, low, high)
+    r = math.sqrt(r2)
+    return r + math.sqrt(r2 + 2.0 * comp) <= DIST_TOL * (1.0 + umax)
+
+
+def _box_residual(w, u, low, high) -> tuple[float, float]:
+    """``(||rho||^2, max|u|)``, ``rho`` = ``w`` less its part pushing inwards at a face of
+    the box that ``u`` lies on (what the face's multiplier absorbs); NaN if ``u`` is NaN."""
     r2, umax = 0.0, 0.0
     for wj, uj, lj, hj in zip(w.tolist(), u.tolist(), low.tolist(), high.tolist(),
                               strict=True):
@@ -171,10 +179,11 @@ def _distance_bound_ok(u, w, comp: float, low, high) -> bool:
             wj = min(wj, 0.0)
         elif uj >= hj:
             wj = max(wj, 0.0)
+        elif not lj < uj < hj:  # NaN
+            return math.nan, math.nan
         r2 += wj * wj
         umax = max(umax, abs(uj))
-    r = math.sqrt(r2)
-    return r + math.sqrt(r2 + 2.0 * comp) <= DIST_TOL * (1.0 + umax)
+    return r2, umax
 
 
 def snap_to_box(u, low, high) -> np.ndarray:
@@ -772,16 +781,5 @@ def certify_max_margin(u, u_nom, c, tol, rows, mu, a_rows, low, high, eps: float
     for mi, ci, ti in zip(mu_l, c[rows].tolist(), tol[rows].tolist(), strict=True):
         if ci - t > ti:
             comp += mi * (ci - t)
-    w = eps * (u - u_nom) - mu.dot(a_rows)
-    r2, umax = 0.0, 0.0
-    for wj, uj, lj, hj in zip(w.tolist(), u.tolist(), low.tolist(), high.tolist(),
-                              strict=True):
-        if uj <= lj:
-            wj = min(wj, 0.0)
-        elif uj >= hj:
-            wj = max(wj, 0.0)
-        elif not lj < uj < hj:  # NaN
-            return False
-        r2 += wj * wj
-        umax = max(umax, abs(uj))
+    r2, umax = _box_residual(eps * (u - u_nom) - mu.dot(a_rows), u, low, high)
     return 2.0 * comp / eps + r2 / (eps * eps) <= (DIST_TOL * (1.0 + umax)) ** 2
