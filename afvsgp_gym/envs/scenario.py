@@ -217,6 +217,6 @@ def check_action(action, shape: tuple[int, ...]) -> np.ndarray:
         raise ValueError(f"action must be numeric with shape {shape}: {exc}") from None
     if a.shape != shape:
         raise ValueError(f"action must have shape {shape}, got {a.shape}")
-    if not np.all(np.isfinite(a)):
+    if not np.isfinite(a).all():
         raise ValueError(f"action must be finite (no NaN/inf), got {a}")
     return a
