@@ -280,7 +280,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
             + [np.full(3 * n_obs, 5.0), np.full(3 * n_obs, 5.0)]
             + [np.full(3, 3.0), np.full(3, 10.0), np.full(3, 50.0)]
         )
-        self._obs_high = lim
+        self._obs_high, self._obs_low = lim, -lim
         obs_space = spaces.Box(-lim.astype(np.float32), lim.astype(np.float32), dtype=np.float32)
         super().__init__(
             fm.asset_dir(),  # the model is assembled in _initialize_simulation
@@ -661,7 +661,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
             + [s[1] for s in self._obstacle_states]
             + [r, rd, rdd]
         )
-        np.clip(obs, -self._obs_high, self._obs_high, out=obs)
+        np.minimum(np.maximum(obs, self._obs_low, out=obs), self._obs_high, out=obs)  # clip
         return obs.astype(np.float32)
 
     def _contact(self) -> bool:
