@@ -22,7 +22,9 @@ from afvsgp_gym.envs.safety_spheres import (
 from afvsgp_gym.envs.scenario import (
     CyclicReference,
     ObstacleSpec,
+    dot3,
     parse_obstacles,
+    sphere_barrier,
     sphere_barriers,
 )
 from afvsgp_gym.types import BarrierSet
@@ -278,7 +280,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
             + [np.full(3 * n_obs, 5.0), np.full(3 * n_obs, 5.0)]
             + [np.full(3, 3.0), np.full(3, 10.0), np.full(3, 50.0)]
         )
-        self._obs_high = lim
+        self._obs_high, self._obs_low = lim, -lim
         obs_space = spaces.Box(-lim.astype(np.float32), lim.astype(np.float32), dtype=np.float32)
         super().__init__(
             fm.asset_dir(),  # the model is assembled in _initialize_simulation
@@ -355,6 +357,21 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
             f"{s.body.removeprefix('panda0_')}[{i}]/obstacle{o}"
             for o in range(self.n_obstacles)
             for i, s in enumerate(spheres)
+        )
+        # One-sphere shortcuts (the paper's "ee"), each giving the general path's numbers:
+        # the sphere at the end-effector site is the site (MuJoCo's site_xpos is xmat @ pos +
+        # xpos, the sum _sphere_centres forms; with one nonzero offset entry the order of the
+        # sum cannot matter) and one pair is geometry in Python floats (sphere_barrier).
+        site_pos = m.site_pos[self._site]
+        at_site = (
+            n_s == 1
+            and self._sphere_bodies[0] == int(m.site_bodyid[self._site])
+            and np.array_equal(offsets[0], site_pos)
+            and np.count_nonzero(site_pos) <= 1
+        )
+        self._kinematics = self._site_kinematics if at_site else self._point_kinematics
+        self._geometry_of = (
+            self._one_pair_geometry if self.n_barriers == 1 else self._pair_geometry
         )
 
     def _plant_parameters(self, cfg: dict[str, Any]) -> fm.PlantParameters:
@@ -468,8 +485,8 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         d.ctrl[:] = 0.0
         self._place_markers()
         mujoco.mj_forward(self.model, d)
-        self._spheres, self._ee = self._point_kinematics()
-        self._geometry = self._pair_geometry()
+        self._spheres, self._ee = self._kinematics()
+        self._geometry = self._geometry_of()
         self._invalidate_barriers()
 
     def _place_markers(self) -> None:
@@ -505,6 +522,19 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         vel = jac @ d.qvel
         spheres = (p, vel[:n_s], jac[:n_s], vel[n_s : 2 * n_s])
         return spheres, (d.site_xpos[self._site].copy(), vel[-1])
+
+    def _site_kinematics(self) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, np.ndarray]]:
+        """:meth:`_point_kinematics` when the one sphere is the end-effector site: its
+        Jacobian is the site's (``mj_jacSite`` is ``mj_jac`` at ``site_xpos``)."""
+        m, d = self.model, self.data
+        p = d.site_xpos[self._site].copy()
+        jac = np.empty((2, 3, m.nv))  # [J_s, J_s']: numpy multiplies block by block, so the
+        # velocities are those of the general path's stack
+        self._ee_jac = jac[0]
+        mujoco.mj_jacSite(m, d, self._ee_jac, None, self._site)
+        mujoco.mj_jacDot(m, d, jac[1], None, p, self._sphere_bodies[0])
+        vel = jac @ d.qvel
+        return (p[None], vel[:1], jac[:1], vel[1:]), (p, vel[0])
 
     def _obstacle_constants(self) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
         """What stays fixed while ``self.obstacles`` is the same tuple (rebuilt when a new one
@@ -547,6 +577,18 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         a_obs = None if static is not None else np.repeat(st[:, 2], n_s, axis=0)
         return derivs, n, curv, xi, a_obs
 
+    def _one_pair_geometry(self) -> tuple[np.ndarray, ...]:
+        """:meth:`_pair_geometry` for one sphere and one obstacle, in Python floats."""
+        p, v, _, _ = self._spheres
+        po, vo, ao = self._obstacle_states[0]
+        d, vr = (p[0] - po).tolist(), (v[0] - vo).tolist()
+        h, hd, n, curv = sphere_barrier(d, vr, float(self._obstacle_constants()[0][0]))
+        derivs = np.array([[h, hd]])
+        xi = np.array([self.data.qpos.tolist() + self.data.qvel.tolist() + d + vr])
+        derivs.flags.writeable = xi.flags.writeable = False
+        a_obs = None if self.obstacles[0].duration == 0.0 else ao[None]
+        return derivs, np.array([n]), np.array([curv]), xi, a_obs
+
     def _zero_terms(self, k: int) -> tuple[np.ndarray, np.ndarray]:
         """Read-only ``lf = 0`` (k,) and ``lg = 0`` (k, 7), made once."""
         zero = self._zeros
@@ -580,10 +622,17 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
             acc = jac @ d.qacc + bias
             gain = jminv.reshape(n_s, 3, -1) * self.action_scale
             lg = np.einsum("osi,sij->osj", ns, gain).reshape(k, -1)
-        lf = np.einsum("osi,si->os", ns, acc).ravel()
-        if a_obs is not None:  # static obstacles: a_o = 0
-            lf -= np.einsum("ki,ki->k", n, a_obs)
-        lf += curv
+        if k == 1:  # one pair: the same sums in Python floats (dot3)
+            n1 = n[0].tolist()
+            lf1 = dot3(n1, acc[0].tolist())
+            if a_obs is not None:
+                lf1 -= dot3(n1, a_obs[0].tolist())
+            lf = np.array([lf1 + float(curv[0])])
+        else:
+            lf = np.einsum("osi,si->os", ns, acc).ravel()
+            if a_obs is not None:  # static obstacles: a_o = 0
+                lf -= np.einsum("ki,ki->k", n, a_obs)
+            lf += curv
         lf.flags.writeable = lg.flags.writeable = False
         return BarrierSet(derivs, lf, lg, xi)
 
@@ -612,7 +661,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
             + [s[1] for s in self._obstacle_states]
             + [r, rd, rdd]
         )
-        np.clip(obs, -self._obs_high, self._obs_high, out=obs)
+        np.minimum(np.maximum(obs, self._obs_low, out=obs), self._obs_high, out=obs)  # clip
         return obs.astype(np.float32)
 
     def _contact(self) -> bool:

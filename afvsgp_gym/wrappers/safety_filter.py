@@ -191,5 +191,5 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
             c0, c = self.controller.hocbf.constraints(BarrierSet.stack(base.barrier_terms("true")))
         except (ValueError, TypeError):
             return float("nan")
-        u = clip(proposed, self.controller.low, self.controller.high)
-        return float((c0 + c @ u).min())
+        margin = c0 + c.dot(clip(proposed, self.controller.low, self.controller.high))
+        return float(margin[0] if len(margin) == 1 else margin.min())

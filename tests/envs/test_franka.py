@@ -424,6 +424,8 @@ def test_static_obstacle_shortcut_equals_general_terms(spheres):
     env = FrankaObstacleEnv("static", safety_spheres=spheres, nominal_model="kinematic")
     env.reset(seed=0)
     env.set_state(fm.Q_HOME + 0.05, np.full(7, 0.3))
+    env._geometry = env._pair_geometry()  # the batched path also for one sphere ("ee")
+    env._invalidate_barriers()
     fast = [env.barrier_terms(m) for m in ("true", "nominal")]
     rad, static, reach2 = env._obstacle_constants()
     assert static is not None
@@ -434,6 +436,68 @@ def test_static_obstacle_shortcut_equals_general_terms(spheres):
         g = env.barrier_terms(m)
         for a, b in ((t.derivatives, g.derivatives), (t.lf, g.lf), (t.lg, g.lg), (t.xi, g.xi)):
             np.testing.assert_array_equal(a, b)
+
+
+def _einsum_sums_like_dot3() -> bool:
+    """Whether numpy's einsum sums three products as ``(a0 b0 + a2 b2) + a1 b1`` on this
+    build (two-lane SIMD), the order ``dot3`` writes out."""
+    a, b = np.random.default_rng(0).standard_normal((2, 200, 3))
+    ref = (a[:, 0] * b[:, 0] + a[:, 2] * b[:, 2]) + a[:, 1] * b[:, 1]
+    return np.array_equal(np.einsum("ki,ki->k", a, b), ref) and np.array_equal(
+        np.einsum("osi,si->os", a[None], b)[0], ref
+    )
+
+
+@pytest.mark.parametrize("scenario", ["static", "dynamic"])
+@pytest.mark.parametrize(
+    "spheres", ["ee", [("panda0_link5", (0.0, 0.01, -0.1), 0.08)]], ids=["ee", "link5"]
+)
+def test_one_sphere_shortcuts_equal_general_path(spheres, scenario):
+    """One sphere and one obstacle: the site kinematics (the "ee" sphere is the end-effector
+    site) and the one-pair sums in Python floats give the numbers of the general path, for the
+    kinematics, the geometry and every model's terms. Bit for bit where numpy's einsum sums
+    three products in ``dot3``'s order (the x86-64 wheels); elsewhere to 1e-12 (rounding is
+    ~1e-16 of these O(1-100) numbers, a wrong term O(1))."""
+    env = FrankaObstacleEnv(scenario, safety_spheres=spheres, nominal_model="perturbed",
+                            warmup_steps=0)
+    assert env._geometry_of == env._one_pair_geometry
+    assert (env._kinematics == env._site_kinematics) == (spheres == "ee")
+    if _einsum_sums_like_dot3():
+        same = np.testing.assert_array_equal
+    else:  # pragma: no cover - other SIMD builds
+        def same(a, b):
+            np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12)
+    kinds = ("zero", "kinematic", "perturbed", "exact")
+    agent = NominalController(env)
+    rng = np.random.default_rng(0)
+    obs, _ = env.reset(seed=0)
+    moving = 0
+    for t in range(400):
+        obs, *_ = env.step(agent(obs) + rng.normal(0.0, 0.1, 7))
+        if t % 40:
+            continue
+        fast = (*env._spheres, *env._ee, *env._geometry)
+        fast_terms = [env._compute_barriers(k) for k in kinds]
+        env._spheres, env._ee = env._point_kinematics()
+        env._geometry = env._pair_geometry()
+        general = (*env._spheres, *env._ee, *env._geometry)
+        for a, b in zip(fast, general, strict=True):
+            assert (a is None) == (b is None)
+            if a is not None:
+                same(a, b)
+        moving += general[-1] is not None
+        for f, g in zip(fast_terms, (env._compute_barriers(k) for k in kinds), strict=True):
+            for a, b in ((f.derivatives, g.derivatives), (f.lf, g.lf), (f.lg, g.lg),
+                         (f.xi, g.xi)):
+                same(a, b)
+        env._after_state_change()  # back to the shortcuts
+    assert moving == (10 if scenario == "dynamic" else 0)
+
+
+def test_arm_takes_the_general_path():
+    env = FrankaObstacleEnv("static")
+    assert env._kinematics == env._point_kinematics
+    assert env._geometry_of == env._pair_geometry
 
 
 def test_obstacle_constants_follow_new_obstacles():
