@@ -331,6 +331,15 @@ class SOCPFilter:
             dist = -marg[violated] / np.sqrt(np.einsum("ki,ki->k", grad, grad))
         return violated[np.argsort(-dist, kind="stable")]
 
+    def _halfspace_scales(self, a0, a):
+        """``(norms, tol)`` of half-spaces: the row norms ``||a_i||`` (zeros replaced by 1) and
+        the feasibility tolerances ``FEAS_TOL scale_i`` (from the true norms)."""
+        norms = np.sqrt(np.einsum("ij,ij->i", a, a))
+        tol = fastpath.constraint_scales(a0, a, None, self.bound_norm, norms)
+        tol *= fastpath.FEAS_TOL
+        norms[norms == 0.0] = 1.0
+        return norms, tol
+
     def _fast_qp(self, u_nom, a0, a, marg):
         """``(u, path, margins at u)`` from a certified fast path of the QP (paper eq. 04,
         ``G = None``), ``("infeasible", rows)`` (a Farkas certificate for the half-spaces
@@ -344,9 +353,7 @@ class SOCPFilter:
         the others, in :func:`fastpath.certify_halfspaces`), and an infeasible working set
         (a Farkas certificate for its rows) proves the whole program infeasible."""
         low, high = self.low, self.high
-        norms = np.sqrt(np.einsum("ij,ij->i", a, a))
-        tol = fastpath.constraint_scales(a0, a, None, self.bound_norm, norms)
-        tol *= fastpath.FEAS_TOL
+        norms, tol = self._halfspace_scales(a0, a)
         work = np.flatnonzero(marg < 0.0)
         if work.size == 1:
             i = int(work[0])
@@ -358,7 +365,6 @@ class SOCPFilter:
                 if fastpath.certify_halfspaces(u, u_nom, c, tol, work, np.array([lam]),
                                                a[work], low, high):
                     return u, "halfspace", c
-        norms[norms == 0.0] = 1.0
         for _ in range(QP_WORKING_SET_ROUNDS):
             sol = fastpath.project_polyhedron_box(u_nom, a0[work], a[work], low, high,
                                                   norms[work])
@@ -442,10 +448,7 @@ class SOCPFilter:
         low, high, eps = self.low, self.high, self.fallback_regularization
         if not eps > 0.0:
             return None
-        norms = np.sqrt(np.einsum("ij,ij->i", a, a))
-        tol = fastpath.constraint_scales(a0, a, None, self.bound_norm, norms)
-        tol *= fastpath.FEAS_TOL
-        norms[norms == 0.0] = 1.0
+        norms, tol = self._halfspace_scales(a0, a)
         c = a @ uc
         c += a0
         t_ref = float(c.min())
