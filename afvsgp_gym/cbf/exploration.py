@@ -14,6 +14,8 @@ import math
 
 import numpy as np
 
+from afvsgp_gym.cbf.fastpath import clip
+
 __all__ = ["Exploration", "relative_gain_uncertainty"]
 
 
@@ -45,7 +47,7 @@ class Exploration:
         if std <= 0 or not math.isfinite(float(u.sum())):
             return u
         noisy = u + std * self._half_range * self._rng.standard_normal(u.shape[0])
-        return np.minimum(np.maximum(noisy, self.low), self.high)  # np.clip, cheaper
+        return clip(noisy, self.low, self.high)
 
 
 def relative_gain_uncertainty(sigma: np.ndarray, gain: np.ndarray,
