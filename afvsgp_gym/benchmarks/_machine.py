@@ -1,13 +1,17 @@
-"""One-line description of the machine a benchmark ran on."""
+"""One-line description of the machine a benchmark ran on, and what its speed is made of."""
 
 from __future__ import annotations
 
 import os
 import platform
+import timeit
+
+import numpy as np
 
 
 def machine() -> str:
-    """CPU model name (from /proc/cpuinfo where present), core count and Python version."""
+    """CPU model name (from /proc/cpuinfo where present), core count, Python version and
+    whether numpy runs AVX-512 kernels on it (its float64 ``exp`` is vectorised only there)."""
     cpu = platform.processor() or platform.machine()
     try:
         with open("/proc/cpuinfo") as fh:
@@ -17,4 +21,44 @@ def machine() -> str:
                     break
     except OSError:
         pass
-    return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}"
+    out = f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}"
+    avx512 = _numpy_avx512()
+    return out if avx512 is None else f"{out}, numpy AVX-512 {'yes' if avx512 else 'no'}"
+
+
+def _numpy_avx512() -> bool | None:
+    try:
+        from numpy._core._multiarray_umath import __cpu_features__ as features
+    except ImportError:
+        try:
+            from numpy.core._multiarray_umath import __cpu_features__ as features
+        except ImportError:
+            return None
+    return bool(features.get("AVX512F", False))
+
+
+def calibration(repeat: int = 7) -> dict[str, float]:
+    """The three costs the filtered step is made of, each the best of ``repeat`` timings
+    (the least disturbed by other load): one small numpy call (``a + a``, 8 elements, ns),
+    float64 ``exp`` per element (6,720 values in [-20, 0], the learners' kernel block, ns)
+    and the Cholesky factor of a 40 x 40 matrix (``np.linalg.cholesky``, us). Compare
+    absolute times between machines through these, not through the CPU's name."""
+    rng = np.random.default_rng(0)
+    small = np.ones(8)
+    expo = -20.0 * rng.random(6720)
+    a = rng.standard_normal((40, 40))
+    spd = a @ a.T + 40.0 * np.eye(40)
+
+    def best(fn, number: int) -> float:
+        return min(timeit.repeat(fn, number=number, repeat=repeat)) / number
+
+    return {
+        "numpy call ns": best(lambda: small + small, 2000) * 1e9,
+        "float64 exp ns/element": best(lambda: np.exp(expo), 50) / expo.size * 1e9,
+        "cholesky 40x40 us": best(lambda: np.linalg.cholesky(spd), 200) * 1e6,
+    }
+
+
+def calibration_line() -> str:
+    """:func:`calibration` as one line."""
+    return "calibration: " + ", ".join(f"{k} {v:.1f}" for k, v in calibration().items())

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from afvsgp_gym.benchmarks._machine import machine
+from afvsgp_gym.benchmarks._machine import calibration_line, machine
 
 #: name -> env kwargs ("fast_path": False turns the solver's certified fast path off, so
 #: every cone program goes to clarabel: the step without what the fast path saves)
@@ -167,6 +167,7 @@ def main(argv: list[str] | None = None) -> None:
                    help="episode seeds, pooled (default: 0)")
     args = p.parse_args(argv)
     print(machine())
+    print(calibration_line(), flush=True)
     for k, v in run(args.quick, args.steps, args.rounds, tuple(args.seeds)).items():
         unit = " us" if k.endswith("_s") and "fit" not in k else ""
         val = v * 1e6 if unit else v

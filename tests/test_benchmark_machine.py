@@ -1,0 +1,19 @@
+"""The machine line and speed calibration printed with every benchmark."""
+
+import math
+import os
+
+from afvsgp_gym.benchmarks._machine import calibration, calibration_line, machine
+
+
+def test_machine_names_cores_and_python():
+    line = machine()
+    assert f"{os.cpu_count()} cores" in line
+    assert "Python 3." in line
+
+
+def test_calibration_gives_three_positive_costs():
+    cal = calibration(repeat=2)
+    assert set(cal) == {"numpy call ns", "float64 exp ns/element", "cholesky 40x40 us"}
+    assert all(math.isfinite(v) and v > 0.0 for v in cal.values())
+    assert calibration_line().startswith("calibration: numpy call ns ")
