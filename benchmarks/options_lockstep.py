@@ -74,7 +74,15 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--steps", type=int, default=2000, help="env steps per episode")
     p.add_argument("--env", default="afvsgp_gym/FrankaObstacleStatic-v0")
     args = p.parse_args(argv)
-    options = [json.loads(o) for o in args.options]
+    options = []
+    for text in args.options:
+        try:
+            opt = json.loads(text)
+        except json.JSONDecodeError as exc:
+            p.error(f"--options: {text!r} is not JSON ({exc})")
+        if not isinstance(opt, dict):
+            p.error(f"--options: {text!r} is not a JSON object")
+        options.append(opt)
     print(machine())
     print(calibration_line(), flush=True)
     pooled: list[list[np.ndarray]] = [[] for _ in options]

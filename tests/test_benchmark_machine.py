@@ -3,6 +3,8 @@
 import math
 import os
 
+import pytest
+
 from afvsgp_gym.benchmarks._machine import calibration, calibration_line, machine
 
 
@@ -17,3 +19,9 @@ def test_calibration_gives_three_positive_costs():
     assert set(cal) == {"numpy call ns", "float64 exp ns/element", "cholesky 40x40 us"}
     assert all(math.isfinite(v) and v > 0.0 for v in cal.values())
     assert calibration_line().startswith("calibration: numpy call ns ")
+
+
+@pytest.mark.parametrize("bad", [0, -1, 2.5, True, None])
+def test_calibration_rejects_a_bad_repeat(bad):
+    with pytest.raises(ValueError, match="repeat"):
+        calibration(repeat=bad)

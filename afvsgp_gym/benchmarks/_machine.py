@@ -43,6 +43,8 @@ def calibration(repeat: int = 7) -> dict[str, float]:
     float64 ``exp`` per element (6,720 values in [-20, 0], the learners' kernel block, ns)
     and the Cholesky factor of a 40 x 40 matrix (``np.linalg.cholesky``, us). Compare
     absolute times between machines through these, not through the CPU's name."""
+    if isinstance(repeat, bool) or not isinstance(repeat, int) or repeat < 1:
+        raise ValueError(f"repeat must be an integer >= 1. Got: {repeat!r}")
     rng = np.random.default_rng(0)
     small = np.ones(8)
     expo = -20.0 * rng.random(6720)
