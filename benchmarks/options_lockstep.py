@@ -24,6 +24,7 @@ import numpy as np
 import afvsgp_gym  # noqa: F401  (registers the envs)
 from afvsgp_gym.agents import NominalController
 from afvsgp_gym.benchmarks._machine import calibration_line, machine
+from afvsgp_gym.cli import _json_arg
 from afvsgp_gym.wrappers import SafetyFilter
 
 
@@ -74,15 +75,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--steps", type=int, default=2000, help="env steps per episode")
     p.add_argument("--env", default="afvsgp_gym/FrankaObstacleStatic-v0")
     args = p.parse_args(argv)
-    options = []
-    for text in args.options:
-        try:
-            opt = json.loads(text)
-        except json.JSONDecodeError as exc:
-            p.error(f"--options: {text!r} is not JSON ({exc})")
-        if not isinstance(opt, dict):
-            p.error(f"--options: {text!r} is not a JSON object")
-        options.append(opt)
+    options = [_json_arg(p, text, "--options") for text in args.options]
     print(machine())
     print(calibration_line(), flush=True)
     pooled: list[list[np.ndarray]] = [[] for _ in options]
