@@ -24,7 +24,7 @@ import numpy as np
 import afvsgp_gym  # noqa: F401  (registers the envs)
 from afvsgp_gym.agents import NominalController
 from afvsgp_gym.benchmarks._machine import calibration_line, machine
-from afvsgp_gym.cli import _json_arg
+from afvsgp_gym.cli import _json_arg, _positive
 from afvsgp_gym.wrappers import SafetyFilter
 
 
@@ -72,7 +72,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--seeds", type=int, nargs="+", default=[0])
     p.add_argument("--options", nargs="+", default=["{}"],
                    help="filter options per configuration, as JSON objects")
-    p.add_argument("--steps", type=int, default=2000, help="env steps per episode")
+    p.add_argument("--steps", type=_positive, default=2000,
+                   help="env steps per episode (the warm-up included)")
     p.add_argument("--env", default="afvsgp_gym/FrankaObstacleStatic-v0")
     args = p.parse_args(argv)
     options = [_json_arg(p, text, "--options") for text in args.options]
@@ -85,6 +86,8 @@ def main(argv: list[str] | None = None) -> None:
             for run in runs:
                 run.step()
         for i, run in enumerate(runs):
+            if not run.times:
+                p.error(f"--steps {args.steps} ends before the warm-up does: nothing was timed")
             pooled[i].append(np.asarray(run.times))
             print(f"seed {seed:3d}  config {i}  {_summary(pooled[i][-1])}", flush=True)
             run.env.close()
