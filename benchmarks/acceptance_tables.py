@@ -153,15 +153,16 @@ def main() -> None:
                          f"{s['track']:.3f} m")
         print("; ".join(parts))
 
-    print("\n| filter | episodes | with h < 0 | min h [m] | tracking [m] | with an arm contact |"
-          "\n|---|---|---|---|---|---|")
-    for sc in ("static", "dynamic"):
-        s = summary(select(recs, "paper_ee", scenario=sc))
-        print(f"| end-effector, {sc} | {s['n']} | {s['h_eps']} | {s['min_h']:.4f} | "
-              f"{s['track']:.4f} | {s['contact_eps']} |")
-    s = summary(select(recs, "pointmass"))
-    print(f"| point mass | {s['n']} | {s['h_eps']} | {s['min_h']:.4f} | {s['track']:.4f} | "
-          f"{s['contact_eps']} |")
+    rows = [(f"end-effector, {sc}", select(recs, "paper_ee", scenario=sc))
+            for sc in ("static", "dynamic")] + [("point mass", select(recs, "pointmass"))]
+    rows = [(name, sel) for name, sel in rows if sel]  # blocks the sweep did not run: no row
+    if rows:
+        print("\n| filter | episodes | with h < 0 | min h [m] | tracking [m] | with an arm "
+              "contact |\n|---|---|---|---|---|---|")
+    for name, sel in rows:
+        s = summary(sel)
+        print(f"| {name} | {s['n']} | {s['h_eps']} | {s['min_h']:.4f} | {s['track']:.4f} | "
+              f"{s['contact_eps']} |")
 
 
 if __name__ == "__main__":
