@@ -11,8 +11,12 @@ arm with a second obstacle) and times, per control step after the warm-up, with 
 - ``learners``: the part of it spent in the learner bank (``predict_affine`` + ``update``);
 - ``fit``: the end-of-warm-up hyperparameter fit of all K learners (CPU seconds).
 
-Everything runs in one process, configurations interleaved over ``rounds`` so that machine
-load drifts hit all of them alike. Pin the process to one core (``taskset -c 0``) with
+Everything runs in one process. The configurations' episodes of one seed advance one control
+step each in turn (lockstep), so that a drift of the machine's speed, up to 2x within minutes
+on the VMs measured, hits all of them alike and the ratios are measured on the same seconds;
+each step then finds the caches warmed by the other configurations, which makes absolute
+times somewhat higher than a configuration alone (``--sequential`` runs them one after
+another). Pin the process to one core (``taskset -c 0``) with
 ``OPENBLAS_NUM_THREADS=1``.
 """
 
@@ -53,90 +57,131 @@ def _env_kwargs(spec: dict[str, Any]) -> dict[str, Any]:
     return kw
 
 
+class TimedEpisode:
+    """One filtered episode prefix of configuration ``spec`` whose filter is timed per control
+    step (see the module docstring); :meth:`step` advances it by one control step."""
+
+    def __init__(self, spec: dict[str, Any], learner: str = "afvsgp", steps: int = 1500,
+                 seed: int = 0):
+        import gymnasium as gym
+
+        import afvsgp_gym  # noqa: F401
+        from afvsgp_gym.agents import NominalController
+        from afvsgp_gym.wrappers import SafetyFilter
+
+        self.env = env = SafetyFilter(
+            gym.make("afvsgp_gym/FrankaObstacleStatic-v0", **_env_kwargs(spec)),
+            learner=learner, seed=seed)
+        ctrl, bank = env.controller, env.controller.bank
+        ctrl.socp.fast_path = bool(spec.get("fast_path", True))
+        clock = {"learners": 0.0}
+
+        def timed(fn):
+            def wrapper(*a, **k):
+                t0 = time.perf_counter()
+                out = fn(*a, **k)
+                clock["learners"] += time.perf_counter() - t0
+                return out
+            return wrapper
+
+        bank.predict_affine, bank.update = timed(bank.predict_affine), timed(bank.update)
+        self.fit_cpu = np.nan
+        fit = ctrl.fit
+
+        def timed_fit(*a, **k):
+            t0 = time.process_time()
+            out = fit(*a, **k)
+            self.fit_cpu = time.process_time() - t0
+            return out
+
+        ctrl.fit = timed_fit
+        filt, observe = ctrl.filter, ctrl.observe
+        self.out: dict[str, list] = {"step": [], "learners": [], "n_active": []}
+        current = {"t": 0.0}
+
+        def timed_filter(*a, **k):
+            t0 = time.perf_counter()
+            res = filt(*a, **k)
+            current["t"] = time.perf_counter() - t0
+            current["n"] = res.n_active
+            return res
+
+        def timed_observe(*a, **k):
+            clock["learners"] = 0.0 if ctrl.warming_up else clock["learners"]
+            t0 = time.perf_counter()
+            z = observe(*a, **k)
+            if not ctrl.warming_up and current.get("post", False):
+                self.out["step"].append(current["t"] + time.perf_counter() - t0)
+                self.out["learners"].append(clock["learners"])
+                self.out["n_active"].append(current["n"])
+            current["post"] = not ctrl.warming_up
+            clock["learners"] = 0.0
+            return z
+
+        ctrl.filter, ctrl.observe = timed_filter, timed_observe
+        self.policy = NominalController(env)
+        self.obs, _ = env.reset(seed=seed)
+        self.remaining = env.unwrapped.warmup_steps + steps
+
+    def step(self) -> None:
+        """One control step (a reset when the episode ends); nothing once the prefix is done."""
+        if self.remaining <= 0:
+            return
+        self.remaining -= 1
+        self.obs, _, term, trunc, _ = self.env.step(self.policy(self.obs))
+        if term or trunc:
+            self.obs, _ = self.env.reset()
+
+    def result(self) -> dict[str, np.ndarray]:
+        """Per-step times (s) and barriers in the program, the fit's CPU time, K."""
+        res = {k: np.asarray(v, dtype=float) for k, v in self.out.items()}
+        res["fit_cpu_s"] = np.array([self.fit_cpu])
+        res["n_barriers"] = np.array([self.env.unwrapped.n_barriers])
+        self.env.close()
+        return res
+
+
 def time_config(spec: dict[str, Any], learner: str = "afvsgp", steps: int = 1500,
                 seed: int = 0) -> dict[str, np.ndarray]:
     """Per-step times (s) of one filtered episode prefix (see the module docstring)."""
-    import gymnasium as gym
+    ep = TimedEpisode(spec, learner, steps, seed)
+    while ep.remaining > 0:
+        ep.step()
+    return ep.result()
 
-    import afvsgp_gym  # noqa: F401
-    from afvsgp_gym.agents import NominalController
-    from afvsgp_gym.wrappers import SafetyFilter
 
-    env = SafetyFilter(gym.make("afvsgp_gym/FrankaObstacleStatic-v0", **_env_kwargs(spec)),
-                       learner=learner, seed=seed)
-    ctrl, bank = env.controller, env.controller.bank
-    ctrl.socp.fast_path = bool(spec.get("fast_path", True))
-    clock = {"learners": 0.0}
-
-    def timed(fn):
-        def wrapper(*a, **k):
-            t0 = time.perf_counter()
-            out = fn(*a, **k)
-            clock["learners"] += time.perf_counter() - t0
-            return out
-        return wrapper
-
-    bank.predict_affine, bank.update = timed(bank.predict_affine), timed(bank.update)
-    fit_cpu = [np.nan]
-    fit = ctrl.fit
-
-    def timed_fit(*a, **k):
-        t0 = time.process_time()
-        out = fit(*a, **k)
-        fit_cpu[0] = time.process_time() - t0
-        return out
-
-    ctrl.fit = timed_fit
-    filt, observe = ctrl.filter, ctrl.observe
-    out: dict[str, list] = {"step": [], "learners": [], "n_active": []}
-    current = {"t": 0.0}
-
-    def timed_filter(*a, **k):
-        t0 = time.perf_counter()
-        res = filt(*a, **k)
-        current["t"] = time.perf_counter() - t0
-        current["n"] = res.n_active
-        return res
-
-    def timed_observe(*a, **k):
-        clock["learners"] = 0.0 if ctrl.warming_up else clock["learners"]
-        t0 = time.perf_counter()
-        z = observe(*a, **k)
-        if not ctrl.warming_up and current.get("post", False):
-            out["step"].append(current["t"] + time.perf_counter() - t0)
-            out["learners"].append(clock["learners"])
-            out["n_active"].append(current["n"])
-        current["post"] = not ctrl.warming_up
-        clock["learners"] = 0.0
-        return z
-
-    ctrl.filter, ctrl.observe = timed_filter, timed_observe
-    policy = NominalController(env)
-    obs, _ = env.reset(seed=seed)
-    warm = env.unwrapped.warmup_steps
-    for _ in range(warm + steps):
-        obs, _, term, trunc, _ = env.step(policy(obs))
-        if term or trunc:
-            obs, _ = env.reset()
-    env.close()
-    res = {k: np.asarray(v, dtype=float) for k, v in out.items()}
-    res["fit_cpu_s"] = np.array(fit_cpu)
-    res["n_barriers"] = np.array([env.unwrapped.n_barriers])
-    return res
+def time_lockstep(specs: dict[str, dict[str, Any]], learner: str = "afvsgp",
+                  steps: int = 1500, seed: int = 0) -> dict[str, dict[str, np.ndarray]]:
+    """:func:`time_config` of every configuration of ``specs`` with their episodes advanced
+    one control step each in turn (the order reversed every step), so that a drift of the
+    machine's speed hits them alike: their ratios are measured on the same seconds."""
+    eps = {name: TimedEpisode(spec, learner, steps, seed) for name, spec in specs.items()}
+    order = list(eps.values())
+    while any(ep.remaining > 0 for ep in order):
+        for ep in order:
+            ep.step()
+        order.reverse()
+    return {name: ep.result() for name, ep in eps.items()}
 
 
 def run(quick: bool = False, steps: int | None = None, rounds: int = 2,
-        seeds: tuple[int, ...] = (0,)) -> dict[str, float]:
+        seeds: tuple[int, ...] = (0,), sequential: bool = False) -> dict[str, float]:
     """Median and p99 (s) of the step and learner times per configuration (pooled over the
     rounds and the episodes ``seeds``), fit time, and the ratios the issue asks for: K = 21
-    against K = 1 for the learners' per-step cost."""
+    against K = 1 for the learners' per-step cost. The configurations of a seed run in
+    lockstep (:func:`time_lockstep`), or with ``sequential`` one after another (each then
+    has the caches to itself, but a drift of the machine between them moves the ratios)."""
     steps = steps or (300 if quick else 1500)
     rounds = 1 if quick else rounds
     acc: dict[str, dict[str, list]] = {}
     for _ in range(rounds):
         for seed in seeds:
-            for name, spec in CONFIGS.items():
-                r = time_config(spec, steps=steps, seed=seed)
+            if sequential:
+                res = {name: time_config(spec, steps=steps, seed=seed)
+                       for name, spec in CONFIGS.items()}
+            else:
+                res = time_lockstep(CONFIGS, steps=steps, seed=seed)
+            for name, r in res.items():
                 d = acc.setdefault(name, {})
                 for k, v in r.items():
                     d.setdefault(k, []).append(v)
@@ -165,10 +210,13 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--rounds", type=int, default=2, help="interleaved rounds")
     p.add_argument("--seeds", type=int, nargs="+", default=[0],
                    help="episode seeds, pooled (default: 0)")
+    p.add_argument("--sequential", action="store_true",
+                   help="run the configurations one after another, not in lockstep")
     args = p.parse_args(argv)
     print(machine())
     print(calibration_line(), flush=True)
-    for k, v in run(args.quick, args.steps, args.rounds, tuple(args.seeds)).items():
+    out = run(args.quick, args.steps, args.rounds, tuple(args.seeds), args.sequential)
+    for k, v in out.items():
         unit = " us" if k.endswith("_s") and "fit" not in k else ""
         val = v * 1e6 if unit else v
         print(f"{k:48s} {val:10.1f}{unit}" if unit else f"{k:48s} {val:10.3f}")
