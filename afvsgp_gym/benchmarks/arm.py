@@ -3,7 +3,10 @@
 ``python -m afvsgp_gym.benchmarks.arm [--quick] [--steps N] [--seeds S ...]`` runs the nominal
 tracker behind ``SafetyFilter(learner)`` on the static Franka scenario (nominal "zero") with
 1, 7, 21 and 42 barriers (the end-effector sphere; the 7 hand spheres; the 21 arm spheres; the
-arm with a second obstacle) and times, per control step after the warm-up, with ``perf_counter``:
+arm with a second obstacle), each with the env's suggested settings (AFVSGP with M = 30, P =
+500 on several spheres, the method's M = 40, P = 1000 on one), plus the end-effector sphere at
+the whole-arm settings (K = 21 against K = 1 at equal settings) and the arm at the method's, and
+times, per control step after the warm-up, with ``perf_counter``:
 
 - ``step``: the filter's own work, ``SafetyController.filter`` (constraints, the learners'
   predictions for the barriers in the program, the cone program) plus
@@ -29,13 +32,23 @@ from typing import Any
 import numpy as np
 
 from afvsgp_gym.benchmarks._machine import calibration_line, machine
+from afvsgp_gym.cbf.learners import REGISTRY
+from afvsgp_gym.envs.franka import FrankaObstacleEnv as FrankaEnv
 
-#: name -> env kwargs ("fast_path": False turns the solver's certified fast path off, so
-#: every cone program goes to clarabel: the step without what the fast path saves)
+#: AFVSGP's settings on the whole arm (the Franka envs' suggestion) and the method's own
+#: (the learner registry's, which the end-effector sphere keeps)
+ARM_LEARNER = dict(FrankaEnv.ARM_LEARNER_DEFAULTS["afvsgp"])
+METHOD_LEARNER = {k: REGISTRY["afvsgp"].default_kwargs[k] for k in ARM_LEARNER}
+
+#: name -> env kwargs; "filter": SafetyFilter options on top of the env's suggestions;
+#: "fast_path": False turns the solver's certified fast path off, so every cone program goes
+#: to clarabel (the step without what the fast path saves)
 CONFIGS: dict[str, dict[str, Any]] = {
     "1 (ee)": {"safety_spheres": "ee"},
+    "1 (ee), arm settings": {"safety_spheres": "ee", "filter": {"learner_kwargs": ARM_LEARNER}},
     "7 (hand)": {"safety_spheres": "hand"},
     "21 (arm)": {},
+    "21 (arm), method settings": {"filter": {"learner_kwargs": METHOD_LEARNER}},
     "21 (arm), clarabel only": {"fast_path": False},
     "42 (arm, 2 obstacles)": {"obstacles": "two"},
 }
@@ -46,6 +59,7 @@ def _env_kwargs(spec: dict[str, Any]) -> dict[str, Any]:
 
     kw = dict(spec)
     kw.pop("fast_path", None)
+    kw.pop("filter", None)
     if kw.get("safety_spheres") == "hand":
         kw["safety_spheres"] = list(PANDA_ARM_SPHERES[14:])
     if kw.pop("obstacles", None) == "two":
@@ -71,7 +85,7 @@ class TimedEpisode:
 
         self.env = env = SafetyFilter(
             gym.make("afvsgp_gym/FrankaObstacleStatic-v0", **_env_kwargs(spec)),
-            learner=learner, seed=seed)
+            learner=learner, seed=seed, **spec.get("filter", {}))
         ctrl, bank = env.controller, env.controller.bank
         ctrl.socp.fast_path = bool(spec.get("fast_path", True))
         clock = {"learners": 0.0}
@@ -195,9 +209,13 @@ def run(quick: bool = False, steps: int | None = None, rounds: int = 2,
         out[f"{name}: learners p99_s"] = float(np.percentile(learn, 99))
         out[f"{name}: barriers in program (mean)"] = float(np.mean(np.concatenate(d["n_active"])))
         out[f"{name}: fit cpu_s"] = float(np.median(np.concatenate(d["fit_cpu_s"])))
+    one = "1 (ee), arm settings"  # K = 21 against K = 1 at equal learner settings
     out["learners median, K=21 / K=1"] = (out["21 (arm): learners median_s"]
-                                          / out["1 (ee): learners median_s"])
-    out["fit, K=21 / K=1"] = out["21 (arm): fit cpu_s"] / out["1 (ee): fit cpu_s"]
+                                          / out[f"{one}: learners median_s"])
+    out["fit, K=21 / K=1"] = out["21 (arm): fit cpu_s"] / out[f"{one}: fit cpu_s"]
+    for q in ("median", "p99"):
+        out[f"step {q}, K=21: arm / method settings"] = (
+            out[f"21 (arm): step {q}_s"] / out[f"21 (arm), method settings: step {q}_s"])
     out["step median, K=21: clarabel only / with fast path"] = (
         out["21 (arm), clarabel only: step median_s"] / out["21 (arm): step median_s"])
     return out

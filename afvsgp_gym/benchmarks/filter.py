@@ -149,6 +149,7 @@ def time_filtered_step(
         seed=seed,
         relative_degree=base.relative_degree,
         activation_distance=getattr(base, "activation_distance", None) or float("inf"),
+        learner_kwargs=(getattr(base, "learner_defaults", None) or {}).get(learner),
         warmup_samples=min(200, base.warmup_steps - 1),
     )
     policy = NominalController(env)

@@ -38,7 +38,10 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
     The wrapped env must provide ``barrier_terms(model)``, ``dt``, ``relative_degree`` and
     ``n_barriers`` on ``env.unwrapped`` and a finite ``Box`` action space. Its
     ``warmup_steps`` (steps after reset with the obstacles kept away) bounds the default
-    number of warm-up samples: ``min(200, warmup_steps - 1)``.
+    number of warm-up samples: ``min(200, warmup_steps - 1)``. Settings the env suggests are
+    defaults under the caller's options: ``activation_distance`` and ``learner_defaults``
+    (learner name -> ``learner_kwargs``, merged key by key under the caller's; the Franka
+    envs suggest 0.15 m and, for their whole-arm sphere sets, AFVSGP with M = 30, P = 500).
 
     When no action satisfies the chance constraints (the SOCP is infeasible) the filter applies
     a backup action: by default the env's ``backup_action()`` (the provided envs brake: a
@@ -101,6 +104,9 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
         options = dict(options)
         if getattr(base, "activation_distance", None) is not None:
             options.setdefault("activation_distance", float(base.activation_distance))
+        suggested = (getattr(base, "learner_defaults", None) or {}).get(learner)
+        if suggested:
+            options["learner_kwargs"] = {**suggested, **(options.get("learner_kwargs") or {})}
         warmup_steps = getattr(base, "warmup_steps", None)
         if "warmup_samples" not in options and warmup_steps is not None:
             options["warmup_samples"] = int(max(2, min(200, warmup_steps - 1)))

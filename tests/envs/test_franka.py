@@ -147,6 +147,31 @@ def test_bad_safety_spheres_name_the_entry(spheres, match):
         FrankaObstacleEnv("static", safety_spheres=spheres)
 
 
+def test_filter_suggestions_by_sphere_set():
+    """One sphere keeps the method's learner settings; several (one learner each) get
+    AFVSGP with M = 30, P = 500, and SafetyFilter builds its learners with them."""
+    from afvsgp_gym.wrappers import SafetyFilter
+
+    ee = FrankaObstacleEnv("static", safety_spheres="ee")
+    assert ee.activation_distance == 0.15 and ee.learner_defaults == {}
+    two = [{"body": "panda0_link7", "offset": (0, 0, 0.1), "radius": 0.05},
+           {"body": "panda0_link5", "offset": (0, 0, 0), "radius": 0.06}]
+    for spheres in ("arm", two):
+        env = FrankaObstacleEnv("static", safety_spheres=spheres)
+        assert env.activation_distance == 0.15
+        assert env.learner_defaults == {"afvsgp": {"num_inducing": 30, "window": 500}}
+    env.learner_defaults["afvsgp"]["window"] = 1  # an instance's copy, not the class's
+    assert FrankaObstacleEnv.ARM_LEARNER_DEFAULTS["afvsgp"]["window"] == 500
+    reach = gym.make("afvsgp_gym/FrankaObstacleReach-v0").unwrapped  # not measured there
+    assert reach.learner_defaults == {}
+    f = SafetyFilter(gym.make(IDS["static"]), learner="afvsgp")
+    assert {k: f.controller.bank._kwargs[k] for k in ("num_inducing", "window")} == {
+        "num_inducing": 30, "window": 500}
+    ee_filter = SafetyFilter(gym.make(IDS["static"], safety_spheres="ee"), learner="afvsgp")
+    assert {k: ee_filter.controller.bank._kwargs[k] for k in ("num_inducing", "window")} == {
+        "num_inducing": 40, "window": 1000}
+
+
 def test_user_spheres_and_contact_cost():
     """A user sphere list; a contact of the arm is a cost even while every h >= 0."""
     env = FrankaObstacleEnv(

@@ -210,3 +210,25 @@ def test_wrong_action_shape_is_refused_naming_the_action():
         env.step(np.zeros(n + 1))
     obs, *_ = env.step(np.zeros(n))  # the filter still works after the refusal
     assert np.all(np.isfinite(obs))
+
+
+def test_env_suggestions_are_defaults_under_the_callers_options():
+    """``activation_distance`` and ``learner_defaults`` of the env are used unless the caller
+    passes the option; learner settings merge key by key, for the named learner only."""
+    def env():
+        e = gym.make(PM)
+        e.unwrapped.activation_distance = 0.3
+        e.unwrapped.learner_defaults = {"afvsgp": {"window": 300, "num_inducing": 12}}
+        return e
+
+    f = SafetyFilter(env(), learner="afvsgp")
+    assert f.controller.config.activation_distance == 0.3
+    assert f.controller.config.learner_kwargs == {"window": 300, "num_inducing": 12}
+    assert f.controller.bank._kwargs["window"] == 300  # what the learners are built with
+    assert f.controller.bank._kwargs["num_inducing"] == 12
+    mine = SafetyFilter(env(), learner="afvsgp", activation_distance=0.2,
+                        learner_kwargs={"window": 50})
+    assert mine.controller.config.activation_distance == 0.2
+    assert mine.controller.config.learner_kwargs == {"window": 50, "num_inducing": 12}
+    other = SafetyFilter(env(), learner="sogp")
+    assert other.controller.config.learner_kwargs == {}
