@@ -137,6 +137,7 @@ def time_filtered_step(
     import afvsgp_gym  # noqa: F401
     from afvsgp_gym.agents import NominalController
     from afvsgp_gym.cbf import SafetyController
+    from afvsgp_gym.wrappers.safety_filter import with_env_suggestions
 
     env_id, kw = SCENARIOS[scenario]
     env = gym.make(env_id, **kw)
@@ -146,11 +147,9 @@ def time_filtered_step(
         env.action_space.high,
         base.n_barriers,
         learner=learner,
-        seed=seed,
-        relative_degree=base.relative_degree,
-        activation_distance=getattr(base, "activation_distance", None) or float("inf"),
-        learner_kwargs=(getattr(base, "learner_defaults", None) or {}).get(learner),
-        warmup_samples=min(200, base.warmup_steps - 1),
+        **with_env_suggestions(base, learner, {
+            "seed": seed, "relative_degree": base.relative_degree,
+            "warmup_samples": min(200, base.warmup_steps - 1)}),
     )
     policy = NominalController(env)
     obs, _ = env.reset(seed=seed)

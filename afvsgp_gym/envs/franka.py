@@ -361,9 +361,6 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         self._sphere_bodies = self._sphere_body_ids.tolist()
         n_s = len(spheres)
         self.n_barriers = n_s * self.n_obstacles
-        #: suggested learner settings by learner name (``learner_kwargs`` underneath the user's)
-        self.learner_defaults = (
-            {k: dict(v) for k, v in self.ARM_LEARNER_DEFAULTS.items()} if n_s > 1 else {})
         self.barrier_names = tuple(
             f"{s.body.removeprefix('panda0_')}[{i}]/obstacle{o}"
             for o in range(self.n_obstacles)
@@ -384,6 +381,14 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         self._geometry_of = (
             self._one_pair_geometry if self.n_barriers == 1 else self._pair_geometry
         )
+
+    @property
+    def learner_defaults(self) -> dict[str, dict[str, Any]]:
+        """Suggested learner settings by learner name (``learner_kwargs`` under the user's):
+        a copy of ``ARM_LEARNER_DEFAULTS`` with several safety spheres, none with one."""
+        if len(self.safety_spheres) < 2:
+            return {}
+        return {k: dict(v) for k, v in self.ARM_LEARNER_DEFAULTS.items()}
 
     def _plant_parameters(self, cfg: dict[str, Any]) -> fm.PlantParameters:
         scale = cfg["mass_scale"]

@@ -13,7 +13,22 @@ from afvsgp_gym.cbf.fastpath import clip
 from afvsgp_gym.cbf.learners import check_learner_name
 from afvsgp_gym.types import BarrierSet
 
-__all__ = ["SafetyFilter"]
+__all__ = ["SafetyFilter", "with_env_suggestions"]
+
+
+def with_env_suggestions(base: Any, learner: str, options: dict[str, Any]) -> dict[str, Any]:
+    """A copy of the filter ``options`` with the settings the env ``base`` suggests as defaults
+    underneath: ``base.activation_distance`` and ``base.learner_defaults[learner]`` (merged
+    key by key under the caller's ``learner_kwargs``; a ``learner_kwargs`` that is not a dict
+    is left for the controller to refuse by name)."""
+    options = dict(options)
+    if getattr(base, "activation_distance", None) is not None:
+        options.setdefault("activation_distance", float(base.activation_distance))
+    suggested = (getattr(base, "learner_defaults", None) or {}).get(learner)
+    mine = options.get("learner_kwargs")
+    if suggested and (mine is None or isinstance(mine, dict)):
+        options["learner_kwargs"] = {**suggested, **(mine or {})}
+    return options
 
 class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
     """Filter the agent's actions with a chance-constrained HOCBF SOCP learned online.
@@ -101,12 +116,7 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
         high = np.asarray(space.high, dtype=np.float64)
         if not (np.all(np.isfinite(low)) and np.all(np.isfinite(high))):
             raise ValueError(f"SafetyFilter needs finite action bounds. Got: {space}")
-        options = dict(options)
-        if getattr(base, "activation_distance", None) is not None:
-            options.setdefault("activation_distance", float(base.activation_distance))
-        suggested = (getattr(base, "learner_defaults", None) or {}).get(learner)
-        if suggested:
-            options["learner_kwargs"] = {**suggested, **(options.get("learner_kwargs") or {})}
+        options = with_env_suggestions(base, learner, options)
         warmup_steps = getattr(base, "warmup_steps", None)
         if "warmup_samples" not in options and warmup_steps is not None:
             options["warmup_samples"] = int(max(2, min(200, warmup_steps - 1)))

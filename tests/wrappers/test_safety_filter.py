@@ -232,3 +232,5 @@ def test_env_suggestions_are_defaults_under_the_callers_options():
     assert mine.controller.config.learner_kwargs == {"window": 50, "num_inducing": 12}
     other = SafetyFilter(env(), learner="sogp")
     assert other.controller.config.learner_kwargs == {}
+    with pytest.raises(ValueError, match="learner_kwargs"):  # not a dict: refused by name
+        SafetyFilter(env(), learner="afvsgp", learner_kwargs="window=50")
