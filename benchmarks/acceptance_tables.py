@@ -70,8 +70,17 @@ def summary(recs: list[dict]) -> dict:
     }
 
 
+def learner(rec: dict) -> str:
+    return rec["config"]["learner"]
+
+
 def select(recs: Iterable[dict], block: str, **where) -> list[dict]:
-    out = [r for r in recs if r["block"] == block]
+    """The records of ``block`` (the oracle's: of learner "oracle", in whichever block; the
+    whole-arm blocks': of the other learners), optionally of one scenario and prior."""
+    if block == "oracle":
+        out = [r for r in recs if learner(r) == "oracle"]
+    else:
+        out = [r for r in recs if r["block"] == block and learner(r) != "oracle"]
     if "scenario" in where:
         out = [r for r in out if scenario(r) == where["scenario"]]
     if "prior" in where:
@@ -86,7 +95,8 @@ def main() -> None:
     versions = sorted({r["code_version"] for r in recs})
     print(f"{len(recs)} records, code {', '.join(versions)}\n")
 
-    arm = [r for r in recs if r["block"] in ("priors", "plants", "fast_obstacle")]
+    arm = [r for r in recs if r["block"] in ("priors", "plants", "fast_obstacle")
+           and learner(r) == "afvsgp"]
     zero = [r for r in arm if prior(r) == "zero"]
     print("| filter | episodes | with cost | 95 % bound | min h [m] |\n|---|---|---|---|---|")
     for name, group in (("AFVSGP, whole arm", arm), ("of which prior zero", zero),
