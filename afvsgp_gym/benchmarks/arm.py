@@ -110,7 +110,8 @@ class TimedEpisode:
 
         ctrl.fit = timed_fit
         filt, observe = ctrl.filter, ctrl.observe
-        self.out: dict[str, list] = {"step": [], "learners": [], "n_active": []}
+        self.out: dict[str, list] = {"step": [], "filter": [], "learners": [],
+                                     "n_active": []}
         current = {"t": 0.0}
 
         def timed_filter(*a, **k):
@@ -126,6 +127,7 @@ class TimedEpisode:
             z = observe(*a, **k)
             if not ctrl.warming_up and current.get("post", False):
                 self.out["step"].append(current["t"] + time.perf_counter() - t0)
+                self.out["filter"].append(current["t"])
                 self.out["learners"].append(clock["learners"])
                 self.out["n_active"].append(current["n"])
             current["post"] = not ctrl.warming_up
@@ -147,7 +149,8 @@ class TimedEpisode:
             self.obs, _ = self.env.reset()
 
     def result(self) -> dict[str, np.ndarray]:
-        """Per-step times (s) and barriers in the program, the fit's CPU time, K."""
+        """Per-step times (s) of the step, the filter and the learners, barriers in the
+        program, the fit's CPU time, K."""
         res = {k: np.asarray(v, dtype=float) for k, v in self.out.items()}
         res["fit_cpu_s"] = np.array([self.fit_cpu])
         res["n_barriers"] = np.array([self.env.unwrapped.n_barriers])
@@ -205,6 +208,9 @@ def run(quick: bool = False, steps: int | None = None, rounds: int = 2,
         learn = np.concatenate(d["learners"])
         out[f"{name}: step median_s"] = float(np.median(step))
         out[f"{name}: step p99_s"] = float(np.percentile(step, 99))
+        filt = np.concatenate(d["filter"])
+        out[f"{name}: filter median_s"] = float(np.median(filt))
+        out[f"{name}: filter p99_s"] = float(np.percentile(filt, 99))
         out[f"{name}: learners median_s"] = float(np.median(learn))
         out[f"{name}: learners p99_s"] = float(np.percentile(learn, 99))
         out[f"{name}: barriers in program (mean)"] = float(np.mean(np.concatenate(d["n_active"])))

@@ -1,0 +1,14 @@
+"""The whole-arm timing benchmark records what it says it times (not how fast it is)."""
+
+import numpy as np
+
+from afvsgp_gym.benchmarks.arm import time_config
+
+
+def test_filter_latency_is_part_of_each_timed_step():
+    res = time_config({"safety_spheres": "ee"}, steps=20, seed=0)
+    step, filt, learn = res["step"], res["filter"], res["learners"]
+    assert len(step) == len(filt) == len(learn) == len(res["n_active"]) >= 15
+    assert np.all(filt > 0.0) and np.all(filt < step)
+    assert np.all(learn > 0.0) and np.all(learn < step)  # every learner update is inside
+    assert res["n_barriers"][0] == 1 and res["fit_cpu_s"][0] > 0.0
