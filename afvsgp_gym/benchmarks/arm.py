@@ -35,6 +35,9 @@ from afvsgp_gym.benchmarks._machine import calibration_line, machine
 from afvsgp_gym.cbf.learners import REGISTRY
 from afvsgp_gym.envs.franka import FrankaObstacleEnv as FrankaEnv
 
+#: the env every configuration runs on unless told otherwise
+ENV_ID = "afvsgp_gym/FrankaObstacleStatic-v0"
+
 #: AFVSGP's settings on the whole arm (the Franka envs' suggestion) and the method's own
 #: (the learner registry's, which the end-effector sphere keeps)
 ARM_LEARNER = dict(FrankaEnv.ARM_LEARNER_DEFAULTS["afvsgp"])
@@ -72,20 +75,21 @@ def _env_kwargs(spec: dict[str, Any]) -> dict[str, Any]:
 
 
 class TimedEpisode:
-    """One filtered episode prefix of configuration ``spec`` whose filter is timed per control
-    step (see the module docstring); :meth:`step` advances it by one control step."""
+    """One filtered episode prefix of configuration ``spec`` (env kwargs, and SafetyFilter
+    options under ``"filter"``) on ``env_id`` whose filter is timed per control step (see the
+    module docstring): the env's ``warmup_steps`` plus ``steps`` control steps, timed from the
+    step after the one whose update fits the learners; :meth:`step` advances it by one step."""
 
     def __init__(self, spec: dict[str, Any], learner: str = "afvsgp", steps: int = 1500,
-                 seed: int = 0):
+                 seed: int = 0, env_id: str = ENV_ID):
         import gymnasium as gym
 
         import afvsgp_gym  # noqa: F401
         from afvsgp_gym.agents import NominalController
         from afvsgp_gym.wrappers import SafetyFilter
 
-        self.env = env = SafetyFilter(
-            gym.make("afvsgp_gym/FrankaObstacleStatic-v0", **_env_kwargs(spec)),
-            learner=learner, seed=seed, **spec.get("filter", {}))
+        self.env = env = SafetyFilter(gym.make(env_id, **_env_kwargs(spec)), learner=learner,
+                                      seed=seed, **spec.get("filter", {}))
         ctrl, bank = env.controller, env.controller.bank
         ctrl.socp.fast_path = bool(spec.get("fast_path", True))
         clock = {"learners": 0.0}
@@ -168,11 +172,13 @@ def time_config(spec: dict[str, Any], learner: str = "afvsgp", steps: int = 1500
 
 
 def time_lockstep(specs: dict[str, dict[str, Any]], learner: str = "afvsgp",
-                  steps: int = 1500, seed: int = 0) -> dict[str, dict[str, np.ndarray]]:
+                  steps: int = 1500, seed: int = 0, env_id: str = ENV_ID
+                  ) -> dict[str, dict[str, np.ndarray]]:
     """:func:`time_config` of every configuration of ``specs`` with their episodes advanced
     one control step each in turn (the order reversed every step), so that a drift of the
     machine's speed hits them alike: their ratios are measured on the same seconds."""
-    eps = {name: TimedEpisode(spec, learner, steps, seed) for name, spec in specs.items()}
+    eps = {name: TimedEpisode(spec, learner, steps, seed, env_id)
+           for name, spec in specs.items()}
     order = list(eps.values())
     while any(ep.remaining > 0 for ep in order):
         for ep in order:
