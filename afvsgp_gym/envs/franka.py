@@ -153,8 +153,10 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
       approach from +x or from outside along y at 0.3-0.5 m, peak speed in [0.05, 0.2] m/s
       and an optional switch, drawn per reset.
 
-    With the exact model a CBF-filtered run keeps every barrier h >= 0 with no arm contact in
-    every scenario and seed tested (tests/envs/test_franka.py, benchmarks/filter.md).
+    With the exact model and no joint friction a CBF-filtered run keeps every barrier h >= 0
+    with no arm contact in every scenario and seed tested (tests/envs/test_franka.py,
+    benchmarks/filter.md); with friction the true terms are not exact (above) and it does not
+    always (benchmarks/acceptance.md, "The oracle on the randomised plants").
 
     ## Arguments
     | Parameter | Default | Description |
