@@ -9,8 +9,10 @@ it would lose a finished episode. One sweep writes a file at a time (an exclusiv
 
 from __future__ import annotations
 
+import gzip
 import json
 import os
+import zlib
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
@@ -56,11 +58,14 @@ def _record(path: Path, number: int, line: bytes) -> dict:
 
 
 def read_records(path: str | os.PathLike) -> list[dict]:
-    """Every finished episode record of a results file (a torn last line is ignored)."""
+    """Every finished episode record of a results file, plain or gzip-compressed (as archived
+    in ``benchmarks/results``); a torn last line is ignored."""
     path = Path(path)
     try:
         data = path.read_bytes()
-    except OSError as exc:
+        if data[:2] == b"\x1f\x8b":  # the gzip magic number
+            data = gzip.decompress(data)
+    except (OSError, EOFError, zlib.error) as exc:
         raise ValueError(f"cannot read results {str(path)!r}: {exc}") from None
     return _parse(path, data)[0]
 

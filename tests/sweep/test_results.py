@@ -72,3 +72,19 @@ def test_one_writer_at_a_time(tmp_path):
             ResultsLog(path).__enter__()
     with ResultsLog(path) as log:  # released on exit
         log.append(_rec(0))
+
+
+def test_gzip_archive_reads_the_same_records(tmp_path):
+    import gzip
+
+    path = tmp_path / "r.jsonl"
+    with ResultsLog(path) as log:
+        for i in range(3):
+            log.append(_rec(i))
+    archived = tmp_path / "r.jsonl.gz"
+    archived.write_bytes(gzip.compress(path.read_bytes()))
+    assert read_records(archived) == read_records(path)
+    broken = tmp_path / "broken.jsonl.gz"
+    broken.write_bytes(archived.read_bytes()[:20])  # a truncated archive
+    with pytest.raises(ValueError, match="broken.jsonl.gz"):
+        read_records(broken)
