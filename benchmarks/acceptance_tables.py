@@ -15,22 +15,15 @@ prior.
 from __future__ import annotations
 
 import argparse
-import gzip
-import json
 from collections.abc import Iterable
 
 import numpy as np
 from scipy.stats import beta
 
+from afvsgp_gym.sweep.results import read_records
+
 SCENARIOS = ("static", "dynamic", "random")
 PRIORS = ("zero", "kinematic", "perturbed")
-
-
-def load(path: str) -> list[dict]:
-    """The records of a results file (``.jsonl`` or ``.jsonl.gz``)."""
-    opener = gzip.open if path.endswith(".gz") else open
-    with opener(path, "rt") as fh:
-        return [json.loads(line) for line in fh if line.strip()]
 
 
 def scenario(rec: dict) -> str:
@@ -91,7 +84,7 @@ def select(recs: Iterable[dict], block: str, **where) -> list[dict]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("results")
-    recs = load(parser.parse_args().results)
+    recs = read_records(parser.parse_args().results)
     versions = sorted({r["code_version"] for r in recs})
     print(f"{len(recs)} records, code {', '.join(versions)}\n")
 
