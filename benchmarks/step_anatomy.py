@@ -5,8 +5,11 @@ env's settings, the nominal tracker; 21 barriers unless ``--spheres ee``), one a
 with the same per-step timers (``step`` = ``SafetyController.filter`` + ``observe``,
 ``filter`` alone) plus one around ``SOCPFilter.solve`` and one around clarabel's solves inside
 it. Prints, per number of barriers in the program, the share of steps and the step / filter
-times, a least-squares line ``filter = a + b n``, and per solver outcome (inactive, a certified
-fast path, clarabel) the share, the time of ``solve`` and the clarabel part of it.
+times, a least-squares line ``filter = a + b n``, per solver outcome (inactive, a certified
+fast path, clarabel) the share, the time of ``solve`` and the clarabel part of it, and per band
+of step time (below the median, median-p90, p90-p99, the slowest 1 %) the mean of each part of
+the step: the learners' update and predictions, ``solve`` and clarabel inside it, the rest, the
+share of steps with an inducing-set change and the solver outcomes.
 
     OPENBLAS_NUM_THREADS=1 taskset -c 0 python benchmarks/step_anatomy.py --seeds 0 1 2
 """
@@ -47,15 +50,75 @@ def _timed_solver(socp, record: dict) -> None:
     socp.programs.solve, socp.solve = timed_programs, timed_solve
 
 
+def _timed(obj, name: str, clock: dict, key: str) -> None:
+    """Wrap ``obj.name`` to add its wall time to ``clock[key]``."""
+    fn = getattr(obj, name)
+
+    def wrapper(*a, **k):
+        t0 = time.perf_counter()
+        out = fn(*a, **k)
+        clock[key] += time.perf_counter() - t0
+        return out
+
+    setattr(obj, name, wrapper)
+
+
+def _parts(ep: TimedEpisode, record: dict, parts: dict) -> None:
+    """Advance ``ep`` to its end, appending per timed step the update, prediction, solve and
+    clarabel times (s), whether an inducing set changed and the solver outcome to ``parts``."""
+    ctrl, clock, wrapped = ep.env.controller, {}, False
+    while ep.remaining > 0:
+        bank = getattr(ctrl.bank, "bank", None)
+        if bank is not None and not wrapped:  # the stacked bank exists after the warm-up fit
+            _timed(bank, "update", clock, "update")
+            _timed(bank, "predict_affine", clock, "predict")
+            wrapped = True
+        changes = int(bank.n_added_.sum()) if bank is not None else 0
+        clock.update(update=0.0, predict=0.0)
+        n_calls, n_timed = len(record["calls"]), len(ep.out["step"])
+        ep.step()
+        if len(ep.out["step"]) == n_timed:
+            continue
+        calls = record["calls"][n_calls:]
+        parts["update"].append(clock["update"])
+        parts["predict"].append(clock["predict"])
+        parts["solve"].append(sum(c[1] for c in calls))
+        parts["clarabel"].append(sum(c[3] for c in calls))
+        parts["inducing"].append(int(bank.n_added_.sum()) > changes)
+        parts["outcome"].append(calls[-1][0] if calls else "none")
+
+
+def _print_bands(step: np.ndarray, parts: dict) -> None:
+    """Mean of each part of the step per band of step time (us)."""
+    p = {k: np.asarray(v) for k, v in parts.items()}
+    print("step band    steps   step  update  predict  solve  (clarabel)  rest   "
+          "inducing change   outcomes")
+    edges = np.percentile(step, [0, 50, 90, 99, 100])
+    for name, lo, hi in zip(("<p50", "p50-p90", "p90-p99", ">p99"), edges[:-1], edges[1:],
+                            strict=True):
+        m = (step >= lo) & (step <= hi)
+        upd, pred = p["update"][m] * 1e6, p["predict"][m] * 1e6
+        sol, clar = p["solve"][m] * 1e6, p["clarabel"][m] * 1e6
+        rest = step[m] - upd - pred - sol
+        kinds = defaultdict(int)
+        for k in p["outcome"][m]:
+            kinds[k] += 1
+        top = ", ".join(f"{k} {v / m.sum():.2f}" for k, v in
+                        sorted(kinds.items(), key=lambda kv: -kv[1])[:3])
+        print(f"  {name:9s} {m.sum():6d}  {step[m].mean():5.0f}  {upd.mean():6.0f}  "
+              f"{pred.mean():7.0f}  {sol.mean():5.0f}  ({clar.mean():5.0f})    "
+              f"{rest.mean():5.0f}  {p['inducing'][m].mean():.2f}              {top}")
+
+
 def run(seeds, steps: int, spheres: str | None) -> None:
     spec = {} if spheres is None else {"safety_spheres": spheres}
     per_step = defaultdict(list)
+    parts: dict = defaultdict(list)
     record: dict = {"calls": []}
     for seed in seeds:
         ep = TimedEpisode(spec, steps=steps, seed=seed)
         _timed_solver(ep.env.controller.socp, record)
-        while ep.remaining > 0:
-            ep.step()
+        _parts(ep, record, parts)
         for key, val in ep.result().items():
             per_step[key].append(val)
     r = {k: np.concatenate(v) for k, v in per_step.items()}
@@ -84,6 +147,7 @@ def run(seeds, steps: int, spheres: str | None) -> None:
         print(f"  {kind:26s} {len(rows) / len(calls):.3f}   {np.median(t):5.0f} / "
               f"{t.mean():5.0f} / {np.percentile(t, 99):5.0f}        {x[:, 1].mean():4.1f}"
               f"        {x[:, 2].mean() * 1e6:5.0f}")
+    _print_bands(step, parts)
 
 
 def main(argv: list[str] | None = None) -> None:
