@@ -29,6 +29,7 @@ __all__ = [
     "BARRIER_MODELS",
     "NOMINAL_MODELS",
     "SCENARIOS",
+    "TERMS_MODELS",
     "ObstacleTask",
     "UnknownArgumentError",
 ]
@@ -36,6 +37,9 @@ __all__ = [
 SCENARIOS = ("static", "dynamic", "random")
 NOMINAL_MODELS = ("zero", "kinematic", "perturbed", "exact")
 BARRIER_MODELS = ("nominal", "true")
+#: What ``barrier_terms`` accepts: the models and the robust true terms.
+TERMS_MODELS = (*BARRIER_MODELS, "true_robust")
+_TERMS_KIND = {"true": "exact", "true_robust": "exact_robust"}
 
 
 class UnknownArgumentError(TypeError, ValueError):
@@ -66,15 +70,32 @@ class ObstacleTask:
 
     def barrier_terms(self, model: str = "nominal") -> BarrierSet:
         """The ``n_barriers`` barriers' terms at the current state (one ``BarrierTerms`` per
-        barrier when indexed): ``"true"`` plant or the ``"nominal"`` model."""
-        if model != "nominal" and model != "true":
-            check_choice("model", model, BARRIER_MODELS)
-        kind = "exact" if model == "true" else self.nominal_model
+        barrier when indexed): ``"true"`` plant, the ``"nominal"`` model, or
+        ``"true_robust"``: the true terms with ``lf`` lowered by
+        :meth:`true_terms_error_bound`, so that ``lf + lg u`` bounds ``h''`` from below for
+        every action (the same as ``"true"`` where the true terms are exact)."""
+        if model not in TERMS_MODELS:
+            check_choice("model", model, TERMS_MODELS)
+        kind = _TERMS_KIND.get(model, self.nominal_model)
         cache = self._barrier_cache
         terms = cache.get(kind)
         if terms is None:
-            terms = cache[kind] = self._compute_barriers(kind)
+            if kind == "exact_robust":
+                terms = cache[kind] = self._robust_true_terms()
+            else:
+                terms = cache[kind] = self._compute_barriers(kind)
         return terms
+
+    def true_terms_error_bound(self) -> np.ndarray:
+        """``(n_barriers,)`` bound on ``|h''_true(u) - (lf + lg u)|`` of the ``"true"`` terms
+        over all actions at the current state: 0 here (true terms exact)."""
+        return np.zeros(self.n_barriers)
+
+    def _robust_true_terms(self) -> BarrierSet:
+        true = self.barrier_terms("true")
+        lf = true.lf - self.true_terms_error_bound()
+        lf.flags.writeable = False
+        return BarrierSet(true.derivatives, lf, true.lg, true.xi)
 
     def barrier_values(self) -> np.ndarray:
         """``(n_barriers,)`` values of h at the current state."""

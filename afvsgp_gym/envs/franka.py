@@ -88,6 +88,9 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
     Friction (frictionloss) and joint-limit forces come from MuJoCo's constraint solver and are
     evaluated at u = 0, so with ``friction > 0`` the split into lf and lg is exact only while
     the joints slide (static friction couples them); ``friction=0`` makes it exact.
+    ``"true_robust"``: the true terms with ``lf`` lowered by the friction bound of
+    ``true_terms_error_bound`` (``2 sum_j |n' J_s M^-1|_j f_j``), for an oracle safe under
+    friction (``SafetyFilter(..., learner="oracle", oracle_terms="true_robust")``).
 
     ## Action Space
     ``Box(-1, 1, (7,), float32)``: joint torques ``tau = u * tau_max``, tau_max = (87, 87, 87,
@@ -652,6 +655,17 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
             lf += curv
         lf.flags.writeable = lg.flags.writeable = False
         return BarrierSet(derivs, lf, lg, xi)
+
+    def true_terms_error_bound(self) -> np.ndarray:
+        """``(n_barriers,)`` bound on ``|h''_true(u) - (lf + lg u)|`` of the ``"true"`` terms
+        over all actions: they take joint friction (frictionloss ``f_j``) at u = 0, and a
+        torque changes joint j's friction force by at most ``2 f_j``, so the error is at most
+        ``2 sum_j |n' J_s M^-1|_j f_j``; 0 without friction."""
+        f = np.asarray(self.model.dof_frictionloss[:7], dtype=np.float64)
+        if not f.any():
+            return np.zeros(self.n_barriers)
+        torque = FrankaObstacleEnv._compute_barriers(self, "exact")  # lg per unit of action
+        return 2.0 * (np.abs(torque.lg) @ (f / self.action_scale))
 
     def backup_action(self) -> np.ndarray:
         """Model-free brake for the safety filter's backup: joint damping torque

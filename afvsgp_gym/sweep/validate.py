@@ -36,15 +36,16 @@ _RESERVED = {
 
 
 def filter_kwarg_names() -> tuple[str, ...]:
-    """Keyword options a grid may sweep in ``filter_kwargs``: the wrapper's ``backup``, the
-    controller's ``dataset`` and the fields of :class:`~afvsgp_gym.cbf.FilterConfig`."""
+    """Keyword options a grid may sweep in ``filter_kwargs``: the wrapper's ``backup`` and
+    ``oracle_terms``, the controller's ``dataset`` and the fields of
+    :class:`~afvsgp_gym.cbf.FilterConfig`."""
     from afvsgp_gym.cbf import FilterConfig, SafetyController
 
     params = inspect.signature(SafetyController.__init__).parameters
     names = [n for n, p in params.items()
              if n not in _RESERVED and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)]
     names += [n for n in FilterConfig.option_names() if n not in _RESERVED]
-    return ("backup", *names)
+    return ("backup", "oracle_terms", *names)
 
 
 def _one_axis_at_a_time(axes: Mapping[str, list]) -> list[dict[str, Any]]:

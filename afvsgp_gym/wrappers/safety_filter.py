@@ -12,8 +12,12 @@ from afvsgp_gym.cbf import SafetyController
 from afvsgp_gym.cbf.fastpath import clip
 from afvsgp_gym.cbf.learners import check_learner_name
 from afvsgp_gym.types import BarrierSet
+from afvsgp_gym.validation import check_choice
 
-__all__ = ["SafetyFilter", "with_env_suggestions"]
+__all__ = ["ORACLE_TERMS", "SafetyFilter", "with_env_suggestions"]
+
+#: The oracle's terms: the true plant's, or those lowered by the env's error bound.
+ORACLE_TERMS = ("true", "true_robust")
 
 
 def with_env_suggestions(base: Any, learner: str, options: dict[str, Any]) -> dict[str, Any]:
@@ -70,6 +74,10 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
         backup: ``"env"`` (default: ``env.unwrapped.backup_action()`` if the env has one),
             a callable ``obs -> action`` evaluated on the last observation, or None (the
             max-worst-margin fallback only).
+        oracle_terms: the oracle's terms, ``env.unwrapped.barrier_terms(oracle_terms)``:
+            ``"true"`` (default) or ``"true_robust"`` (lowered by the env's
+            ``true_terms_error_bound()``, e.g. the Franka's joint friction); only with
+            ``learner="oracle"``.
         **options: ``dataset`` and the options of :class:`~afvsgp_gym.cbf.FilterConfig`
             (``alpha``, ``beta``, ``activation_distance``, ``warmup_samples``,
             ``exploration_noise``, ``learner_kwargs``, ``online``, ``qp_solver``, ``seed``, ...).
@@ -100,11 +108,21 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
     """
 
     def __init__(
-        self, env: gym.Env, learner: str = "afvsgp", backup: Any = "env", **options: Any
+        self, env: gym.Env, learner: str = "afvsgp", backup: Any = "env",
+        oracle_terms: str = "true", **options: Any
     ):
-        gym.utils.RecordConstructorArgs.__init__(self, learner=learner, backup=backup, **options)
+        gym.utils.RecordConstructorArgs.__init__(self, learner=learner, backup=backup,
+                                                 oracle_terms=oracle_terms, **options)
         gym.Wrapper.__init__(self, env)
         check_learner_name(learner)
+        check_choice("oracle_terms", oracle_terms, ORACLE_TERMS)
+        if oracle_terms != "true" and learner != "oracle":
+            raise ValueError(f"oracle_terms={oracle_terms!r} needs learner='oracle'. "
+                             f"Got: learner={learner!r}")
+        if oracle_terms != "true" and not hasattr(env.unwrapped, "true_terms_error_bound"):
+            raise TypeError(f"oracle_terms={oracle_terms!r} needs "
+                            f"env.unwrapped.true_terms_error_bound(); {env.unwrapped} has none")
+        self.oracle_terms = oracle_terms
         base = env.unwrapped
         for attr in ("barrier_terms", "dt", "relative_degree", "n_barriers"):
             if not hasattr(base, attr):
@@ -171,7 +189,7 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
             proposed = proposed.reshape(shape)
         terms = base.barrier_terms("nominal")
         true_terms = (
-            base.barrier_terms("true") if self.controller.uses_true_terms else None
+            base.barrier_terms(self.oracle_terms) if self.controller.uses_true_terms else None
         )
         res = self.controller.filter(proposed, terms, true_terms, self._backup)
         applied = res.u.astype(self._dtype)

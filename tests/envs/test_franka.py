@@ -63,6 +63,45 @@ def test_true_terms_match_finite_differences(fd_env):
     assert np.abs(lg).max() > 1.0  # the action matters: the check is not vacuous
 
 
+def test_friction_bound_contains_the_true_terms_error():
+    """With joint friction the true terms (friction at u = 0) miss h'' by up to the bound of
+    ``true_terms_error_bound``, and ``"true_robust"`` bounds h'' from below, at rest (joints
+    stuck) and moving, for small and large actions (h'' by forward differences)."""
+    env = FrankaObstacleEnv("dynamic", physics_dt=1e-4, frame_skip=1, warmup_steps=0,
+                            friction=0.5)
+    env.reset(seed=0)
+    rng = np.random.default_rng(3)
+    worst = 0.0
+    for moving in (False, True):
+        q = fm.Q_HOME + rng.uniform(-0.2, 0.2, 7)
+        qd = rng.uniform(-0.5, 0.5, 7) if moving else np.zeros(7)
+        env.set_state(q, qd)
+        env.set_time_step(0)
+        true, robust = env.barrier_terms("true"), env.barrier_terms("true_robust")
+        bound = env.true_terms_error_bound()
+        d_now, lf, lg = true.derivatives.copy(), true.lf.copy(), true.lg.copy()
+        np.testing.assert_array_equal(robust.lf, lf - bound)
+        np.testing.assert_array_equal(robust.lg, lg)
+        assert np.all(bound > 0.0)
+        tol = 2e-2 * np.abs(lf).max()  # the forward difference's O(dt) error, as above
+        for scale in (0.01, 0.05, 0.3):
+            u = rng.uniform(-1.0, 1.0, 7) * scale
+            h2 = (_probe(env, q, qd, 0, u)[:, 1] - d_now[:, 1]) / env.dt
+            err = h2 - (lf + lg @ u)
+            assert np.all(np.abs(err) <= bound + tol)
+            assert np.all(robust.lf + robust.lg @ u <= h2 + tol)
+            worst = max(worst, float(np.abs(err).max()))
+    assert worst > 5 * tol  # friction does move h'' off the true terms: not vacuous
+
+
+def test_without_friction_robust_terms_are_the_true_terms(fd_env):
+    np.testing.assert_array_equal(fd_env.true_terms_error_bound(), 0.0)
+    true, robust = fd_env.barrier_terms("true"), fd_env.barrier_terms("true_robust")
+    np.testing.assert_array_equal(robust.lf, true.lf)
+    with pytest.raises(ValueError, match="model"):
+        fd_env.barrier_terms("robust")
+
+
 def test_sphere_centres_velocities_and_features(fd_env):
     """Sphere centres from the body poses, velocities from MuJoCo's point Jacobian, and the
     features [q, q', p_s - p_o, v_s - v_o] of every barrier."""

@@ -117,7 +117,8 @@ def test_learning_property_and_constructor_args():
     assert env.learning
     env.learning = False
     assert not env.controller.learning
-    assert env._saved_kwargs == {"learner": "none", "backup": "env", "alpha": 2.0}
+    assert env._saved_kwargs == {"learner": "none", "backup": "env", "oracle_terms": "true",
+                                 "alpha": 2.0}
     assert env.controller.config.warmup_samples == 200
 
 
@@ -178,6 +179,34 @@ def test_backup_none_and_callable():
 def test_bad_backup_is_rejected():
     with pytest.raises(ValueError, match="backup"):
         SafetyFilter(gym.make(PM), learner="none", backup="brake")
+
+
+def test_bad_oracle_terms_are_rejected_by_name():
+    with pytest.raises(ValueError, match="oracle_terms"):
+        SafetyFilter(gym.make(PM), learner="oracle", oracle_terms="robust")
+    with pytest.raises(ValueError, match="oracle_terms"):
+        SafetyFilter(gym.make(PM), learner="none", oracle_terms="true_robust")
+
+
+def test_robust_oracle_is_the_oracle_where_the_true_terms_are_exact():
+    """The point mass's true terms are exact (error bound 0): the robust oracle's episode is
+    the oracle's, action for action."""
+
+    def actions(oracle_terms):
+        env = SafetyFilter(gym.make(PM, nominal_model="zero"), learner="oracle",
+                           oracle_terms=oracle_terms)
+        policy = NominalController(env)
+        obs, _ = env.reset(seed=2)
+        out, active = [], 0
+        for _ in range(600):  # past the 300 warm-up steps, when the obstacle comes near
+            obs, _, _, _, info = env.step(policy(obs))
+            out.append(info["action_applied"])
+            active += info["filter_active"]
+        return np.array(out), active
+
+    (a, active), (b, _) = actions("true"), actions("true_robust")
+    np.testing.assert_array_equal(a, b)
+    assert active > 0  # the filter acted: the equality is not vacuous
 
 
 def test_reset_seed_makes_a_filtered_episode_reproducible():
