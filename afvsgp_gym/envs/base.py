@@ -5,6 +5,7 @@ into its Gymnasium base class and provides the physics and geometry:
 
 - ``_compute_barriers(kind) -> BarrierSet`` for ``kind`` in ``{"zero", "kinematic",
   "perturbed", "exact"}`` at the current state (``"exact"`` is the true plant);
+- optionally ``true_terms_error_bound()``, what the ``"exact"`` terms leave out (default 0);
 - ``_advance(u) -> bool`` one control period with action ``u``; True when it went unstable;
 - ``_contact() -> bool`` any robot geometry touches an obstacle;
 - ``_tracked_point() -> ndarray`` the point that tracks the reference (end-effector);

@@ -619,6 +619,18 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         return zero
 
     def _compute_barriers(self, kind: str) -> BarrierSet:
+        return self._torque_terms(kind)
+
+    def _torque_terms(self, kind: str) -> BarrierSet:
+        """The terms of model ``kind`` per unit of the joint-torque action (``action_scale``),
+        computed once per state (subclasses with another action compose them)."""
+        key = "torque:" + kind
+        terms = self._barrier_cache.get(key)
+        if terms is None:
+            terms = self._barrier_cache[key] = self._joint_torque_barriers(kind)
+        return terms
+
+    def _joint_torque_barriers(self, kind: str) -> BarrierSet:
         derivs, n, curv, xi, a_obs = self._geometry
         k = len(curv)
         if kind == "zero":
@@ -664,8 +676,8 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         f = np.asarray(self.model.dof_frictionloss[:7], dtype=np.float64)
         if not f.any():
             return np.zeros(self.n_barriers)
-        torque = FrankaObstacleEnv._compute_barriers(self, "exact")  # lg per unit of action
-        return 2.0 * (np.abs(torque.lg) @ (f / self.action_scale))
+        lg = self._torque_terms("exact").lg
+        return 2.0 * (np.abs(lg) @ (f / self.action_scale))
 
     def backup_action(self) -> np.ndarray:
         """Model-free brake for the safety filter's backup: joint damping torque

@@ -327,7 +327,7 @@ class FrankaObstacleReachEnv(FrankaObstacleEnv):
         return super()._advance(np.clip(tau, -limit, limit))
 
     def _compute_barriers(self, kind: str) -> BarrierSet:
-        torque = super()._compute_barriers(kind)
+        torque = self._torque_terms(kind)
         lf, lg = compose_affine(torque.lf, torque.lg, self._A, self._c)
         terms = BarrierSet(torque.derivatives, lf, lg, torque.xi)
         for arr in (lf, lg):

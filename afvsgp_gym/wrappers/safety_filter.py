@@ -119,12 +119,12 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
         if oracle_terms != "true" and learner != "oracle":
             raise ValueError(f"oracle_terms={oracle_terms!r} needs learner='oracle'. "
                              f"Got: learner={learner!r}")
-        if oracle_terms != "true" and not hasattr(env.unwrapped, "true_terms_error_bound"):
-            raise TypeError(f"oracle_terms={oracle_terms!r} needs "
-                            f"env.unwrapped.true_terms_error_bound(); {env.unwrapped} has none")
         self.oracle_terms = oracle_terms
         base = env.unwrapped
-        for attr in ("barrier_terms", "dt", "relative_degree", "n_barriers"):
+        needed = ("barrier_terms", "dt", "relative_degree", "n_barriers")
+        if oracle_terms != "true":
+            needed += ("true_terms_error_bound",)
+        for attr in needed:
             if not hasattr(base, attr):
                 raise TypeError(f"SafetyFilter needs env.unwrapped.{attr}; {base} has none")
         space = env.action_space
