@@ -45,7 +45,8 @@ METHOD_LEARNER = {k: REGISTRY["afvsgp"].default_kwargs[k] for k in ARM_LEARNER}
 
 #: name -> env kwargs; "filter": SafetyFilter options on top of the env's suggestions;
 #: "fast_path": False turns the solver's certified fast path off, so every cone program goes
-#: to clarabel (the step without what the fast path saves)
+#: to clarabel (the step without what the fast path saves); "compiled": False leaves out the
+#: compiled several-cones path (afvsgp_gym.cbf.binding_cones: the numpy paths only)
 CONFIGS: dict[str, dict[str, Any]] = {
     "1 (ee)": {"safety_spheres": "ee"},
     "1 (ee), arm settings": {"safety_spheres": "ee", "filter": {"learner_kwargs": ARM_LEARNER}},
@@ -53,6 +54,7 @@ CONFIGS: dict[str, dict[str, Any]] = {
     "21 (arm)": {},
     "21 (arm), method settings": {"filter": {"learner_kwargs": METHOD_LEARNER}},
     "21 (arm), clarabel only": {"fast_path": False},
+    "21 (arm), numpy paths only": {"compiled": False},
     "42 (arm, 2 obstacles)": {"obstacles": "two"},
 }
 
@@ -62,6 +64,7 @@ def _env_kwargs(spec: dict[str, Any]) -> dict[str, Any]:
 
     kw = dict(spec)
     kw.pop("fast_path", None)
+    kw.pop("compiled", None)
     kw.pop("filter", None)
     if kw.get("safety_spheres") == "hand":
         kw["safety_spheres"] = list(PANDA_ARM_SPHERES[14:])
@@ -92,6 +95,7 @@ class TimedEpisode:
                                       seed=seed, **spec.get("filter", {}))
         ctrl, bank = env.controller, env.controller.bank
         ctrl.socp.fast_path = bool(spec.get("fast_path", True))
+        ctrl.socp.compiled = ctrl.socp.compiled and bool(spec.get("compiled", True))
         clock = {"learners": 0.0}
 
         def timed(fn):
@@ -230,6 +234,9 @@ def run(quick: bool = False, steps: int | None = None, rounds: int = 2,
             out[f"21 (arm): step {q}_s"] / out[f"21 (arm), method settings: step {q}_s"])
     out["step median, K=21: clarabel only / with fast path"] = (
         out["21 (arm), clarabel only: step median_s"] / out["21 (arm): step median_s"])
+    for q in ("median", "p99"):
+        out[f"step {q}, K=21: numpy paths only / with the compiled path"] = (
+            out[f"21 (arm), numpy paths only: step {q}_s"] / out[f"21 (arm): step {q}_s"])
     return out
 
 

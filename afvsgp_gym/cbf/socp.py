@@ -15,8 +15,10 @@ is the HOCBF-QP of eq. 04.
 :meth:`SOCPFilter.solve` tries, in order: the clipped proposal (returned as is when it
 satisfies every constraint: status ``"inactive"``); an exact fast path
 (:mod:`afvsgp_gym.cbf.fastpath`: one half-space, any number of half-spaces, one cone, each
-with the box; with several cones, the projection onto the one farthest from the proposal)
-whose answer is used only when its KKT certificate holds (status ``"certified:<path>"``);
+with the box; with several cones, the compiled search of the binding cones,
+:func:`afvsgp_gym.cbf.binding_cones.solve_binding_set`, when it is built, then the projection
+onto the one farthest from the proposal) whose answer is used only when its KKT certificate
+holds (status ``"certified:<path>"``, ``"certified:cones"`` with several binding cones);
 clarabel (:mod:`afvsgp_gym.cbf.cone_programs`, status ``"Solved"`` or ``"AlmostSolved"``).
 With several cones clarabel first solves the program over a working set of them (the
 farthest and the most violated at the fast path's answer, enlarged by the most violated at
@@ -41,7 +43,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from afvsgp_gym.cbf import fastpath
+from afvsgp_gym.cbf import binding_cones, fastpath
 from afvsgp_gym.cbf.cone_programs import SOLVED, ConePrograms
 
 #: A returned feasible action satisfies ``c_i(u) >= -FEASIBILITY_TOL * scale_i``.
@@ -50,6 +52,8 @@ FEASIBILITY_TOL = 1e-8
 WORKING_SET_ROUNDS = 3
 #: Cones added to the working set per round: the most violated ones (relative to scale).
 WORKING_SET_ADD = 2
+#: Most binding cones of the compiled several-cones path (:mod:`binding_cones`).
+BINDING_CONES_MAX = 5
 #: Working-set rounds of the QP's least-distance fast path before clarabel.
 QP_WORKING_SET_ROUNDS = 4
 
@@ -67,7 +71,8 @@ class SOCPResult:
         backup action or the max-worst-margin fallback.
     status : str
         ``"inactive"`` (the clipped proposal is safe), ``"certified:halfspace"``,
-        ``"certified:polyhedron"``, ``"certified:cone"`` (exact fast path, KKT-certified),
+        ``"certified:polyhedron"``, ``"certified:cone"``, ``"certified:cones"`` (exact fast
+        path, KKT-certified; the last with several binding cones),
         clarabel's ``"Solved"`` / ``"AlmostSolved"``, ``"backup:<why>"``,
         ``"fallback:<why>"`` (``<why>``: clarabel's status, or ``infeasible`` for a Farkas
         certificate of the QP from the fast path) or ``"invalid_input"``.
@@ -105,6 +110,10 @@ class SOCPFilter:
     fast_path : bool
         Use the certified fast paths (False: clarabel for every active call; for reference
         and benchmarks).
+    compiled : bool or None
+        Use the compiled several-cones path (:mod:`afvsgp_gym.cbf.binding_cones`) for programs
+        with several cones: None when it is built, True to require it (ImportError if it is
+        not), False for the numpy paths only.
     """
 
     def __init__(
@@ -117,6 +126,7 @@ class SOCPFilter:
         tol: float = 1e-9,
         fallback_regularization: float = 1e-4,
         fast_path: bool = True,
+        compiled: bool | None = None,
     ):
         low = np.asarray(action_low, dtype=np.float64).ravel()
         high = np.asarray(action_high, dtype=np.float64).ravel()
@@ -151,6 +161,10 @@ class SOCPFilter:
         self.tol = float(tol)
         self.fallback_regularization = float(fallback_regularization)
         self.fast_path = bool(fast_path)
+        if compiled and not binding_cones.AVAILABLE:
+            raise ImportError("compiled=True needs afvsgp_gym.cbf._cones, which was not built "
+                              "(a C compiler is needed when the package is installed)")
+        self.compiled = binding_cones.AVAILABLE if compiled is None else bool(compiled)
         #: largest ``||u||`` in the box: the action scale of :func:`fastpath.constraint_scales`
         self.bound_norm = float(np.linalg.norm(np.maximum(np.abs(low), np.abs(high))))
         #: smallest ``high - low``: coordinates this close (times 1e-12) outside count as in
@@ -395,8 +409,14 @@ class SOCPFilter:
         low, high = self.low, self.high
         if a0.size == 1:
             return self._one_cone(u_nom, float(a0[0]), a[0], G[0], tol)
-        # several cones: the projection onto the farthest one answers the program when that
-        # cone is the only one binding at the optimum; else it starts clarabel's working set
+        # several cones: from the farthest one at the clipped proposal, the compiled path
+        # finds the binding cones; else the projection onto the farthest one answers the
+        # program when that cone is the only one binding at the optimum, and if it does not,
+        # starts the compiled path once more or clarabel's working set
+        if self.compiled:
+            found = self._binding_cones(u_nom, a0, a, G, tol, None, uc)
+            if found is not None:
+                return found
         order = self._farthest_cones(uc, a0, a, G, marg)
         i = int(order[0])
         found = self._project_one(u_nom, float(a0[i]), a[i], G[i])
@@ -407,7 +427,38 @@ class SOCPFilter:
         if fastpath.certify(u, u_nom, c, tol, np.array([i]), np.array([lam]),
                             grad[None], low, high):
             return u, path, c
-        return np.union1d([i], _most_violated(np.flatnonzero(c < 0.0), c, tol))
+        violated = np.flatnonzero(c < 0.0)
+        if self.compiled and path == "cone":  # once more, from the projection onto cone i
+            found = self._binding_cones(u_nom, a0, a, G, tol, i, u, lam)
+            if found is not None:
+                return found
+        return np.union1d([i], _most_violated(violated, c, tol))
+
+    def _binding_cones(self, u_nom, a0, a, G, tol, i: int | None, u, lam: float = 0.0):
+        """``(u, path, margins at u)`` from :func:`binding_cones.solve_binding_set` (the
+        binding set searched from cone ``i`` with multiplier ``lam`` at the point ``u``; with
+        ``i`` None, from the cone most violated at ``u``), certified against the whole
+        program; None if it does not settle or certify."""
+        low, high = self.low, self.high
+        start = np.zeros(a0.size, dtype=bool)
+        lam0 = np.zeros(a0.size)
+        if i is not None:
+            start[i] = True
+            lam0[i] = lam
+        sol = binding_cones.solve_binding_set(u_nom, a0, a, G, low, high, tol.array(), u,
+                                              lam0, start, BINDING_CONES_MAX)
+        if sol is None:
+            return None
+        u, lams, binding = sol
+        rows = np.flatnonzero(binding)
+        c = self.margins(u, a0, a, G)
+        grads = [fastpath.cone_margin_gradient(u, float(a0[j]), a[j], G[j])[1]
+                 for j in rows.tolist()]
+        if any(g is None for g in grads):
+            return None
+        if fastpath.certify(u, u_nom, c, tol, rows, lams[rows], np.array(grads), low, high):
+            return u, "cone" if rows.size == 1 else "cones", c
+        return None
 
     def _project_one(self, u_nom, a0: float, a, G):
         """``(u, lam, c(u), grad c(u), path)``: the projection of ``u_nom`` onto one
@@ -558,12 +609,13 @@ class SOCPFilter:
         return SOCPResult(u, False, status, marg, time.perf_counter() - t0)
 
 
-def _most_violated(idx: np.ndarray, c: np.ndarray, tol: fastpath.Tolerance) -> np.ndarray:
-    """The ``WORKING_SET_ADD`` constraints of ``idx`` most violated relative to their scale
-    (margins ``c``), or all of ``idx`` if there are no more."""
-    if idx.size <= WORKING_SET_ADD:
+def _most_violated(idx: np.ndarray, c: np.ndarray, tol: fastpath.Tolerance,
+                   n: int = WORKING_SET_ADD) -> np.ndarray:
+    """The ``n`` constraints of ``idx`` most violated relative to their scale (margins
+    ``c``), or all of ``idx`` if there are no more."""
+    if idx.size <= n:
         return idx
-    return idx[np.argsort(c[idx] / tol.at(idx))[:WORKING_SET_ADD]]
+    return idx[np.argsort(c[idx] / tol.at(idx))[:n]]
 
 
 def _with_margin(sol, a0, a, G):

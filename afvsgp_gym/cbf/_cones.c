@@ -1,0 +1,566 @@
+/* Projection onto a few second-order cones that all bind, and the box (paper eq. 05).
+ *
+ * The compiled core of afvsgp_gym.cbf.binding_cones (its docstring states the method):
+ * Newton's method on the KKT system of
+ *
+ *     min 1/2 ||u - u_nom||^2  s.t.  c_i(u) = a0_i + a_i u - ||G_i ubar|| = 0 (i < k),
+ *                                    u_j on its box face (j fixed),
+ *
+ * in (u_free, lam), with the Lagrangian's Hessian H = I + sum_i lam_i (B_i'B_i - w_i w_i') /
+ * ||v_i|| (B_i = G_i[:, 1:], v_i = G_i ubar, w_i = B_i' v_i / ||v_i||; max(lam_i, 0) in it, so
+ * that it stays positive definite) by Cholesky and the k x k Schur complement, inside a
+ * primal-dual active set on the box faces. Dense, small:
+ * m <= MAXM actions, k <= MAXK cones. The caller certifies the answer.
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <math.h>
+#include <string.h>
+
+#define MAXM 16
+#define MAXK 8
+#define MAX_NEWTON 20
+#define MAX_FACE_ROUNDS 8
+#define NEGATIVE_ITERATES 3 /* Newton gives up on a cone negative this many times running */
+
+/* return codes (0: settled) */
+#define APEX -1
+#define NO_FREE -2
+#define NOT_PD -3
+#define SINGULAR -4
+#define NOT_FINITE -5
+#define NO_CONVERGENCE -6
+#define FACES_CYCLE -7
+#define NEGATIVE_MULTIPLIER -8
+#define FACES_UNSETTLED -9
+#define SET_CYCLE -10
+#define TOO_MANY_BINDING -11
+#define SET_UNSETTLED -12
+
+#define MAXC 64 /* cones of a program (the binding set's search, solve()) */
+#define MAX_SET_ROUNDS 16
+
+typedef struct {
+    int m, k;      /* actions; cones in the binding set */
+    int idx[MAXK]; /* the binding set: indices into the data's cones */
+    const double *u_nom, *a0, *a, *G, *low, *high; /* a: (K, m), G: (K, m+1, m+1) row-major */
+    const double *BtB; /* (K, m, m): B_i' B_i, B_i = G_i[:, 1:] */
+} Problem;
+
+/* c_i, grad c_i, w_i and ||v_i|| at u for the binding set; APEX if some v_i = 0 */
+static int terms(const Problem *P, const double *u, double *c, double grad[][MAXM],
+                 double w[][MAXM], double *nv)
+{
+    const int m = P->m, n1 = m + 1;
+    for (int i = 0; i < P->k; i++) {
+        const int q = P->idx[i];
+        const double *Gi = P->G + (size_t)q * n1 * n1, *ai = P->a + (size_t)q * m;
+        double v[MAXM + 1], s2 = 0.0;
+        for (int r = 0; r < n1; r++) {
+            const double *row = Gi + (size_t)r * n1;
+            double x = row[0];
+            for (int j = 0; j < m; j++)
+                x += row[j + 1] * u[j];
+            v[r] = x;
+            s2 += x * x;
+        }
+        const double n = sqrt(s2);
+        if (!(n > 0.0))
+            return APEX;
+        nv[i] = n;
+        double t = P->a0[q];
+        for (int j = 0; j < m; j++) {
+            double x = 0.0;
+            for (int r = 0; r < n1; r++)
+                x += Gi[(size_t)r * n1 + j + 1] * v[r];
+            w[i][j] = x / n;
+            grad[i][j] = ai[j] - w[i][j];
+            t += ai[j] * u[j];
+        }
+        c[i] = t - n;
+    }
+    return 0;
+}
+
+/* the margin a0_q + a_q u - ||G_q ubar|| of cone q */
+static double margin(const Problem *P, int q, const double *u)
+{
+    const int m = P->m, n1 = m + 1;
+    const double *Gq = P->G + (size_t)q * n1 * n1, *aq = P->a + (size_t)q * m;
+    double s2 = 0.0, t = P->a0[q];
+    for (int r = 0; r < n1; r++) {
+        const double *row = Gq + (size_t)r * n1;
+        double x = row[0];
+        for (int j = 0; j < m; j++)
+            x += row[j + 1] * u[j];
+        s2 += x * x;
+    }
+    for (int j = 0; j < m; j++)
+        t += aq[j] * u[j];
+    return t - sqrt(s2);
+}
+
+/* B_q' B_q of cone q into out (m, m) */
+static void gram(const Problem *P, int q, double *out)
+{
+    const int m = P->m, n1 = m + 1;
+    const double *Gq = P->G + (size_t)q * n1 * n1;
+    for (int p = 0; p < m; p++)
+        for (int r = 0; r <= p; r++) {
+            double x = 0.0;
+            for (int l = 0; l < n1; l++)
+                x += Gq[(size_t)l * n1 + p + 1] * Gq[(size_t)l * n1 + r + 1];
+            out[p * m + r] = out[r * m + p] = x;
+        }
+}
+
+/* solve the k x k system S x = S[:, k] by Gaussian elimination with partial pivoting */
+static int solve_small(double S[][MAXK + 1], int k, double *x)
+{
+    for (int p = 0; p < k; p++) {
+        int piv = p;
+        for (int r = p + 1; r < k; r++)
+            if (fabs(S[r][p]) > fabs(S[piv][p]))
+                piv = r;
+        if (!(fabs(S[piv][p]) > 0.0))
+            return SINGULAR;
+        if (piv != p)
+            for (int q = 0; q <= k; q++) {
+                double tmp = S[p][q];
+                S[p][q] = S[piv][q];
+                S[piv][q] = tmp;
+            }
+        for (int r = p + 1; r < k; r++) {
+            const double f = S[r][p] / S[p][p];
+            for (int q = p; q <= k; q++)
+                S[r][q] -= f * S[p][q];
+        }
+    }
+    for (int p = k - 1; p >= 0; p--) {
+        double y = S[p][k];
+        for (int q = p + 1; q < k; q++)
+            y -= S[p][q] * x[q];
+        x[p] = y / S[p][p];
+    }
+    return 0;
+}
+
+/* Newton's method on the KKT system with the coordinates `fixed` held at their values */
+static int newton(const Problem *P, double *u, double *lam, const unsigned char *fixed)
+{
+    const int m = P->m, k = P->k;
+    int F[MAXM], nf = 0;
+    for (int j = 0; j < m; j++)
+        if (!fixed[j])
+            F[nf++] = j;
+    if (nf < k)
+        return NO_FREE; /* k boundary equations need k free coordinates */
+    double c[MAXK], grad[MAXK][MAXM], w[MAXK][MAXM], nv[MAXK];
+    int negative = 0; /* consecutive iterates with a negative multiplier */
+    for (int it = 0; it < MAX_NEWTON; it++) {
+        int rc = terms(P, u, c, grad, w, nv);
+        if (rc)
+            return rc;
+        double H[MAXM][MAXM], X[MAXM][MAXK + 1], s[MAXK];
+        for (int i = 0; i < k; i++) /* a negative iterate's curvature left out: H stays > 0 */
+            s[i] = fmax(lam[i], 0.0) / nv[i];
+        for (int p = 0; p < nf; p++) {
+            const int jp = F[p];
+            double g = u[jp] - P->u_nom[jp];
+            for (int i = 0; i < k; i++)
+                g -= lam[i] * grad[i][jp];
+            X[p][0] = g; /* the Lagrangian's gradient r1 */
+            for (int i = 0; i < k; i++)
+                X[p][i + 1] = grad[i][jp];
+            for (int q = 0; q <= p; q++) {
+                const int jq = F[q];
+                double h = (p == q) ? 1.0 : 0.0;
+                for (int i = 0; i < k; i++)
+                    h += s[i] * (P->BtB[((size_t)P->idx[i] * m + jp) * m + jq] -
+                                 w[i][jp] * w[i][jq]);
+                H[p][q] = h;
+            }
+        }
+        for (int p = 0; p < nf; p++) { /* H = L L' in the lower triangle */
+            double d = H[p][p];
+            for (int q = 0; q < p; q++)
+                d -= H[p][q] * H[p][q];
+            if (!(d > 0.0))
+                return NOT_PD;
+            d = sqrt(d);
+            H[p][p] = d;
+            for (int r = p + 1; r < nf; r++) {
+                double x = H[r][p];
+                for (int q = 0; q < p; q++)
+                    x -= H[r][q] * H[p][q];
+                H[r][p] = x / d;
+            }
+        }
+        for (int col = 0; col <= k; col++) { /* X = H^-1 [r1, J'] */
+            for (int p = 0; p < nf; p++) {
+                double x = X[p][col];
+                for (int q = 0; q < p; q++)
+                    x -= H[p][q] * X[q][col];
+                X[p][col] = x / H[p][p];
+            }
+            for (int p = nf - 1; p >= 0; p--) {
+                double x = X[p][col];
+                for (int q = p + 1; q < nf; q++)
+                    x -= H[q][p] * X[q][col];
+                X[p][col] = x / H[p][p];
+            }
+        }
+        double S[MAXK][MAXK + 1], dlam[MAXK]; /* (J H^-1 J') dlam = J H^-1 r1 - c */
+        for (int i = 0; i < k; i++) {
+            double r = -c[i];
+            for (int p = 0; p < nf; p++)
+                r += grad[i][F[p]] * X[p][0];
+            S[i][k] = r;
+            for (int l = 0; l < k; l++) {
+                double x = 0.0;
+                for (int p = 0; p < nf; p++)
+                    x += grad[i][F[p]] * X[p][l + 1];
+                S[i][l] = x;
+            }
+        }
+        rc = solve_small(S, k, dlam);
+        if (rc)
+            return rc;
+        double dumax = 0.0, umax = 0.0, dlmax = 0.0, lmax = 0.0;
+        for (int p = 0; p < nf; p++) {
+            double du = -X[p][0];
+            for (int i = 0; i < k; i++)
+                du += X[p][i + 1] * dlam[i];
+            u[F[p]] += du;
+            dumax = fmax(dumax, fabs(du));
+        }
+        for (int j = 0; j < m; j++)
+            umax = fmax(umax, fabs(u[j]));
+        for (int i = 0; i < k; i++) {
+            lam[i] += dlam[i];
+            dlmax = fmax(dlmax, fabs(dlam[i]));
+            lmax = fmax(lmax, fabs(lam[i]));
+        }
+        if (!(isfinite(dumax) && isfinite(umax) && isfinite(dlmax) && isfinite(lmax)))
+            return NOT_FINITE;
+        if (dumax <= 1e-13 * (1.0 + umax) && dlmax <= 1e-11 * (1.0 + lmax))
+            return 0;
+        double lmin = lam[0];
+        for (int i = 1; i < k; i++)
+            lmin = fmin(lmin, lam[i]);
+        negative = (lmin < 0.0) ? negative + 1 : 0;
+        if (negative >= NEGATIVE_ITERATES)
+            return NEGATIVE_MULTIPLIER; /* that cone does not bind: the caller drops it */
+    }
+    return NO_CONVERGENCE;
+}
+
+/* the face iteration around newton(): fix the coordinate farthest outside the box, else
+ * release the face whose multiplier pushes outwards; then snap to the box */
+static int project(const Problem *P, double *u, double *lam, unsigned char *fixed)
+{
+    const int m = P->m, k = P->k;
+    const double *low = P->low, *high = P->high;
+    unsigned char seen[MAX_FACE_ROUNDS][MAXM];
+    for (int j = 0; j < m; j++)
+        u[j] = fmin(fmax(u[j], low[j]), high[j]);
+    for (int round = 0; round < MAX_FACE_ROUNDS; round++) {
+        for (int s = 0; s < round; s++)
+            if (memcmp(seen[s], fixed, (size_t)m) == 0)
+                return FACES_CYCLE;
+        memcpy(seen[round], fixed, (size_t)m);
+        int rc = newton(P, u, lam, fixed);
+        if (rc)
+            return rc;
+        int jout = -1;
+        double worst = 0.0;
+        for (int j = 0; j < m; j++) {
+            const double e = fmax(low[j] - u[j], u[j] - high[j]);
+            if (e > worst) {
+                worst = e;
+                jout = j;
+            }
+        }
+        if (jout >= 0) {
+            for (int j = 0; j < m; j++)
+                u[j] = fmin(fmax(u[j], low[j]), high[j]);
+            fixed[jout] = 1;
+            continue;
+        }
+        double c[MAXK], grad[MAXK][MAXM], w[MAXK][MAXM], nv[MAXK];
+        rc = terms(P, u, c, grad, w, nv);
+        if (rc)
+            return rc;
+        int jin = -1;
+        double wrong_max = 0.0;
+        for (int j = 0; j < m; j++) {
+            if (!fixed[j])
+                continue;
+            double g = u[j] - P->u_nom[j];
+            for (int i = 0; i < k; i++)
+                g -= lam[i] * grad[i][j];
+            const double wrong = (u[j] <= low[j]) ? -g : (u[j] >= high[j]) ? g : 0.0;
+            if (wrong > wrong_max) {
+                wrong_max = wrong;
+                jin = j;
+            }
+        }
+        if (jin >= 0) {
+            fixed[jin] = 0;
+            continue;
+        }
+        for (int i = 0; i < k; i++)
+            if (!(lam[i] >= 0.0))
+                return NEGATIVE_MULTIPLIER;
+        for (int j = 0; j < m; j++) {
+            const double tol = 1e-13 * (high[j] - low[j]);
+            if (u[j] - low[j] <= tol)
+                u[j] = low[j];
+            else if (high[j] - u[j] <= tol)
+                u[j] = high[j];
+        }
+        return 0;
+    }
+    return FACES_UNSETTLED;
+}
+
+/* the binding set among all K cones: project() onto the set (from u, lam), then the cone most
+ * violated beyond its tolerance (relative to it) joins with multiplier 0, or the cone with
+ * the most negative multiplier leaves, until no other cone is violated; lam_all (K) and
+ * binding (K) in/out: the start and the answer */
+static int solve_set(Problem *P, int K, const double *tol, int max_binding, double *u,
+                     double *lam_all, unsigned char *binding)
+{
+    const int m = P->m;
+    unsigned long long tried[MAX_SET_ROUNDS];
+    double lam[MAXK];
+    unsigned char fixed[MAXM];
+    P->k = 0;
+    for (int q = 0; q < K; q++)
+        if (binding[q]) {
+            if (P->k == max_binding)
+                return TOO_MANY_BINDING;
+            lam[P->k] = lam_all[q];
+            P->idx[P->k++] = q;
+        }
+    if (P->k == 0) { /* no start set: the cone most violated at u, relative to its scale */
+        int first = -1;
+        double worst = -1.0;
+        for (int q = 0; q < K; q++) {
+            const double r = margin(P, q, u) / tol[q];
+            if (isnan(r))
+                return NOT_FINITE;
+            if (r < worst) {
+                worst = r;
+                first = q;
+            }
+        }
+        if (first < 0)
+            return NO_FREE;
+        lam[0] = 0.0;
+        P->idx[P->k++] = first;
+    }
+    for (int round = 0; round < MAX_SET_ROUNDS; round++) {
+        unsigned long long mask = 0;
+        for (int i = 0; i < P->k; i++)
+            mask |= 1ULL << P->idx[i];
+        for (int r = 0; r < round; r++)
+            if (tried[r] == mask)
+                return SET_CYCLE;
+        tried[round] = mask;
+        for (int j = 0; j < m; j++)
+            fixed[j] = (u[j] <= P->low[j]) || (u[j] >= P->high[j]);
+        const int rc = project(P, u, lam, fixed);
+        if (rc == NEGATIVE_MULTIPLIER) { /* that cone does not bind: it leaves */
+            if (P->k == 1)
+                return rc;
+            int out = 0;
+            for (int i = 1; i < P->k; i++)
+                if (lam[i] < lam[out])
+                    out = i;
+            for (int i = out; i + 1 < P->k; i++) {
+                P->idx[i] = P->idx[i + 1];
+                lam[i] = lam[i + 1];
+            }
+            P->k--;
+            continue;
+        }
+        if (rc)
+            return rc;
+        int join = -1;
+        double worst = -1.0; /* margin / tolerance below -1: violated beyond the tolerance */
+        for (int q = 0; q < K; q++) {
+            int in = 0;
+            for (int i = 0; i < P->k; i++)
+                in |= P->idx[i] == q;
+            if (in)
+                continue;
+            const double r = margin(P, q, u) / tol[q];
+            if (isnan(r))
+                return NOT_FINITE;
+            if (r < worst) {
+                worst = r;
+                join = q;
+            }
+        }
+        if (join < 0) {
+            for (int q = 0; q < K; q++) {
+                lam_all[q] = 0.0;
+                binding[q] = 0;
+            }
+            for (int i = 0; i < P->k; i++) {
+                lam_all[P->idx[i]] = lam[i];
+                binding[P->idx[i]] = 1;
+            }
+            return 0;
+        }
+        if (P->k == max_binding)
+            return TOO_MANY_BINDING;
+        P->idx[P->k] = join;
+        lam[P->k++] = 0.0;
+    }
+    return SET_UNSETTLED;
+}
+
+/* One argument of the Python entry points: its name, its length ('m' actions, 'k' cones,
+ * 'a' k x m, 'G' k x (m+1)^2), its item size (8: float64, 1: bool) and whether it is written. */
+typedef struct {
+    const char *name;
+    char len, size, writable;
+} Arg;
+
+/* the buffers b[i] of the arguments o[i] (C-contiguous, of the sizes in spec), m and k from
+ * the first two (u_nom: 1..MAXM actions, a0: 1..max_k cones); -1 with an error naming the
+ * argument (and every buffer released) */
+static int take(PyObject **o, Py_buffer *b, const Arg *spec, int n_args, Py_ssize_t max_k,
+                Py_ssize_t *m, Py_ssize_t *k)
+{
+    for (int i = 0; i < n_args; i++) {
+        const Arg *s = &spec[i];
+        int flags = PyBUF_C_CONTIGUOUS | (s->writable ? PyBUF_WRITABLE : 0);
+        if (PyObject_GetBuffer(o[i], &b[i], flags) < 0) {
+            for (int j = 0; j < i; j++)
+                PyBuffer_Release(&b[j]);
+            return -1;
+        }
+        Py_ssize_t n = -1;
+        if (i < 2) { /* u_nom and a0 set m and k */
+            const Py_ssize_t top = (i == 0) ? MAXM : max_k, got = b[i].len / 8;
+            if (b[i].itemsize == 8 && got >= 1 && got <= top) {
+                n = got;
+                *(i == 0 ? m : k) = got;
+            } else
+                PyErr_Format(PyExc_ValueError, "%s must hold 1 to %zd float64 items", s->name,
+                             top);
+        } else {
+            const Py_ssize_t want = (s->len == 'm') ? *m : (s->len == 'k') ? *k
+                                    : (s->len == 'a') ? *k * *m : *k * (*m + 1) * (*m + 1);
+            if (b[i].itemsize == s->size && b[i].len == want * s->size)
+                n = want;
+            else
+                PyErr_Format(PyExc_ValueError, "%s must hold %zd items of %d bytes", s->name,
+                             want, (int)s->size);
+        }
+        if (n < 0) {
+            for (int j = 0; j <= i; j++)
+                PyBuffer_Release(&b[j]);
+            return -1;
+        }
+    }
+    return 0;
+}
+
+/* the problem's data from the buffers u_nom, a0, a, G, low, high */
+static void set_data(Problem *P, Py_buffer *b, Py_ssize_t m)
+{
+    P->m = (int)m;
+    P->k = 0;
+    P->u_nom = b[0].buf;
+    P->a0 = b[1].buf;
+    P->a = b[2].buf;
+    P->G = b[3].buf;
+    P->low = b[4].buf;
+    P->high = b[5].buf;
+}
+
+static PyObject *py_project(PyObject *self, PyObject *args)
+{
+    static const Arg spec[9] = {{"u_nom", 'm', 8, 0}, {"a0", 'k', 8, 0}, {"a", 'a', 8, 0},
+                                {"G", 'G', 8, 0},     {"low", 'm', 8, 0}, {"high", 'm', 8, 0},
+                                {"u", 'm', 8, 1},     {"lam", 'k', 8, 1}, {"fixed", 'm', 1, 1}};
+    PyObject *o[9];
+    Py_buffer b[9];
+    Py_ssize_t m = 0, k = 0;
+    if (!PyArg_UnpackTuple(args, "project", 9, 9, &o[0], &o[1], &o[2], &o[3], &o[4], &o[5],
+                           &o[6], &o[7], &o[8]))
+        return NULL;
+    if (take(o, b, spec, 9, MAXK, &m, &k) < 0)
+        return NULL;
+    Problem P;
+    set_data(&P, b, m);
+    P.k = (int)k;
+    for (int i = 0; i < P.k; i++)
+        P.idx[i] = i;
+    double BtB[MAXK * MAXM * MAXM];
+    for (int i = 0; i < P.k; i++)
+        gram(&P, i, BtB + (size_t)i * m * m);
+    P.BtB = BtB;
+    const int rc = project(&P, b[6].buf, b[7].buf, b[8].buf);
+    for (int i = 0; i < 9; i++)
+        PyBuffer_Release(&b[i]);
+    return PyLong_FromLong(rc);
+}
+
+static PyObject *py_solve(PyObject *self, PyObject *args)
+{
+    static const Arg spec[10] = {{"u_nom", 'm', 8, 0}, {"a0", 'k', 8, 0},  {"a", 'a', 8, 0},
+                                 {"G", 'G', 8, 0},     {"low", 'm', 8, 0}, {"high", 'm', 8, 0},
+                                 {"tol", 'k', 8, 0},   {"u", 'm', 8, 1},   {"lam", 'k', 8, 1},
+                                 {"binding", 'k', 1, 1}};
+    PyObject *o[10];
+    Py_buffer b[10];
+    Py_ssize_t m = 0, K = 0;
+    int max_binding;
+    if (!PyArg_ParseTuple(args, "OOOOOOOOOOi", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6],
+                          &o[7], &o[8], &o[9], &max_binding))
+        return NULL;
+    if (max_binding < 1 || max_binding > MAXK) {
+        PyErr_Format(PyExc_ValueError, "max_binding must be in [1, %d]", MAXK);
+        return NULL;
+    }
+    if (take(o, b, spec, 10, MAXC, &m, &K) < 0)
+        return NULL;
+    double *BtB = PyMem_Malloc(sizeof(double) * (size_t)(K * m * m));
+    if (BtB == NULL) {
+        for (int i = 0; i < 10; i++)
+            PyBuffer_Release(&b[i]);
+        return PyErr_NoMemory();
+    }
+    Problem P;
+    set_data(&P, b, m);
+    for (int q = 0; q < K; q++)
+        gram(&P, q, BtB + (size_t)q * m * m);
+    P.BtB = BtB;
+    const int rc = solve_set(&P, (int)K, b[6].buf, max_binding, b[7].buf, b[8].buf, b[9].buf);
+    PyMem_Free(BtB);
+    for (int i = 0; i < 10; i++)
+        PyBuffer_Release(&b[i]);
+    return PyLong_FromLong(rc);
+}
+
+static PyMethodDef methods[] = {
+    {"solve", py_solve, METH_VARARGS,
+     "solve(u_nom, a0, a, G, low, high, tol, u, lam, binding, max_binding) -> int: 0 when "
+     "the binding set settled with no other cone violated beyond tol. u, lam (float64) and "
+     "binding (bool, one per cone) are the start and are overwritten with the answer."},
+    {"project", py_project, METH_VARARGS,
+     "project(u_nom, a0, a, G, low, high, u, lam, fixed) -> int: 0 when settled. u, lam "
+     "(float64) and fixed (bool) are the start and are overwritten with the answer."},
+    {NULL, NULL, 0, NULL},
+};
+
+static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_cones",
+                                    "Compiled core of afvsgp_gym.cbf.binding_cones.", -1,
+                                    methods};
+
+PyMODINIT_FUNC PyInit__cones(void) { return PyModule_Create(&module); }
