@@ -45,8 +45,7 @@ METHOD_LEARNER = {k: REGISTRY["afvsgp"].default_kwargs[k] for k in ARM_LEARNER}
 
 #: name -> env kwargs; "filter": SafetyFilter options on top of the env's suggestions;
 #: "fast_path": False turns the solver's certified fast path off, so every cone program goes
-#: to clarabel (the step without what the fast path saves); "compiled": False leaves out the
-#: compiled several-cones path (afvsgp_gym.cbf.binding_cones: the numpy paths only)
+#: to clarabel (the step without what the fast path saves)
 CONFIGS: dict[str, dict[str, Any]] = {
     "1 (ee)": {"safety_spheres": "ee"},
     "1 (ee), arm settings": {"safety_spheres": "ee", "filter": {"learner_kwargs": ARM_LEARNER}},
@@ -54,7 +53,7 @@ CONFIGS: dict[str, dict[str, Any]] = {
     "21 (arm)": {},
     "21 (arm), method settings": {"filter": {"learner_kwargs": METHOD_LEARNER}},
     "21 (arm), clarabel only": {"fast_path": False},
-    "21 (arm), numpy paths only": {"compiled": False},
+    "21 (arm), numpy paths only": {"filter": {"compiled_solver": False}},
     "42 (arm, 2 obstacles)": {"obstacles": "two"},
 }
 
@@ -64,7 +63,6 @@ def _env_kwargs(spec: dict[str, Any]) -> dict[str, Any]:
 
     kw = dict(spec)
     kw.pop("fast_path", None)
-    kw.pop("compiled", None)
     kw.pop("filter", None)
     if kw.get("safety_spheres") == "hand":
         kw["safety_spheres"] = list(PANDA_ARM_SPHERES[14:])
@@ -95,7 +93,6 @@ class TimedEpisode:
                                       seed=seed, **spec.get("filter", {}))
         ctrl, bank = env.controller, env.controller.bank
         ctrl.socp.fast_path = bool(spec.get("fast_path", True))
-        ctrl.socp.compiled = ctrl.socp.compiled and bool(spec.get("compiled", True))
         clock = {"learners": 0.0}
 
         def timed(fn):

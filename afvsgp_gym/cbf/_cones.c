@@ -9,8 +9,9 @@
  * in (u_free, lam), with the Lagrangian's Hessian H = I + sum_i lam_i (B_i'B_i - w_i w_i') /
  * ||v_i|| (B_i = G_i[:, 1:], v_i = G_i ubar, w_i = B_i' v_i / ||v_i||; max(lam_i, 0) in it, so
  * that it stays positive definite) by Cholesky and the k x k Schur complement, inside a
- * primal-dual active set on the box faces. Dense, small:
- * m <= MAXM actions, k <= MAXK cones. The caller certifies the answer.
+ * primal-dual active set on the box faces (project); and the search of the binding set among
+ * a program's cones (solve_set). Dense, small: m <= MAXM actions, k <= MAXK binding cones,
+ * K <= MAXC cones in a program. The caller certifies the answer.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>

@@ -78,6 +78,9 @@ class FilterConfig:
         Update the learners with every observed sample after warm-up.
     qp_solver : str or None
         qpsolvers backend for the known-model QP (None: clarabel directly).
+    compiled_solver : bool or None
+        The cone program's compiled several-cones path (``SOCPFilter(compiled=...)``): None
+        when it is built, True to require it, False for the numpy paths only.
     seed : int or None
         Seed of the exploration noise.
     """
@@ -98,6 +101,7 @@ class FilterConfig:
     shared_hyperparameters: bool = True
     online: bool = True
     qp_solver: str | None = None
+    compiled_solver: bool | None = None
     seed: int | None = None
 
     def __post_init__(self) -> None:
@@ -120,6 +124,9 @@ class FilterConfig:
             object.__setattr__(self, "learner_kwargs", {})
         if not isinstance(self.learner_kwargs, dict):
             raise ValueError(f"learner_kwargs must be a dict, got {self.learner_kwargs!r}")
+        if self.compiled_solver is not None and not isinstance(self.compiled_solver, bool):
+            raise ValueError(f"compiled_solver must be None, True or False, got "
+                             f"{self.compiled_solver!r}")
         if self.seed is not None:
             check_count(self.seed, "seed", 0)
 

@@ -165,7 +165,8 @@ class SafetyController:
         self.config = cfg = replace(config or FilterConfig(), **options)
         self.hocbf = HOCBF(cfg.relative_degree, cfg.alpha)
         self._margin_gain = float(np.prod(self.hocbf.gains))  # d psi_r / d h
-        self.socp = SOCPFilter(action_low, action_high, qp_solver=cfg.qp_solver)
+        self.socp = SOCPFilter(action_low, action_high, qp_solver=cfg.qp_solver,
+                               compiled=cfg.compiled_solver)
         self.low, self.high = self.socp.low, self.socp.high
         self.action_dim = self.socp.m
         entry = REGISTRY[self.learner_name]

@@ -409,10 +409,10 @@ class SOCPFilter:
         low, high = self.low, self.high
         if a0.size == 1:
             return self._one_cone(u_nom, float(a0[0]), a[0], G[0], tol)
-        # several cones: from the farthest one at the clipped proposal, the compiled path
-        # finds the binding cones; else the projection onto the farthest one answers the
-        # program when that cone is the only one binding at the optimum, and if it does not,
-        # starts the compiled path once more or clarabel's working set
+        # several cones: the compiled path searches the binding cones from the most violated
+        # one; else the projection onto the farthest one answers the program when that cone
+        # is the only one binding at the optimum, and if it does not, starts the compiled
+        # search once more or clarabel's working set
         if self.compiled:
             found = self._binding_cones(u_nom, a0, a, G, tol, None, uc)
             if found is not None:
@@ -609,13 +609,12 @@ class SOCPFilter:
         return SOCPResult(u, False, status, marg, time.perf_counter() - t0)
 
 
-def _most_violated(idx: np.ndarray, c: np.ndarray, tol: fastpath.Tolerance,
-                   n: int = WORKING_SET_ADD) -> np.ndarray:
-    """The ``n`` constraints of ``idx`` most violated relative to their scale (margins
-    ``c``), or all of ``idx`` if there are no more."""
-    if idx.size <= n:
+def _most_violated(idx: np.ndarray, c: np.ndarray, tol: fastpath.Tolerance) -> np.ndarray:
+    """The ``WORKING_SET_ADD`` constraints of ``idx`` most violated relative to their scale
+    (margins ``c``), or all of ``idx`` if there are no more."""
+    if idx.size <= WORKING_SET_ADD:
         return idx
-    return idx[np.argsort(c[idx] / tol.at(idx))[:n]]
+    return idx[np.argsort(c[idx] / tol.at(idx))[:WORKING_SET_ADD]]
 
 
 def _with_margin(sol, a0, a, G):

@@ -269,3 +269,14 @@ def test_compiled_true_without_the_core_is_an_import_error(monkeypatch):
     with pytest.raises(ImportError, match="compiled=True"):
         SOCPFilter(-np.ones(2), np.ones(2), compiled=True)
     assert not SOCPFilter(-np.ones(2), np.ones(2)).compiled
+
+
+def test_compiled_solver_option_reaches_the_solver():
+    from afvsgp_gym.cbf import FilterConfig, SafetyController
+
+    ctrl = SafetyController(-np.ones(2), np.ones(2), learner="none", compiled_solver=False)
+    assert ctrl.socp.compiled is False
+    assert SafetyController(-np.ones(2), np.ones(2), learner="none").socp.compiled is \
+        binding_cones.AVAILABLE
+    with pytest.raises(ValueError, match="compiled_solver"):
+        FilterConfig(compiled_solver="yes")
