@@ -325,6 +325,29 @@ static int project(const Problem *P, double *u, double *lam, unsigned char *fixe
     return FACES_UNSETTLED;
 }
 
+/* the cone outside the binding set most violated at u beyond its tolerance, relative to it
+ * (margin / tol below -1); -1 if none, NOT_FINITE if a margin is NaN */
+static int most_violated(const Problem *P, int K, const double *tol, const double *u)
+{
+    int found = -1;
+    double worst = -1.0;
+    for (int q = 0; q < K; q++) {
+        int in = 0;
+        for (int i = 0; i < P->k; i++)
+            in |= P->idx[i] == q;
+        if (in)
+            continue;
+        const double r = margin(P, q, u) / tol[q];
+        if (isnan(r))
+            return NOT_FINITE;
+        if (r < worst) {
+            worst = r;
+            found = q;
+        }
+    }
+    return found;
+}
+
 /* the binding set among all K cones: project() onto the set (from u, lam), then the cone most
  * violated beyond its tolerance (relative to it) joins with multiplier 0, or the cone with
  * the most negative multiplier leaves, until no other cone is violated; lam_all (K) and
@@ -345,17 +368,9 @@ static int solve_set(Problem *P, int K, const double *tol, int max_binding, doub
             P->idx[P->k++] = q;
         }
     if (P->k == 0) { /* no start set: the cone most violated at u, relative to its scale */
-        int first = -1;
-        double worst = -1.0;
-        for (int q = 0; q < K; q++) {
-            const double r = margin(P, q, u) / tol[q];
-            if (isnan(r))
-                return NOT_FINITE;
-            if (r < worst) {
-                worst = r;
-                first = q;
-            }
-        }
+        const int first = most_violated(P, K, tol, u);
+        if (first == NOT_FINITE)
+            return NOT_FINITE;
         if (first < 0)
             return NO_FREE;
         lam[0] = 0.0;
@@ -388,22 +403,9 @@ static int solve_set(Problem *P, int K, const double *tol, int max_binding, doub
         }
         if (rc)
             return rc;
-        int join = -1;
-        double worst = -1.0; /* margin / tolerance below -1: violated beyond the tolerance */
-        for (int q = 0; q < K; q++) {
-            int in = 0;
-            for (int i = 0; i < P->k; i++)
-                in |= P->idx[i] == q;
-            if (in)
-                continue;
-            const double r = margin(P, q, u) / tol[q];
-            if (isnan(r))
-                return NOT_FINITE;
-            if (r < worst) {
-                worst = r;
-                join = q;
-            }
-        }
+        const int join = most_violated(P, K, tol, u);
+        if (join == NOT_FINITE)
+            return NOT_FINITE;
         if (join < 0) {
             for (int q = 0; q < K; q++) {
                 lam_all[q] = 0.0;
