@@ -18,10 +18,10 @@ pushes outwards is released), as in :func:`fastpath.project_cone_box`.
 violated (relative to its tolerance) at the projection joins it, a cone whose multiplier comes
 out negative leaves, until no other cone is violated.
 
-The iteration runs compiled (``afvsgp_gym.cbf._cones``, built with the package when a C
-compiler is there): in numpy one Newton step costs ~35 us at m = 7, more than a clarabel
-iteration, and the filter does not use this path then (:data:`AVAILABLE`). The answer is only
-a candidate: :class:`~afvsgp_gym.cbf.socp.SOCPFilter` certifies it (:func:`fastpath.certify`).
+The iteration runs compiled only (``afvsgp_gym.cbf._cones``, built with the package when a C
+compiler is there; :data:`AVAILABLE`): without it the filter takes its numpy paths
+(``benchmarks/solver.md`` says why there is no numpy version). The answer is only a
+candidate: :class:`~afvsgp_gym.cbf.socp.SOCPFilter` certifies it (:func:`fastpath.certify`).
 """
 
 from __future__ import annotations

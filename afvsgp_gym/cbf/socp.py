@@ -161,6 +161,8 @@ class SOCPFilter:
         self.tol = float(tol)
         self.fallback_regularization = float(fallback_regularization)
         self.fast_path = bool(fast_path)
+        if compiled is not None and not isinstance(compiled, (bool, np.bool_)):
+            raise ValueError(f"compiled must be None, True or False. Got: {compiled!r}")
         if compiled and not binding_cones.AVAILABLE:
             raise ImportError("compiled=True needs afvsgp_gym.cbf._cones, which was not built "
                               "(a C compiler is needed when the package is installed)")

@@ -269,6 +269,8 @@ def test_compiled_true_without_the_core_is_an_import_error(monkeypatch):
     with pytest.raises(ImportError, match="compiled=True"):
         SOCPFilter(-np.ones(2), np.ones(2), compiled=True)
     assert not SOCPFilter(-np.ones(2), np.ones(2)).compiled
+    with pytest.raises(ValueError, match="compiled"):
+        SOCPFilter(-np.ones(2), np.ones(2), compiled="no")
 
 
 def test_compiled_solver_option_reaches_the_solver():
