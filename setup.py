@@ -1,7 +1,9 @@
-"""Build of the optional compiled core (the rest of the metadata is in pyproject.toml).
+"""Build of the optional compiled cores (the rest of the metadata is in pyproject.toml).
 
 ``afvsgp_gym.cbf._cones`` (the certified several-cones fast path of the filter's cone program)
-is optional: without a C compiler the build goes on and the filter uses its numpy paths."""
+and ``afvsgp_gym.gp._bank`` (the per-step arithmetic of the AFVSGP learners; it calls the BLAS
+and LAPACK that scipy ships, found at import) are optional: without a C compiler the build goes
+on and the package uses its numpy paths."""
 
 from setuptools import Extension, setup
 
@@ -9,5 +11,7 @@ setup(
     ext_modules=[
         Extension("afvsgp_gym.cbf._cones", ["afvsgp_gym/cbf/_cones.c"], optional=True,
                   extra_compile_args=["-O2"]),
+        Extension("afvsgp_gym.gp._bank", ["afvsgp_gym/gp/_bank.c"], optional=True,
+                  extra_compile_args=["-O3", "-ffp-contract=off"]),
     ],
 )

@@ -53,7 +53,9 @@ CONFIGS: dict[str, dict[str, Any]] = {
     "21 (arm)": {},
     "21 (arm), method settings": {"filter": {"learner_kwargs": METHOD_LEARNER}},
     "21 (arm), clarabel only": {"fast_path": False},
-    "21 (arm), numpy paths only": {"filter": {"compiled_solver": False}},
+    "21 (arm), numpy solver": {"filter": {"compiled_solver": False}},
+    "21 (arm), numpy learners": {"filter": {"compiled_learners": False}},
+    "21 (arm), numpy only": {"filter": {"compiled_solver": False, "compiled_learners": False}},
     "42 (arm, 2 obstacles)": {"obstacles": "two"},
 }
 
@@ -232,8 +234,9 @@ def run(quick: bool = False, steps: int | None = None, rounds: int = 2,
     out["step median, K=21: clarabel only / with fast path"] = (
         out["21 (arm), clarabel only: step median_s"] / out["21 (arm): step median_s"])
     for q in ("median", "p99"):
-        out[f"step {q}, K=21: numpy paths only / with the compiled path"] = (
-            out[f"21 (arm), numpy paths only: step {q}_s"] / out[f"21 (arm): step {q}_s"])
+        for what in ("solver", "learners", "only"):
+            out[f"step {q}, K=21: numpy {what} / compiled"] = (
+                out[f"21 (arm), numpy {what}: step {q}_s"] / out[f"21 (arm): step {q}_s"])
     return out
 
 

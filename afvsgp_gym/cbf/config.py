@@ -81,6 +81,9 @@ class FilterConfig:
     compiled_solver : bool or None
         The cone program's compiled several-cones path (``SOCPFilter(compiled=...)``): None
         when it is built, True to require it, False for the numpy paths only.
+    compiled_learners : bool or None
+        The AFVSGP learners' compiled per-step arithmetic (``AFVSGPBank(compiled=...)``): None
+        when it is built, True to require it, False for numpy only.
     seed : int or None
         Seed of the exploration noise.
     """
@@ -102,6 +105,7 @@ class FilterConfig:
     online: bool = True
     qp_solver: str | None = None
     compiled_solver: bool | None = None
+    compiled_learners: bool | None = None
     seed: int | None = None
 
     def __post_init__(self) -> None:
@@ -124,9 +128,10 @@ class FilterConfig:
             object.__setattr__(self, "learner_kwargs", {})
         if not isinstance(self.learner_kwargs, dict):
             raise ValueError(f"learner_kwargs must be a dict, got {self.learner_kwargs!r}")
-        if self.compiled_solver is not None and not isinstance(self.compiled_solver, bool):
-            raise ValueError(f"compiled_solver must be None, True or False, got "
-                             f"{self.compiled_solver!r}")
+        for name in ("compiled_solver", "compiled_learners"):
+            value = getattr(self, name)
+            if value is not None and not isinstance(value, bool):
+                raise ValueError(f"{name} must be None, True or False, got {value!r}")
         if self.seed is not None:
             check_count(self.seed, "seed", 0)
 

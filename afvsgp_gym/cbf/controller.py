@@ -172,7 +172,8 @@ class SafetyController:
         entry = REGISTRY[self.learner_name]
         self.uses_true_terms = entry.true_terms
         self.bank = make_bank(self.learner_name, self.n_barriers, self.action_dim,
-                              cfg.learner_kwargs, cfg.shared_hyperparameters)
+                              cfg.learner_kwargs, cfg.shared_hyperparameters,
+                              cfg.compiled_learners)
         self.learns = self.bank.learns
         self.socp.prepare(self.n_barriers, cones=False)  # the QP: known model, mean fallback
         if self.learns and cfg.beta > 0:

@@ -83,7 +83,7 @@ class LoopBank:
     learns = True
 
     def __init__(self, n_barriers: int, action_dim: int, cls_name: str,
-                 shared_hyperparameters: bool = True, **kwargs):
+                 shared_hyperparameters: bool = True, compiled: bool | None = None, **kwargs):
         from afvsgp_gym import gp
 
         self.n_learners, self.action_dim = int(n_barriers), int(action_dim)
@@ -91,6 +91,7 @@ class LoopBank:
         self._kwargs = kwargs
         self._cls(**kwargs)  # constructor checks its arguments now
         self.shared = bool(shared_hyperparameters)
+        self.compiled = compiled
         self.learners: list = []
 
     def _make(self, **override):
@@ -134,7 +135,8 @@ class AFVSGPLearnerBank(LoopBank):
         from afvsgp_gym.gp.afvsgp_bank import AFVSGPBank
 
         super().fit(datasets, learn_hyperparameters)
-        self.bank = AFVSGPBank.from_learners(self.learners, max_inducing_candidates=1)
+        self.bank = AFVSGPBank.from_learners(self.learners, max_inducing_candidates=1,
+                                             compiled=self.compiled)
         self.learners = []  # the bank holds the state from here on
 
     def predict_affine(self, xi, rows):
@@ -188,15 +190,17 @@ def check_learner_name(name) -> str:
 
 
 def make_bank(name: str, n_barriers: int, action_dim: int, learner_kwargs: dict | None = None,
-              shared_hyperparameters: bool = True) -> LearnerBank:
+              shared_hyperparameters: bool = True, compiled: bool | None = None) -> LearnerBank:
     """The bank of K = ``n_barriers`` learners called ``name`` (``learner_kwargs`` on top of
-    the registry's defaults go to each learner's constructor)."""
+    the registry's defaults go to each learner's constructor; ``compiled``: the AFVSGP
+    bank's compiled core, see :class:`~afvsgp_gym.gp.afvsgp_bank.AFVSGPBank`)."""
     entry = REGISTRY[check_learner_name(name)]
     if entry.bank is None:
         return ZeroBank(n_barriers, action_dim, **(learner_kwargs or {}))
     kwargs = {**entry.default_kwargs, **(learner_kwargs or {})}
     return entry.bank(n_barriers, action_dim, entry.gp_class,
-                      shared_hyperparameters=shared_hyperparameters, **kwargs)
+                      shared_hyperparameters=shared_hyperparameters, compiled=compiled,
+                      **kwargs)
 
 
 def make_learner(name: str, action_dim: int, **kwargs):

@@ -19,6 +19,13 @@ columns), which leaves every posterior quantity unchanged. The rare inducing-set
 ``update`` / ``predict``; :meth:`AFVSGPBank.from_learners` stacks fitted ones, then
 :meth:`update` takes the K samples of a step and :meth:`predict_affine` predicts for the
 learners whose prediction is needed (e.g. the barriers near an obstacle).
+
+The per-step arithmetic (the window step of every learner, the predictions, the eqs. 27-28
+decision on a new inducing point) runs compiled when ``afvsgp_gym.gp._bank`` is built
+(:data:`COMPILED`; the same formulas in C with scipy's BLAS and LAPACK, one call each in place
+of tens of numpy calls; the kernel's exponent from the differences to the inducing points),
+else, or with ``compiled=False``, in numpy; the installation of a new inducing point and the
+rare cases (skipped samples, a failed factorisation) always run in numpy.
 """
 
 from __future__ import annotations
@@ -26,6 +33,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from scipy.linalg.blas import dtrsm
@@ -34,7 +42,15 @@ from scipy.linalg.lapack import dpotrf, dtrtri
 from afvsgp_gym.gp._linalg import jittered_cholesky
 from afvsgp_gym.gp.kernels import ADPKernel
 
-__all__ = ["AFVSGPBank", "BankSettings", "FittedState"]
+try:
+    from afvsgp_gym.gp import _bank as _core
+except ImportError:  # built without a C compiler
+    _core = None
+
+__all__ = ["COMPILED", "AFVSGPBank", "BankSettings", "FittedState"]
+
+#: True when the compiled core (``afvsgp_gym.gp._bank``) is importable.
+COMPILED = _core is not None
 
 
 @dataclass(frozen=True)
@@ -65,6 +81,20 @@ class FittedState:
     z: np.ndarray
 
 
+class _Candidate(NamedTuple):
+    """A new inducing point's data (eqs. 29-30): the point it replaces (None: appended),
+    ``L^-1 k_new``, its window column ``k(x, window)``, new row of ``S``, the new pivot of
+    ``chol(K_oo)`` squared (``d`` + jitter), ``S``'s new diagonal entry and entry of ``r``."""
+
+    drop: int | None
+    lvec: np.ndarray
+    col: np.ndarray
+    srow: np.ndarray
+    dd: float
+    sdiag: float
+    r_new: float
+
+
 #: Per-learner arrays (leading axis K), concatenated by :meth:`AFVSGPBank.stack`.
 _STACKED = ("inv_ls2", "var", "_var_diag", "log_var", "noise_variance", "jitter", "n_inducing_",
             "_ind_xi", "_ind_ub", "_amat", "_ubt", "_koo", "_l_oo", "_koo_inv", "_stats",
@@ -86,6 +116,9 @@ class AFVSGPBank:
         27 residual go first, the others are considered again with their next samples): it
         bounds the worst-case step time. None examines every candidate, exactly as K
         separate learners do.
+    compiled : bool or None
+        Run the per-step arithmetic in the compiled core (None: when it is built; True
+        without it raises ``ImportError``), or in numpy (False). Settable later.
 
     Attributes
     ----------
@@ -96,10 +129,11 @@ class AFVSGPBank:
     """
 
     def __init__(self, settings: BankSettings, states: Sequence[FittedState],
-                 max_inducing_candidates: int | None = None):
+                 max_inducing_candidates: int | None = None, compiled: bool | None = None):
         if not states:
             raise ValueError("states must hold at least one fitted learner state")
         self._set_settings(settings, states[0].kernel, max_inducing_candidates)
+        self.compiled = compiled
         K, P, b, c, mp = len(states), self.window, self.input_dim, self._c, self._mp
         self.n_learners = K
         for k, st in enumerate(states):
@@ -180,14 +214,32 @@ class AFVSGPBank:
     def _stagger(self) -> None:
         """Spread the periodic rebuilds so that at most a few learners rebuild in one step."""
         K = self.n_learners
+        self._dims = (K, self.input_dim, self._c, self._mp, self.window)
+        self._work = np.empty(max(K * self._c * self._mp, self._c * self.window))  # core's scratch
         self._since_refresh = (np.arange(K) * self._refresh_every) // K
         self._synced = bool((self._head == self._head[0]).all()
                             and (self._count == self._count[0]).all())
 
+    @property
+    def compiled(self) -> bool:
+        """True when the per-step arithmetic runs in the compiled core."""
+        return self._compiled
+
+    @compiled.setter
+    def compiled(self, value: bool | None) -> None:
+        if value is not None and not isinstance(value, bool | np.bool_):
+            raise ValueError(f"compiled must be None, True or False. Got: {value!r}")
+        if value and _core is None:
+            raise ImportError("compiled=True needs afvsgp_gym.gp._bank, which was not built "
+                              "(install the package where a C compiler is available)")
+        self._compiled = COMPILED if value is None else bool(value)
+
     @classmethod
     def stack(cls, banks: Sequence[AFVSGPBank],
-              max_inducing_candidates: int | None = None) -> AFVSGPBank:
-        """One bank holding copies of the learners of ``banks`` (equal settings), in order."""
+              max_inducing_candidates: int | None = None,
+              compiled: bool | None = None) -> AFVSGPBank:
+        """One bank holding copies of the learners of ``banks`` (equal settings), in order
+        (``compiled``: see the class docstring)."""
         if not banks:
             raise ValueError("banks must hold at least one AFVSGPBank")
         first = banks[0]
@@ -199,6 +251,7 @@ class AFVSGPBank:
                 raise ValueError(f"banks[{i}] has other input/action dimensions")
         out = cls.__new__(cls)
         out._set_settings(first.settings, first.kernels[0], max_inducing_candidates)
+        out.compiled = compiled
         for name in _STACKED:
             setattr(out, name, np.concatenate([getattr(bk, name) for bk in banks]))
         out.kernels = [k.clone() for bk in banks for k in bk.kernels]
@@ -207,8 +260,8 @@ class AFVSGPBank:
         return out
 
     @classmethod
-    def from_learners(cls, learners: Sequence, max_inducing_candidates: int | None = None
-                      ) -> AFVSGPBank:
+    def from_learners(cls, learners: Sequence, max_inducing_candidates: int | None = None,
+                      compiled: bool | None = None) -> AFVSGPBank:
         """One bank holding copies of the state of fitted :class:`~afvsgp_gym.gp.AFVSGP`
         ``learners`` (each a bank of one; equal settings; see ``max_inducing_candidates`` in
         the class docstring)."""
@@ -218,7 +271,7 @@ class AFVSGPBank:
             if not isinstance(getattr(lr, "_bank", None), AFVSGPBank):
                 raise ValueError(f"learners[{k}] must be a fitted AFVSGP")
         try:
-            return cls.stack([lr._bank for lr in learners], max_inducing_candidates)
+            return cls.stack([lr._bank for lr in learners], max_inducing_candidates, compiled)
         except ValueError as exc:
             raise ValueError(f"learners: {exc}") from None
 
@@ -376,12 +429,21 @@ class AFVSGPBank:
         """``b`` (k, m+1) and ``Sigma`` (k, m+1, m+1) of the learners ``rows`` (default all)
         at their points ``xi`` (k, b): mean ``b . ubar`` and variance ``ubar' Sigma ubar``
         of ``Delta B^(r)`` (eq. 20). ``xi`` must be finite (the caller checks)."""
-        idx = np.arange(self.n_learners) if rows is None else np.asarray(rows, dtype=int)
+        idx = np.arange(self.n_learners) if rows is None else np.asarray(rows, dtype=np.int64)
         xi = np.asarray(xi, dtype=np.float64).reshape(len(idx), self.input_dim)
         c, mp = self._c, self._mp
+        n = len(idx)
+        if self._compiled:
+            bvec, sig = np.empty((n, c)), np.empty((n, c, c))
+            rc = _core.predict(self._dims, n, self._ind_xi, self.log_var, self.inv_ls2,
+                               self._ubt, self.var,
+                               self._l_oo, self._stats, self._scale, self.noise_variance,
+                               self._l_d, self._cvec, self._fresh, np.ascontiguousarray(idx),
+                               np.ascontiguousarray(xi), bvec, sig, self._work)
+            if rc == 0:
+                return bvec, sig
         kt = self._kt(rows, xi)
         inv, buf = self._stats_block(idx, kt)
-        n = len(idx)
         hc = np.empty((n, c + 1, mp))  # [H'; c'] per row
         for j, k in enumerate(idx):
             hc[j] = self._whiten(k, buf[j].T, inv[j])
@@ -426,6 +488,10 @@ class AFVSGPBank:
             raise ValueError(
                 f"update needs xi ({K}, {b}), u ({self.action_dim},), z ({K},). Got: "
                 f"{xi.shape}, {u.shape}, {z.shape}")
+        if self._synced and self._compiled:
+            done = self._update_compiled(xi, u, z)
+            if done is not None:
+                return done
         total = xi.sum(axis=1)
         total += z
         if math.isfinite(float(total.sum()) + float(u.sum())):  # every sample finite
@@ -450,7 +516,7 @@ class AFVSGPBank:
         # sliding window with forgetting (eqs. 25-26, docs/equations.md); phi S in the scale
         scale = self._scale[sel] * self._inv_phi
         self._scale[sel] = scale
-        if rows is None and getattr(self, "_synced", False):
+        if rows is None and self._synced:
             self._slide_synced(xi, ub, z, k_new, scale)
         else:
             self._synced = False  # a learner skipped a sample: the rings may differ from here
@@ -474,14 +540,46 @@ class AFVSGPBank:
             self._add_candidates(idx, sel, xi, ub, kss, k_new)
         return ok
 
+    def _update_compiled(self, xi: np.ndarray, u: np.ndarray, z: np.ndarray) -> np.ndarray | None:
+        """:meth:`update` of learners at one ring position in the compiled core (the window
+        step, the bookkeeping, the eq. 27 residuals); the periodic rebuilds and inducing-set
+        changes it reports due run here. None (nothing changed) when a sample is not finite
+        or a kernel exponent overflows: the numpy path takes them."""
+        K, mp = self.n_learners, self._mp
+        ub = np.empty(self._c)
+        ub[0] = 1.0
+        ub[1:] = u
+        xi, z = np.ascontiguousarray(xi), np.ascontiguousarray(z)
+        k_new, kss, resid = np.empty((K, mp)), np.empty(K), np.empty(K)
+        rc, n_cand, refresh, renormalise = _core.update(
+            self._dims, self._ind_xi, self.log_var, self.inv_ls2, self._ubt, self.var,
+            self._koo_inv,
+            self._stats, self._scale, self._wk, self._wz, self._wxt, self._wubt, xi, ub, z,
+            k_new, kss, resid, self._work, self._head, self._count, self.n_seen_, self._fresh,
+            self._since_refresh, self.noise_variance, self._inv_phi, self._phi_p,
+            self._add_floor, self._refresh_every)
+        if rc != 0:
+            return None
+        if refresh:
+            for k in np.flatnonzero(self._since_refresh >= self._refresh_every):
+                self._rebuild_stats(k)
+                self._since_refresh[k] = 0
+        if renormalise:
+            for k in np.flatnonzero(self._scale > 1e100):
+                self._renormalise(k)
+        if n_cand and self.adapt_inducing:
+            self._add_candidates(None, slice(None), xi, ub, kss, k_new, resid)
+        return np.ones(K, dtype=bool)
+
     def _add_candidates(self, idx, sel, xi: np.ndarray, ub: np.ndarray, kss: np.ndarray,
-                        k_new: np.ndarray) -> None:
+                        k_new: np.ndarray, d: np.ndarray | None = None) -> None:
         """Offer the new samples whose eq. 27 residual ``d = k_ss - k' K_oo^-1 k`` (weight
-        1) exceeds ``add_threshold k_ss``, ``1e-6 k_ss`` and the noise variance to
-        :meth:`_consider_add` (largest relative residual first, at most
+        1; computed unless given) exceeds ``add_threshold k_ss``, ``1e-6 k_ss`` and the noise
+        variance to :meth:`_consider_add` (largest relative residual first, at most
         ``max_inducing_candidates``)."""
-        ktk = np.matmul(self._koo_inv[sel], k_new[:, :, None])
-        d = kss - np.matmul(k_new[:, None, :], ktk).ravel()
+        if d is None:
+            ktk = np.matmul(self._koo_inv[sel], k_new[:, :, None])
+            d = kss - np.matmul(k_new[:, None, :], ktk).ravel()
         cand = d > np.maximum(self._add_floor * kss, self.noise_variance[sel])  # kss > 0
         if cand.any():
             idx = np.arange(self.n_learners) if idx is None else idx
@@ -574,25 +672,38 @@ class AFVSGPBank:
         """Add the newest sample of learner ``k`` as an inducing point (eqs. 29-30),
         replacing the least informative one (eq. 28) when the set is full. True if the
         inducing set changed. The new point goes last, or into the dropped point's slot."""
+        find = self._candidate_compiled if self._compiled else self._candidate
+        cand = find(k, xi, ub, kss, k_new)
+        if cand is None:
+            return False
+        self._install(k, xi, ub, kss, k_new, cand)
+        return True
+
+    def _candidate(self, k: int, xi: np.ndarray, ub: np.ndarray, kss: float,
+                   k_new: np.ndarray) -> _Candidate | None:
+        """The decision on learner ``k``'s newest sample as an inducing point (eqs. 27-28):
+        None when its residual ``d = k_ss - |L^-1 k|^2`` is not above ``1e-6 k_ss``, or, with
+        a full set, its eq. 28 score does not beat the least informative point's by
+        ``swap_margin k_ss``; else what :meth:`_install` needs. Renormalises the statistics
+        once the residual passes."""
         m = int(self.n_inducing_[k])
         low = self._l_oo[k, :m, :m]
         kn = k_new[:m]
         lvec = dtrsm(1.0, low, kn[:, None], 0, 1, 0, 0, 0)[:, 0]
         d = kss - float(lvec @ lvec)  # the same residual, from the factor (stable)
         if not d > 1e-6 * kss:
-            return False
+            return None
         self._renormalise(k)
         cnt = self._count[k]
         col = self._window_column(k, xi, ub)
         lc = self._weights(k) * col
         srow = lc @ self._wk[k, :cnt, :m]  # the new row of S (eq. 30)
         sdiag = float(lc @ col)
-        jit = self.jitter[k]
-        dd = d + jit  # the new pivot of chol(K_oo) squared
-        st = self._stats[k]
+        dd = d + self.jitter[k]  # the new pivot of chol(K_oo) squared
         drop = None
         if m + 1 > self.num_inducing:
             # eq. 28 on the enlarged set: K_e^-1 by the bordered inverse (w = K_oo^-1 k_new)
+            st = self._stats[k]
             w = self._koo_inv[k, :m, :m] @ kn
             kinv = np.empty((m + 1, m + 1))
             np.multiply.outer(w, w / dd, out=kinv[:m, :m])
@@ -605,10 +716,37 @@ class AFVSGPBank:
             se[m, m] = sdiag
             score = ((kinv @ se) * kinv).sum(axis=1) / np.diag(kinv)
             j = int(np.argmin(score[:m]))  # eq. 28: least informative old point
-            if score[m] - score[j] <= self.swap_margin * kss:
-                return False  # not informative enough: state unchanged
+            if not score[m] - score[j] > self.swap_margin * kss:
+                return None  # not informative enough: state unchanged
             drop = j
         r_new = float(lc @ self._wz[k, :cnt])
+        return _Candidate(drop, lvec, col, srow, dd, sdiag, r_new)
+
+    def _candidate_compiled(self, k: int, xi: np.ndarray, ub: np.ndarray, kss: float,
+                            k_new: np.ndarray) -> _Candidate | None:
+        """:meth:`_candidate` in the compiled core."""
+        m, cnt = int(self.n_inducing_[k]), int(self._count[k])
+        lvec, col, srow = np.empty(self._mp), np.empty(self.window), np.empty(self._mp)
+        code, drop, dd, sdiag, r_new = _core.candidate(
+            self._dims, k, m, int(self._head[k]), cnt, float(kss), float(self.jitter[k]),
+            self.swap_margin, self._l_oo, self._koo_inv, self._stats, self._scale, self._wk,
+            self._wz, self._wxt, self._wubt, self.inv_ls2, self.log_var, self._pow_rev,
+            np.ascontiguousarray(xi), ub, np.ascontiguousarray(k_new), lvec, col, srow, self._work)
+        if code == 0:
+            return None
+        return _Candidate(drop if code == 2 else None, lvec[:m], col[:cnt], srow[:m], dd,
+                          sdiag, r_new)
+
+    def _install(self, k: int, xi: np.ndarray, ub: np.ndarray, kss: float, k_new: np.ndarray,
+                 cand: _Candidate) -> None:
+        """Install learner ``k``'s newest sample as inducing point (eqs. 29-30): last, or in
+        the slot of the point ``cand.drop``; ``K_oo``, its factor and inverse, ``[r, S]``,
+        the kernel rows and the window's kernel column follow."""
+        m = int(self.n_inducing_[k])
+        kn = k_new[:m]
+        cnt = self._count[k]
+        jit = self.jitter[k]
+        drop, srow, sdiag = cand.drop, cand.srow, cand.sdiag
         self.n_added_[k] += 1
         if drop is None:  # the new point goes last
             pos, mm = m, m + 1
@@ -618,6 +756,7 @@ class AFVSGPBank:
             self.n_removed_[k] += 1
             krow = kn.copy()
             krow[pos] = kss + jit
+            srow = srow.copy()
             srow[pos] = sdiag
         # the new point in slot pos (eqs. 29-30)
         self._ind_xi[k, pos] = xi
@@ -631,13 +770,14 @@ class AFVSGPBank:
         self._ubt[k, :, pos] = ub
         koo = self._koo[k]
         koo[pos, :mm] = koo[:mm, pos] = krow
-        st[pos, 0] = r_new
+        st = self._stats[k]
+        st[pos, 0] = cand.r_new
         st[pos, 1 : mm + 1] = st[:mm, pos + 1] = srow
-        self._wk[k, :cnt, pos] = col
+        self._wk[k, :cnt, pos] = cand.col
         lo = self._l_oo[k]
         if drop is None:  # the bordered factor
-            lo[pos, :pos] = lvec
-            lo[pos, pos] = math.sqrt(dd)
+            lo[pos, :pos] = cand.lvec
+            lo[pos, pos] = math.sqrt(cand.dd)
         else:
             low_n, info = dpotrf(koo[:mm, :mm], lower=1, clean=1)  # O(M^3 / 3)
             if info != 0:
@@ -645,4 +785,3 @@ class AFVSGPBank:
             lo[:mm, :mm] = low_n
         self.n_inducing_[k] = mm
         self._set_koo_inv(k)
-        return True

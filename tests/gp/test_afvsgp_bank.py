@@ -157,11 +157,12 @@ def test_shared_ring_step_equals_the_per_learner_step():
     """Learners at one ring position take the window step with basic slicing; forcing the
     per-learner indexed step on a copy gives the same state bit for bit, through the window
     filling, wrapping and inducing changes (same arithmetic, other indexing). One skipped
-    sample leaves the rings apart and the bank on the per-learner step."""
+    sample leaves the rings apart and the bank on the per-learner step (the numpy paths; the
+    compiled core's step is compared with them in test_afvsgp_bank_compiled.py)."""
     n = 4 * P
     streams = _streams(n)
     u = streams[0][1]
-    bank = AFVSGPBank.from_learners(_learners(streams, u))
+    bank = AFVSGPBank.from_learners(_learners(streams, u), compiled=False)
     bank._count[:], bank._head[:] = 10, 9  # windows part filled: filling, then wrapping
     bank._stagger()
     assert bank._synced

@@ -1,0 +1,736 @@
+/* The per-step arithmetic of a bank of AFVSGP learners (paper eqs. 20-30), compiled.
+ *
+ * The compiled core of afvsgp_gym.gp.afvsgp_bank.AFVSGPBank (its docstring states the method
+ * and the state's layout): one call streams a sample into every learner (update), one
+ * predicts the learners of some barriers (predict), one scores a new sample as an inducing
+ * point (candidate). The numpy methods' formulas (the posterior in whitened form), the
+ * kernel's exponent from the differences to the inducing points (not the numpy methods'
+ * expansion: it reads ~8x less memory and cannot overflow), the triangular solves and
+ * Cholesky factorisations by the BLAS and LAPACK that scipy ships (scipy.linalg.cython_blas /
+ * cython_lapack), the exponentials by numpy.exp. Every array is C-ordered float64 (int64 for
+ * indices) with the bank's shapes; a return code other than 0 leaves the call to the numpy
+ * methods, and when it does the bank was left unchanged (update) or its posterior cache only
+ * refreshed (predict).
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <math.h>
+#include <string.h>
+
+typedef void (*trsm_t)(char *, char *, char *, char *, int *, int *, double *, double *,
+                       int *, double *, int *);
+typedef void (*gemm_t)(char *, char *, int *, int *, int *, double *, double *, int *,
+                       double *, int *, double *, double *, int *);
+typedef void (*potrf_t)(char *, int *, double *, int *, int *);
+
+static trsm_t dtrsm_;
+static gemm_t dgemm_;
+static potrf_t dpotrf_;
+static PyObject *np_exp; /* numpy.exp: vectorised, many times faster than libm's exp here */
+
+/* return codes */
+#define OVERFLOW -1   /* a kernel exponent is NaN: the numpy methods take over */
+#define NOT_PD -2     /* a Cholesky factorisation failed: the numpy methods jitter */
+#define NO_MEMORY -3
+
+/* The hot loops also in an AVX2 version, chosen at load time (no FMA: the rounding is the
+ * same whichever version runs). */
+#if defined(__GNUC__) && defined(__x86_64__) && defined(__linux__)
+#define WIDE __attribute__((target_clones("avx2", "default")))
+#else
+#define WIDE
+#endif
+
+#define MAXW 4096 /* columns of the whitening workspace: Mp + c + 1 */
+#define MAXB 1024 /* input dimension */
+#define EXP_FAILED -4 /* numpy.exp raised (the exception is set) */
+#define TOO_MANY_ROWS -5 /* more predicted rows than the scratch array holds */
+#define NOT_FINITE -6    /* a sample is not finite: the numpy method skips it */
+
+/* ------------------------------------------------------------------ arguments */
+
+typedef struct {
+    const char *name;
+    char kind;    /* 'd' float64, 'q' int64, '?' bool */
+    int writable;
+} Spec;
+
+/* The buffer of obj as spec says, with exactly n elements; -1 and a ValueError naming it. */
+static int take(PyObject *obj, Py_buffer *buf, const Spec *spec, Py_ssize_t n)
+{
+    int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (spec->writable ? PyBUF_WRITABLE : 0);
+    if (PyObject_GetBuffer(obj, buf, flags) < 0) {
+        PyErr_Clear();
+        PyErr_Format(PyExc_ValueError, "%s must be a C-contiguous%s array", spec->name,
+                     spec->writable ? ", writable" : "");
+        return -1;
+    }
+    const char *f = buf->format;
+    if (f[0] == '<' || f[0] == '=' || f[0] == '@')
+        f++;
+    const int ok_type = (spec->kind == 'd' && f[0] == 'd' && buf->itemsize == 8) ||
+                        (spec->kind == 'q' && (f[0] == 'q' || f[0] == 'l') && buf->itemsize == 8) ||
+                        (spec->kind == '?' && f[0] == '?' && buf->itemsize == 1);
+    if (!ok_type || f[1] != '\0') {
+        PyErr_Format(PyExc_ValueError, "%s must be of dtype %s", spec->name,
+                     spec->kind == 'd' ? "float64" : spec->kind == 'q' ? "int64" : "bool");
+        PyBuffer_Release(buf);
+        return -1;
+    }
+    if (buf->len / buf->itemsize != n) {
+        PyErr_Format(PyExc_ValueError, "%s must hold %zd elements. Got: %zd", spec->name, n,
+                     buf->len / buf->itemsize);
+        PyBuffer_Release(buf);
+        return -1;
+    }
+    return 0;
+}
+
+/* take() for n arrays; on failure the ones taken are released */
+static int take_all(PyObject **obj, Py_buffer *buf, const Spec *spec, const Py_ssize_t *size,
+                    int n)
+{
+    for (int i = 0; i < n; i++) {
+        if (take(obj[i], &buf[i], &spec[i], size[i]) < 0) {
+            for (int j = 0; j < i; j++)
+                PyBuffer_Release(&buf[j]);
+            return -1;
+        }
+    }
+    return 0;
+}
+
+static void release_all(Py_buffer *buf, int n)
+{
+    for (int i = 0; i < n; i++)
+        PyBuffer_Release(&buf[i]);
+}
+
+/* ------------------------------------------------------------------ kernel rows */
+
+typedef struct {
+    int K, b, c, mp, P; /* learners, input and ubar dimensions, inducing slots, window */
+} Dims;
+
+/* y += a x + b w (n) */
+WIDE static void axpby(double *restrict y, double a, const double *restrict x, double b,
+                  const double *restrict w, int n)
+{
+    for (int l = 0; l < n; l++)
+        y[l] += a * x[l] + b * w[l];
+}
+
+/* y += a x (n) */
+WIDE static void axpy(double *restrict y, double a, const double *restrict x, int n)
+{
+    for (int l = 0; l < n; l++)
+        y[l] += a * x[l];
+}
+
+/* v = A x for a symmetric (n, n) A, by columns (independent accumulators) */
+static void symv(const double *restrict A, const double *restrict x, int n, double *restrict v)
+{
+    for (int p = 0; p < n; p++)
+        v[p] = 0.0;
+    for (int l = 0; l < n; l++)
+        axpy(v, x[l], A + (size_t)l * n, n);
+}
+
+/* g (q, q), upper triangle: g_il = sum_p X[p, i] X[p, l] for the column-major (n, q) X, the
+ * sum over p outermost (independent accumulators) */
+WIDE static void gram(const double *X, int n, int q, double *g)
+{
+    for (int i = 0; i < q * q; i++)
+        g[i] = 0.0;
+    for (int p = 0; p < n; p++)
+        for (int i = 0; i < q; i++) {
+            const double xi = X[p + i * n];
+            for (int l = i; l < q; l++)
+                g[i * q + l] += xi * X[p + l * n];
+        }
+}
+
+/* The exponents of Kt (c, Mp) of learner k at x (b) (eq. 21) into e, from the differences:
+ * log s_i - 1/2 sum_d (x_d - o_jd)^2 / l_id^2 (ind_xi (K, Mp, b), log_var (K, c), il2 (K, c,
+ * b)), the squares sq (b, Mp) as scratch; OVERFLOW when one is NaN. */
+WIDE static int exponents(const Dims *D, const double *ind_xi, const double *log_var,
+                          const double *il2, int k, const double *x, double *restrict e,
+                          double *restrict sq)
+{
+    const int b = D->b, c = D->c, mp = D->mp;
+    const double *O = ind_xi + (size_t)k * mp * b, *L2 = il2 + (size_t)k * c * b;
+    const double *lv = log_var + (size_t)k * c;
+    for (int j = 0; j < mp; j++)
+        for (int d = 0; d < b; d++) {
+            const double t = x[d] - O[j * b + d];
+            sq[d * mp + j] = t * t;
+        }
+    for (int i = 0; i < c; i++) {
+        double *er = e + i * mp;
+        const double *w = L2 + i * b;
+        int j = 0;
+        /* eight sums in registers, over d in order; the last block overlaps the one before
+         * (the same sums again, the same values) */
+        for (int j8 = 0; mp >= 8 && j8 < mp; j8 += 8) {
+            j = j8 + 8 <= mp ? j8 : mp - 8;
+            double acc[8] = {0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0};
+            for (int d = 0; d < b; d++) {
+                const double wd = w[d], *sr = sq + d * mp + j;
+                for (int t = 0; t < 8; t++)
+                    acc[t] += wd * sr[t];
+            }
+            for (int t = 0; t < 8; t++)
+                er[j + t] = acc[t];
+        }
+        for (j = mp >= 8 ? mp : 0; j < mp; j++) {
+            double a = 0.0;
+            for (int d = 0; d < b; d++)
+                a += w[d] * sq[d * mp + j];
+            er[j] = a;
+        }
+        for (int j = 0; j < mp; j++) {
+            er[j] = lv[i] - 0.5 * er[j];
+            if (isnan(er[j]))
+                return OVERFLOW;
+        }
+    }
+    return 0;
+}
+
+/* work[:n] <- exp(work[:n]) by numpy.exp (work: a float64 array) */
+static int exp_inplace(PyObject *work, Py_ssize_t n)
+{
+    PyObject *view = PySequence_GetSlice(work, 0, n);
+    if (view == NULL)
+        return EXP_FAILED;
+    PyObject *r = PyObject_CallFunctionObjArgs(np_exp, view, view, NULL);
+    Py_DECREF(view);
+    if (r == NULL)
+        return EXP_FAILED;
+    Py_DECREF(r);
+    return 0;
+}
+
+/* Elements of the scratch array "work": the exponents of every learner's kernel rows, or of
+ * one learner's window column. */
+static Py_ssize_t work_size(const Dims *D)
+{
+    const Py_ssize_t a = (Py_ssize_t)D->K * D->c * D->mp, b = (Py_ssize_t)D->c * D->P;
+    return a > b ? a : b;
+}
+
+static const double *Ki_(const double *kinv, int k, Py_ssize_t mp)
+{
+    return kinv + (size_t)k * mp * mp;
+}
+
+/* ------------------------------------------------------------------ update */
+
+/* The window step of every learner, all at one ring position (eqs. 24-26), for finite
+ * samples: with kt of the new sample, k_new = ubar' Kt, k_ss = s . ubar^2; scale <- scale /
+ * phi; [r, S] += scale (k_new [z, k_new'] - phi^P k_old [z_old, k_old']) (k_old, z_old the
+ * slot's sample when the window is full); the slot <- the new sample; head, count, n_seen,
+ * since advance, fresh is cleared; resid = k_ss - k_new' K_oo^-1 k_new (eq. 27). Returns
+ * (code, candidates, refresh due, renormalisation due): the number of learners whose resid
+ * exceeds max(add_floor k_ss, s2), whether some since reached refresh_every, some scale
+ * 1e100. Code NOT_FINITE or OVERFLOW: nothing changed. */
+static PyObject *py_update(PyObject *self, PyObject *args)
+{
+    enum { INDXI, LOGVAR, IL2, UBT, VAR, KOOINV, STATS, SCALE, WK, WZ, WXT, WUBT, XI, UB, Z,
+           KNEW, KSS, RESID, WORK, HEAD, COUNT, SEEN, FRESH, SINCE, NOISE, N };
+    static const Spec spec[N] = {
+        {"ind_xi", 'd', 0}, {"log_var", 'd', 0}, {"inv_ls2", 'd', 0}, {"ubt", 'd', 0},
+        {"var", 'd', 0},   {"koo_inv", 'd', 0}, {"stats", 'd', 1}, {"scale", 'd', 1},   {"wk", 'd', 1},
+        {"wz", 'd', 1},    {"wxt", 'd', 1},     {"wubt", 'd', 1},    {"xi", 'd', 0},
+        {"ub", 'd', 0},    {"z", 'd', 0},       {"k_new", 'd', 1},   {"kss", 'd', 1},
+        {"resid", 'd', 1},  {"work", 'd', 1},      {"head", 'q', 1},   {"count", 'q', 1},
+        {"n_seen", 'q', 1}, {"fresh", '?', 1},     {"since", 'q', 1},  {"noise_variance", 'd', 0}};
+    PyObject *o[N];
+    Py_buffer bf[N];
+    Dims D;
+    double inv_phi, phi_p, add_floor;
+    long long refresh_every;
+    if (!PyArg_ParseTuple(args, "(iiiii)OOOOOOOOOOOOOOOOOOOOOOOOOdddL", &D.K, &D.b, &D.c,
+                          &D.mp, &D.P, &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6], &o[7],
+                          &o[8], &o[9], &o[10], &o[11], &o[12], &o[13], &o[14], &o[15], &o[16],
+                          &o[17], &o[18], &o[19], &o[20], &o[21], &o[22], &o[23], &o[24],
+                          &inv_phi, &phi_p, &add_floor, &refresh_every))
+        return NULL;
+    const Py_ssize_t K = D.K, b = D.b, c = D.c, mp = D.mp, P = D.P;
+    if (K < 1 || b < 1 || b > MAXB || c < 1 || mp < 1 || mp > MAXW || P < 1) {
+        PyErr_SetString(PyExc_ValueError, "dims must be positive");
+        return NULL;
+    }
+    const Py_ssize_t size[N] = {K * mp * b, K * c, K * c * b, K * c * mp, K * c,
+                                K * mp * mp, K * mp * (mp + 1), K, K * P * mp, K * P,
+                                K * b * P, K * c * P, K * b, c, K, K * mp, K, K,
+                                work_size(&D), K, K, K, K, K, K};
+    if (take_all(o, bf, spec, size, N) < 0)
+        return NULL;
+    const double *oxi = bf[INDXI].buf, *lvar = bf[LOGVAR].buf, *il2 = bf[IL2].buf;
+    const double *ubt = bf[UBT].buf, *var = bf[VAR].buf, *kinv = bf[KOOINV].buf;
+    const double *xi = bf[XI].buf;
+    const double *ub = bf[UB].buf, *z = bf[Z].buf;
+    double *stats = bf[STATS].buf, *scale = bf[SCALE].buf, *wk = bf[WK].buf, *wz = bf[WZ].buf;
+    double *wxt = bf[WXT].buf, *wubt = bf[WUBT].buf;
+    double *knew = bf[KNEW].buf, *kss = bf[KSS].buf, *resid = bf[RESID].buf, *E = bf[WORK].buf;
+    long long *head = bf[HEAD].buf, *count = bf[COUNT].buf, *seen = bf[SEEN].buf;
+    long long *since = bf[SINCE].buf;
+    char *fresh = bf[FRESH].buf;
+    const double *noise = bf[NOISE].buf;
+    int rc = 0, n_cand = 0, refresh_due = 0, renorm_due = 0;
+    double total = 0.0;
+    for (Py_ssize_t i = 0; i < K * b; i++)
+        total += xi[i];
+    for (Py_ssize_t i = 0; i < K; i++)
+        total += z[i];
+    for (Py_ssize_t i = 0; i < c; i++)
+        total += ub[i];
+    const int full = count[0] == P;
+    const int slot = full ? (int)((head[0] + 1) % P) : (int)count[0];
+    if (!isfinite(total))
+        rc = NOT_FINITE;
+    else if (slot < 0 || slot >= P)
+        rc = NOT_FINITE; /* a corrupted ring: leave it to the numpy method */
+    /* first every k_new (nothing changes if an exponent overflows) */
+    double *sq = PyMem_Malloc(sizeof(double) * (size_t)(b * mp));
+    if (sq == NULL) {
+        release_all(bf, N);
+        return PyErr_NoMemory();
+    }
+    for (int k = 0; k < D.K && rc == 0; k++)
+        rc = exponents(&D, oxi, lvar, il2, k, xi + k * b, E + k * c * mp, sq);
+    PyMem_Free(sq);
+    if (rc == 0)
+        rc = exp_inplace(o[WORK], K * c * mp);
+    for (int k = 0; k < D.K && rc == 0; k++) {
+        double *kt = E + k * c * mp;
+        const double *U = ubt + k * c * mp;
+        double *kn = knew + k * mp;
+        for (int j = 0; j < mp; j++)
+            kn[j] = 0.0;
+        for (int i = 0; i < c; i++) {
+            double *kr = kt + i * mp;
+            const double *ur = U + i * mp;
+            for (int j = 0; j < mp; j++)
+                kr[j] *= ur[j];
+            axpy(kn, ub[i], kr, (int)mp);
+        }
+        double s = 0.0;
+        for (int i = 0; i < c; i++)
+            s += var[k * c + i] * (ub[i] * ub[i]);
+        kss[k] = s;
+    }
+    for (int k = 0; k < D.K && rc == 0; k++) {
+        const double s = scale[k] * inv_phi, zs = z[k] * s;
+        const double *kn = knew + k * mp;
+        double *st = stats + k * mp * (mp + 1), *ko = wk + (k * P + slot) * mp;
+        scale[k] = s;
+        if (full) {
+            const double f = -phi_p * s, zo = wz[k * P + slot] * f;
+            for (int p = 0; p < mp; p++) {
+                double *row = st + p * (mp + 1);
+                const double kp = kn[p], op = ko[p];
+                row[0] += kp * zs + op * zo;
+                axpby(row + 1, kp * s, kn, op * f, ko, (int)mp);
+            }
+        } else {
+            for (int p = 0; p < mp; p++) {
+                double *row = st + p * (mp + 1);
+                row[0] += kn[p] * zs;
+                axpy(row + 1, kn[p] * s, kn, (int)mp);
+            }
+        }
+        memcpy(ko, kn, sizeof(double) * (size_t)mp);
+        wz[k * P + slot] = z[k];
+        for (int d = 0; d < b; d++)
+            wxt[(k * b + d) * P + slot] = xi[k * b + d];
+        for (int i = 0; i < c; i++)
+            wubt[(k * c + i) * P + slot] = ub[i];
+        double v[MAXW];
+        symv(Ki_(kinv, k, mp), kn, (int)mp, v);
+        double q = 0.0;
+        for (int p = 0; p < mp; p++)
+            q += kn[p] * v[p];
+        resid[k] = kss[k] - q;
+        const double floor_ = add_floor * kss[k];
+        n_cand += resid[k] > (floor_ > noise[k] ? floor_ : noise[k]);
+        head[k] = slot;
+        count[k] += !full;
+        seen[k] += 1;
+        fresh[k] = 0;
+        since[k] += 1;
+        refresh_due |= since[k] >= refresh_every;
+        renorm_due |= s > 1e100;
+    }
+    release_all(bf, N);
+    if (rc == EXP_FAILED)
+        return NULL;
+    return Py_BuildValue("iiii", rc, n_cand, refresh_due, renorm_due);
+}
+
+/* ------------------------------------------------------------------ predict */
+
+/* b (n, c) and Sigma (n, c, c) of learners rows at xi (n, b) (eq. 20, whitened): with L =
+ * chol(K_oo) (l_oo, lower), G = L^-1 Kt', w = L^-1 r / s2' (s2' = s2 scale); unless fresh,
+ * L_D = chol(I + L^-1 S L^-T / s2') is stored (l_d, lower) and fresh set; H = L_D^-1 G,
+ * cv = L_D^-1 w (stored in cvec); b = H' cv, Sigma = diag(s) - G'G + H'H. */
+static PyObject *py_predict(PyObject *self, PyObject *args)
+{
+    enum { INDXI, LOGVAR, IL2, UBT, VAR, LOO, STATS, SCALE, NOISE, LD, CVEC, FRESH, ROWS, XI,
+           BOUT, SOUT, WORK, N };
+    static const Spec spec[N] = {
+        {"ind_xi", 'd', 0}, {"log_var", 'd', 0}, {"inv_ls2", 'd', 0}, {"ubt", 'd', 0},
+        {"var", 'd', 0},   {"l_oo", 'd', 0},  {"stats", 'd', 0},   {"scale", 'd', 0}, {"noise_variance", 'd', 0},
+        {"l_d", 'd', 1},   {"cvec", 'd', 1},    {"fresh", '?', 1}, {"rows", 'q', 0},
+        {"xi", 'd', 0},    {"b_out", 'd', 1},   {"sigma_out", 'd', 1}, {"work", 'd', 1}};
+    PyObject *o[N];
+    Py_buffer bf[N];
+    Dims D;
+    Py_ssize_t n;
+    if (!PyArg_ParseTuple(args, "(iiiii)nOOOOOOOOOOOOOOOOO", &D.K, &D.b, &D.c, &D.mp, &D.P,
+                          &n, &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6], &o[7], &o[8],
+                          &o[9], &o[10], &o[11], &o[12], &o[13], &o[14], &o[15], &o[16]))
+        return NULL;
+    const Py_ssize_t K = D.K, b = D.b, c = D.c, mp = D.mp;
+    if (K < 1 || b < 1 || b > MAXB || c < 1 || mp < 1 || D.P < 1 || n < 0 ||
+        mp + c + 1 > MAXW) {
+        PyErr_SetString(PyExc_ValueError, "dims must be positive (n >= 0)");
+        return NULL;
+    }
+    const Py_ssize_t size[N] = {K * mp * b, K * c, K * c * b, K * c * mp, K * c,
+                                K * mp * mp, K * mp * (mp + 1), K, K, K * mp * mp, K * mp, K,
+                                n, n * b, n * c, n * c * c, work_size(&D)};
+    if (n * c * mp > work_size(&D))
+        return PyLong_FromLong(TOO_MANY_ROWS);
+    if (take_all(o, bf, spec, size, N) < 0)
+        return NULL;
+    const double *oxi = bf[INDXI].buf, *lvar = bf[LOGVAR].buf, *il2 = bf[IL2].buf;
+    const double *ubt = bf[UBT].buf, *var = bf[VAR].buf, *loo = bf[LOO].buf;
+    const double *stats = bf[STATS].buf;
+    const double *scale = bf[SCALE].buf, *noise = bf[NOISE].buf, *xi = bf[XI].buf;
+    const long long *rows = bf[ROWS].buf;
+    double *ld = bf[LD].buf, *cvec = bf[CVEC].buf, *bout = bf[BOUT].buf, *sout = bf[SOUT].buf;
+    char *fresh = bf[FRESH].buf;
+    for (Py_ssize_t j = 0; j < n; j++) {
+        if (rows[j] < 0 || rows[j] >= K) {
+            release_all(bf, N);
+            PyErr_Format(PyExc_ValueError, "rows must lie in [0, %zd)", K);
+            return NULL;
+        }
+    }
+    const int ncol = (int)(mp + c + 1);
+    double *work = PyMem_Malloc(sizeof(double) *
+                                (size_t)(mp * ncol + c * c + (c + 1) * (c + 1) + b * mp));
+    if (work == NULL) {
+        release_all(bf, N);
+        return PyErr_NoMemory();
+    }
+    double *gg = work + mp * ncol, *E = bf[WORK].buf;
+    double *sq = gg + c * c + (c + 1) * (c + 1);
+    int m_ = (int)mp, info = 0, rc = 0;
+    double unit = 1.0;
+    char L = 'L', R = 'R', U = 'U', T = 'T', Nn = 'N';
+    for (Py_ssize_t j = 0; j < n && rc == 0; j++)
+        rc = exponents(&D, oxi, lvar, il2, (int)rows[j], xi + j * b, E + j * c * mp, sq);
+    if (rc == 0 && n > 0)
+        rc = exp_inplace(o[WORK], n * c * mp);
+    for (Py_ssize_t j = 0; j < n && rc == 0; j++) {
+        const int k = (int)rows[j];
+        double *kt = E + j * c * mp;
+        const double *Uo = ubt + (size_t)k * c * mp;
+        for (int r = 0; r < c * mp; r++)
+            kt[r] *= Uo[r];
+        const double *st = stats + (size_t)k * mp * (mp + 1);
+        double *Lk = (double *)loo + (size_t)k * mp * mp, *LDk = ld + (size_t)k * mp * mp;
+        double inv = 1.0 / (noise[k] * scale[k]);
+        /* work (column-major, mp x ncol) = [S, Kt', r / s2'] */
+        double *W = work, *X = work + mp * mp; /* the last c + 1 columns */
+        for (int p = 0; p < mp; p++) {
+            for (int i = 0; i < c; i++)
+                X[p + i * mp] = kt[i * mp + p];
+            X[p + c * mp] = st[p * (mp + 1)] * inv;
+        }
+        int cols = (int)(c + 1);
+        const int refresh = !fresh[k];
+        if (refresh) {
+            for (int q = 0; q < mp; q++)
+                for (int p = 0; p < mp; p++)
+                    W[p + q * mp] = st[p * (mp + 1) + 1 + q];
+            cols = ncol;
+        }
+        double *B = refresh ? W : X;
+        /* L^-1 [S, Kt', r / s2']: row-major lower L is column-major upper L' */
+        dtrsm_(&L, &U, &T, &Nn, &m_, &cols, &unit, Lk, &m_, B, &m_);
+        if (refresh) {
+            /* inv L^-1 S L^-T + I, its Cholesky factor */
+            dtrsm_(&R, &U, &Nn, &Nn, &m_, &m_, &inv, Lk, &m_, W, &m_);
+            for (int p = 0; p < mp; p++)
+                W[p + p * mp] += 1.0;
+            dpotrf_(&L, &m_, W, &m_, &info);
+            if (info != 0) {
+                rc = NOT_PD;
+                break;
+            }
+            for (int p = 0; p < mp; p++)
+                for (int q = 0; q < mp; q++)
+                    LDk[p * mp + q] = q <= p ? W[p + q * mp] : 0.0;
+            fresh[k] = 1;
+        }
+        /* G'G before G becomes H */
+        gram(X, (int)mp, (int)c, gg);
+        int cc = (int)(c + 1);
+        dtrsm_(&L, &U, &T, &Nn, &m_, &cc, &unit, LDk, &m_, X, &m_);
+        const double *cv = X + c * mp;
+        memcpy(cvec + (size_t)k * mp, cv, sizeof(double) * (size_t)mp);
+        double *bj = bout + j * c, *sj = sout + j * c * c;
+        /* [H, cv]'[H, cv]: H'H and H'cv (the last column) */
+        double *hh = gg + c * c;
+        gram(X, (int)mp, (int)(c + 1), hh);
+        for (int i = 0; i < c; i++) {
+            bj[i] = hh[i * (c + 1) + c];
+            for (int l = i; l < c; l++) {
+                const double v = hh[i * (c + 1) + l] - gg[i * c + l] +
+                                 (i == l ? var[k * c + i] : 0.0);
+                sj[i * c + l] = sj[l * c + i] = v;
+            }
+        }
+    }
+    PyMem_Free(work);
+    release_all(bf, N);
+    if (rc == EXP_FAILED)
+        return NULL;
+    return PyLong_FromLong(rc);
+}
+
+/* ------------------------------------------------------------------ inducing candidate */
+
+/* Learner k's newest sample (x, ubar, k_ss, k_new) as an inducing point (eqs. 27-30), the
+ * decision only: lvec = L^-1 k_new[:m], d = k_ss - |lvec|^2; if d <= 1e-6 k_ss, 0. Else the
+ * statistics are renormalised (scale 1), col = k(x, window) (slot order), lc = phi^age col,
+ * srow = lc' wk[:, :m], s_dd = lc . col, r_new = lc . wz; with a full set (m = Mp), the eq.
+ * 28 score of the enlarged set (K_e^-1 by the bordered inverse) names the point to drop,
+ * and 0 when the new point does not beat it by swap_margin k_ss. Returns (code, drop, dd,
+ * s_dd, r_new): code 1 append, 2 replace point drop, 0 no change; dd = d + jitter. */
+static PyObject *py_candidate(PyObject *self, PyObject *args)
+{
+    enum { LOO, KOOINV, STATS, SCALE, WK, WZ, WXT, WUBT, IL2, LOGVAR, POWREV, XI, UB, KNEW,
+           LVEC, COL, SROW, WORK, N };
+    static const Spec spec[N] = {
+        {"l_oo", 'd', 0},    {"koo_inv", 'd', 0}, {"stats", 'd', 1},   {"scale", 'd', 1},
+        {"wk", 'd', 0},      {"wz", 'd', 0},      {"wxt", 'd', 0},     {"wubt", 'd', 0},
+        {"inv_ls2", 'd', 0}, {"log_var", 'd', 0}, {"pow_rev", 'd', 0}, {"xi", 'd', 0},
+        {"ub", 'd', 0},      {"k_new", 'd', 0},   {"lvec", 'd', 1},    {"col", 'd', 1},
+        {"srow", 'd', 1},    {"work", 'd', 1}};
+    PyObject *o[N];
+    Py_buffer bf[N];
+    Dims D;
+    int k, m, head, cnt;
+    double kss, jitter, swap_margin;
+    if (!PyArg_ParseTuple(args, "(iiiii)iiiidddOOOOOOOOOOOOOOOOOO", &D.K, &D.b, &D.c, &D.mp,
+                          &D.P, &k, &m, &head, &cnt, &kss, &jitter, &swap_margin, &o[0], &o[1],
+                          &o[2], &o[3], &o[4], &o[5], &o[6], &o[7], &o[8], &o[9], &o[10],
+                          &o[11], &o[12], &o[13], &o[14], &o[15], &o[16], &o[17]))
+        return NULL;
+    const Py_ssize_t K = D.K, b = D.b, c = D.c, mp = D.mp, P = D.P;
+    if (K < 1 || b < 1 || c < 1 || mp < 1 || mp > MAXW || P < 1 || k < 0 || k >= K || m < 1 ||
+        m > mp || cnt < 1 || cnt > P || head < 0 || head >= cnt) {
+        PyErr_SetString(PyExc_ValueError, "dims, k, m, head or count out of range");
+        return NULL;
+    }
+    const Py_ssize_t size[N] = {K * mp * mp, K * mp * mp, K * mp * (mp + 1), K, K * P * mp,
+                                K * P, K * b * P, K * c * P, K * c * b, K * c, P, b, c, mp,
+                                mp, P, mp, work_size(&D)};
+    if (take_all(o, bf, spec, size, N) < 0)
+        return NULL;
+    const double *Lk = (const double *)bf[LOO].buf + (size_t)k * mp * mp;
+    const double *Ki = (const double *)bf[KOOINV].buf + (size_t)k * mp * mp;
+    double *st = (double *)bf[STATS].buf + (size_t)k * mp * (mp + 1);
+    double *scale = (double *)bf[SCALE].buf + k;
+    const double *wk = (const double *)bf[WK].buf + (size_t)k * P * mp;
+    const double *wz = (const double *)bf[WZ].buf + (size_t)k * P;
+    const double *wxt = (const double *)bf[WXT].buf + (size_t)k * b * P;
+    const double *wubt = (const double *)bf[WUBT].buf + (size_t)k * c * P;
+    const double *L2 = (const double *)bf[IL2].buf + (size_t)k * c * b;
+    const double *lv = (const double *)bf[LOGVAR].buf + (size_t)k * c;
+    const double *rev = bf[POWREV].buf, *x = bf[XI].buf, *ub = bf[UB].buf, *kn = bf[KNEW].buf;
+    double *lvec = bf[LVEC].buf, *col = bf[COL].buf, *srow = bf[SROW].buf;
+    int code = 0, drop = -1;
+    double d = 0.0, dd = 0.0, sdd = 0.0, rnew = 0.0;
+    double *tmp = NULL;
+    /* eq. 27 residual from the factor */
+    for (int i = 0; i < m; i++) {
+        double s = kn[i];
+        for (int j = 0; j < i; j++)
+            s -= Lk[i * mp + j] * lvec[j];
+        lvec[i] = s / Lk[i * mp + i];
+    }
+    for (int i = 0; i < m; i++)
+        d += lvec[i] * lvec[i];
+    d = kss - d;
+    if (!(d > 1e-6 * kss))
+        goto done;
+    if (*scale != 1.0) {
+        const double f = 1.0 / *scale;
+        for (Py_ssize_t i = 0; i < mp * (mp + 1); i++)
+            st[i] *= f;
+        *scale = 1.0;
+    }
+    tmp = PyMem_Malloc(sizeof(double) * (size_t)(3 * (m + 1) * (m + 1) + (m + 1)));
+    if (tmp == NULL) {
+        code = NO_MEMORY;
+        goto done;
+    }
+    /* the window column k(x, (xi_t, ub_t)) from the differences: exponents (c, cnt) */
+    double *E = bf[WORK].buf;
+    for (int i = 0; i < c; i++) {
+        double *acc = E + (size_t)i * cnt;
+        for (int t = 0; t < cnt; t++)
+            acc[t] = 0.0;
+        for (int d_ = 0; d_ < b; d_++) {
+            const double w = L2[i * b + d_], xd = x[d_], *row = wxt + d_ * P;
+            for (int t = 0; t < cnt; t++) {
+                const double e = row[t] - xd;
+                acc[t] += w * (e * e);
+            }
+        }
+        for (int t = 0; t < cnt; t++)
+            acc[t] = lv[i] - 0.5 * acc[t];
+    }
+    if (exp_inplace(o[WORK], c * cnt) != 0) {
+        code = EXP_FAILED;
+        goto done;
+    }
+    for (int t = 0; t < cnt; t++)
+        col[t] = 0.0;
+    for (int i = 0; i < c; i++) {
+        const double *ur = wubt + i * P, *ex = E + (size_t)i * cnt;
+        for (int t = 0; t < cnt; t++)
+            col[t] += ub[i] * (ex[t] * ur[t]);
+    }
+    /* weights phi^age (age (head - t) mod P), the new row of [r, S] (eq. 30) */
+    for (int l = 0; l < m; l++)
+        srow[l] = 0.0;
+    for (int t = 0; t < cnt; t++) {
+        const int age = t <= head ? head - t : head - t + (int)P;
+        const double lc = rev[P - 1 - age] * col[t];
+        const double *wr = wk + (size_t)t * mp;
+        for (int l = 0; l < m; l++)
+            srow[l] += lc * wr[l];
+        sdd += lc * col[t];
+        rnew += lc * wz[t];
+    }
+    dd = d + jitter;
+    if (m + 1 > mp) {
+        /* eq. 28 on the enlarged set: K_e^-1 = [[K^-1 + w w'/dd, -w/dd], [-w'/dd, 1/dd]] */
+        const int n1 = m + 1;
+        double *kinv = tmp, *se = kinv + n1 * n1, *prod = se + n1 * n1, *w = prod + n1 * n1;
+        symv(Ki, kn, m, w); /* m = Mp here */
+        for (int i = 0; i < m; i++) {
+            for (int l = 0; l < m; l++) {
+                kinv[i * n1 + l] = w[i] * (w[l] / dd) + Ki[i * mp + l];
+                se[i * n1 + l] = st[i * (mp + 1) + 1 + l];
+            }
+            kinv[i * n1 + m] = kinv[m * n1 + i] = -w[i] / dd;
+            se[i * n1 + m] = se[m * n1 + i] = srow[i];
+        }
+        kinv[m * n1 + m] = 1.0 / dd;
+        se[m * n1 + m] = sdd;
+        /* column-major se' kinv' = (kinv se)': read row-major, prod = kinv se */
+        int n1_ = n1;
+        double one = 1.0, zero = 0.0;
+        char Nn = 'N';
+        dgemm_(&Nn, &Nn, &n1_, &n1_, &n1_, &one, se, &n1_, kinv, &n1_, &zero, prod, &n1_);
+        double best = 0.0, last = 0.0;
+        for (int i = 0; i < n1; i++) {
+            double s = 0.0;
+            for (int l = 0; l < n1; l++)
+                s += prod[i * n1 + l] * kinv[i * n1 + l];
+            s /= kinv[i * n1 + i];
+            if (i < m && (drop < 0 || s < best)) {
+                best = s;
+                drop = i;
+            }
+            if (i == m)
+                last = s;
+        }
+        if (!(last - best > swap_margin * kss)) {
+            drop = -1;
+            goto done;
+        }
+        code = 2;
+    } else {
+        code = 1;
+    }
+done:
+    PyMem_Free(tmp);
+    release_all(bf, N);
+    if (code == NO_MEMORY)
+        return PyErr_NoMemory();
+    if (code == EXP_FAILED)
+        return NULL;
+    return Py_BuildValue("iiddd", code, drop, dd, sdd, rnew);
+}
+
+/* ------------------------------------------------------------------ module */
+
+static void *capi(const char *module, const char *name)
+{
+    PyObject *mod = PyImport_ImportModule(module);
+    if (mod == NULL)
+        return NULL;
+    PyObject *table = PyObject_GetAttrString(mod, "__pyx_capi__");
+    Py_DECREF(mod);
+    if (table == NULL)
+        return NULL;
+    PyObject *cap = PyDict_GetItemString(table, name); /* borrowed */
+    void *fn = NULL;
+    if (cap == NULL)
+        PyErr_Format(PyExc_ImportError, "%s has no %s", module, name);
+    else
+        fn = PyCapsule_GetPointer(cap, PyCapsule_GetName(cap));
+    Py_DECREF(table);
+    return fn;
+}
+
+static PyMethodDef methods[] = {
+    {"update", py_update, METH_VARARGS,
+     "update(dims, ind_xi, log_var, inv_ls2, ubt, var, koo_inv, stats, scale, wk, wz, wxt, wubt, xi, ub, "
+     "z, k_new, kss, resid, work, head, count, n_seen, fresh, since, noise_variance, inv_phi, "
+     "phi_p, add_floor, refresh_every) -> (code, candidates, refresh due, renormalisation "
+     "due): the window step of every learner at their shared ring position (code 0), or a "
+     "negative code (nothing changed)."},
+    {"predict", py_predict, METH_VARARGS,
+     "predict(dims, n, ind_xi, log_var, inv_ls2, ubt, var, l_oo, stats, scale, noise_variance, l_d, "
+     "cvec, fresh, rows, xi, b_out, sigma_out) -> int: eq. 20 for learners rows (0), or a "
+     "negative code (the numpy method takes over)."},
+    {"candidate", py_candidate, METH_VARARGS,
+     "candidate(dims, k, m, head, count, kss, jitter, swap_margin, l_oo, koo_inv, stats, scale, "
+     "wk, wz, wxt, wubt, inv_ls2, log_var, pow_rev, xi, ub, k_new, lvec, col, srow) -> (code, "
+     "drop, dd, s_dd, r_new): the eqs. 27-28 decision on a new inducing point."},
+    {NULL, NULL, 0, NULL},
+};
+
+static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_bank",
+                                    "Compiled core of afvsgp_gym.gp.afvsgp_bank.", -1, methods};
+
+PyMODINIT_FUNC PyInit__bank(void)
+{
+    dtrsm_ = (trsm_t)capi("scipy.linalg.cython_blas", "dtrsm");
+    if (dtrsm_ == NULL)
+        return NULL;
+    dgemm_ = (gemm_t)capi("scipy.linalg.cython_blas", "dgemm");
+    if (dgemm_ == NULL)
+        return NULL;
+    dpotrf_ = (potrf_t)capi("scipy.linalg.cython_lapack", "dpotrf");
+    if (dpotrf_ == NULL)
+        return NULL;
+    PyObject *numpy = PyImport_ImportModule("numpy");
+    if (numpy == NULL)
+        return NULL;
+    np_exp = PyObject_GetAttrString(numpy, "exp");
+    Py_DECREF(numpy);
+    if (np_exp == NULL)
+        return NULL;
+    return PyModule_Create(&module);
+}

@@ -1,0 +1,181 @@
+"""The AFVSGP bank's compiled core (afvsgp_gym.gp._bank) against the bank's numpy methods and
+the independent batch posterior: the same learners through window wrapping and inducing-set
+changes, the rare cases it hands back to numpy, and bad input."""
+
+import copy
+import shutil
+import sysconfig
+
+import numpy as np
+import pytest
+from gp_batch_formulas import synthetic
+from test_afvsgp_bank import K, P, _assert_equals_batch_posterior, _learners, _rows, _streams
+
+from afvsgp_gym.gp import afvsgp_bank
+from afvsgp_gym.gp.afvsgp_bank import AFVSGPBank
+
+EPS = np.finfo(np.float64).eps
+needs_core = pytest.mark.skipif(not afvsgp_bank.COMPILED, reason="compiled core not built")
+
+
+def test_compiled_core_is_built_where_there_is_a_compiler():
+    """The package builds the learners' C core wherever a C compiler is there."""
+    cc = (sysconfig.get_config_var("CC") or "cc").split()[0]
+    if shutil.which(cc) is None:
+        pytest.skip(f"no C compiler ({cc})")
+    assert afvsgp_bank.COMPILED
+
+
+def _pair(streams, u, **kw):
+    learners = _learners(streams, u, **kw)
+    return (AFVSGPBank.from_learners(learners, compiled=True),
+            AFVSGPBank.from_learners(learners, compiled=False))
+
+
+def _rel(a, b):
+    return float(np.max(np.abs(a - b)) / np.max(np.abs(b)))
+
+
+@needs_core
+@pytest.mark.parametrize("max_candidates", [None, 1])
+def test_compiled_equals_numpy_through_inducing_events(max_candidates):
+    """Streamed side by side, the compiled and numpy banks make the same inducing-set
+    decisions and predict the same moments at random points for random subsets of learners,
+    to a tolerance from the conditioning of the posterior (the same arithmetic in another
+    order: the whitened solves lose at most ~cond(K_oo + S/s2) eps, times a small factor for
+    the n-term sums); the compiled bank also equals the batch weighted Titsias posterior."""
+    n = P + 10 * P
+    streams = _streams(n)
+    u = streams[0][1]
+    comp, ref = _pair(streams, u)
+    comp.max_inducing_candidates = ref.max_inducing_candidates = max_candidates
+    rng = np.random.default_rng(4)
+    worst, cond = 0.0, 1.0
+    for i in range(P, n):
+        xi, z = _rows(streams, i)
+        np.testing.assert_array_equal(comp.update(xi, u[i], z), ref.update(xi, u[i], z))
+        if i % 5 == 0:
+            rows = np.sort(rng.choice(K, size=rng.integers(1, K + 1), replace=False))
+            xs = rng.normal(size=(len(rows), 3))
+            bc, sc = comp.predict_affine(xs, rows)
+            br, sr = ref.predict_affine(xs, rows)
+            worst = max(worst, _rel(bc, br), _rel(sc, sr))
+            cond = max(cond, float(ref.conditioning()[1].max()))
+    np.testing.assert_array_equal(comp.n_added_, ref.n_added_)
+    np.testing.assert_array_equal(comp.n_removed_, ref.n_removed_)
+    assert comp.n_added_.min() > 20 and comp.n_removed_.min() > 0
+    assert 0.0 < worst < 1e3 * cond * EPS, (worst, cond)
+    for name in ("_stats", "_wk", "_koo", "_l_oo", "_ind_xi", "_scale"):
+        assert _rel(getattr(comp, name), getattr(ref, name)) < 1e3 * cond * EPS, name
+    for name in ("_head", "_count", "n_seen_", "_since_refresh", "n_inducing_"):
+        np.testing.assert_array_equal(getattr(comp, name), getattr(ref, name), err_msg=name)
+    _assert_equals_batch_posterior(comp, streams, u, n, seed=8)
+
+
+@needs_core
+def test_compiled_step_hands_skipped_samples_and_huge_inputs_to_numpy():
+    """A point so far out that the numpy methods' exponent expansion overflows (they switch
+    to the differences, as the core always does) and a NaN sample (one learner skipped: the
+    core hands the step to numpy with nothing changed) leave the two banks equal, the rings
+    apart in both."""
+    n = P + 3 * P
+    streams = _streams(n)
+    u = streams[0][1]
+    comp, ref = _pair(streams, u)
+    for i in range(P, P + 20):
+        xi, z = _rows(streams, i)
+        comp.update(xi, u[i], z)
+        ref.update(xi, u[i], z)
+    xi, z = _rows(streams, P + 20)
+    xi[1, 0] = 1e200  # the expansion's x^2 overflows: numpy's direct exponent
+    with np.errstate(over="ignore", invalid="ignore"):  # numpy's own warnings on the way
+        np.testing.assert_array_equal(comp.update(xi, u[P + 20], z),
+                                      ref.update(xi, u[P + 20], z))
+    assert comp._synced
+    xi, z = _rows(streams, P + 21)
+    z[2] = np.nan
+    with np.errstate(over="ignore", invalid="ignore"):  # the window holds the huge point
+        np.testing.assert_array_equal(comp.update(xi, u[P + 21], z), [True, True, False, True])
+        ref.update(xi, u[P + 21], z)
+    assert not comp._synced and not ref._synced
+    xs = np.random.default_rng(1).normal(size=(K, 3))
+    xs[3] = 1e200  # far out: the prior, from the direct exponent
+    with np.errstate(over="ignore", invalid="ignore"):
+        for i in range(P + 22, n):
+            xi, z = _rows(streams, i)
+            comp.update(xi, u[i], z)
+            ref.update(xi, u[i], z)
+        bc, sc = comp.predict_affine(xs)
+        br, sr = ref.predict_affine(xs)
+    assert _rel(bc, br) < 1e-9 and _rel(sc, sr) < 1e-9
+    np.testing.assert_allclose(sc[3], np.diag(comp.var[3]), rtol=1e-12, atol=0)
+
+
+@needs_core
+def test_compiled_entry_points_refuse_bad_input():
+    """Wrong sizes, dtypes and rows give a ValueError naming the argument; a rejected update
+    changes nothing."""
+    streams = _streams(P + 5)
+    u = streams[0][1]
+    bank = AFVSGPBank.from_learners(_learners(streams, u), compiled=True)
+    core = afvsgp_bank._core
+    n, c = 2, bank._c
+    args = [bank._dims, n, bank._ind_xi, bank.log_var, bank.inv_ls2, bank._ubt, bank.var,
+            bank._l_oo, bank._stats, bank._scale, bank.noise_variance, bank._l_d, bank._cvec,
+            bank._fresh, np.array([0, 1]), np.zeros((n, 3)), np.empty((n, c)),
+            np.empty((n, c, c)), bank._work]
+    assert core.predict(*args) == 0
+    bad = list(args)
+    bad[14] = np.array([0, K])
+    with pytest.raises(ValueError, match="rows"):
+        core.predict(*bad)
+    bad = list(args)
+    bad[15] = np.zeros((n, 4))
+    with pytest.raises(ValueError, match="xi must hold 6 elements"):
+        core.predict(*bad)
+    bad = list(args)
+    bad[14] = np.array([0, 1], dtype=np.int32)
+    with pytest.raises(ValueError, match="rows must be of dtype int64"):
+        core.predict(*bad)
+    bad = list(args)
+    bad[16] = np.empty((n, c))[:, ::-1]
+    with pytest.raises(ValueError, match="b_out must be a C-contiguous"):
+        core.predict(*bad)
+    before = copy.deepcopy(bank)
+    with pytest.raises(ValueError, match="update needs xi"):
+        bank.update(np.zeros((K, 4)), u[0], np.zeros(K))
+    with pytest.raises(ValueError, match="u contains NaN"):
+        bank.update(np.zeros((K, 3)), np.full(2, np.nan), np.zeros(K))
+    for name, value in vars(before).items():
+        if isinstance(value, np.ndarray) and name != "_work":
+            np.testing.assert_array_equal(getattr(bank, name), value, err_msg=name)
+
+
+def test_compiled_flag(monkeypatch):
+    """``compiled`` takes None, True or False; True without the core is an ImportError."""
+    xi, u, z, _ = synthetic(np.random.default_rng(0), P, noise_std=0.05)
+    learners = _learners([(xi, u, z, None)] * 2, u)
+    with pytest.raises(ValueError, match="compiled must be None, True or False"):
+        AFVSGPBank.from_learners(learners, compiled="yes")
+    assert AFVSGPBank.from_learners(learners, compiled=False).compiled is False
+    monkeypatch.setattr(afvsgp_bank, "_core", None)
+    monkeypatch.setattr(afvsgp_bank, "COMPILED", False)
+    assert AFVSGPBank.from_learners(learners).compiled is False
+    with pytest.raises(ImportError, match="afvsgp_gym.gp._bank"):
+        AFVSGPBank.from_learners(learners, compiled=True)
+
+
+def test_compiled_learners_option_reaches_the_bank():
+    """``FilterConfig.compiled_learners`` reaches the AFVSGP bank the filter builds."""
+    from afvsgp_gym.cbf import FilterConfig, SafetyController
+
+    rng = np.random.default_rng(0)
+    xi, u, z = rng.normal(size=(60, 4)), rng.uniform(-1, 1, size=(60, 2)), rng.normal(size=60)
+    kw = dict(learner_kwargs={"num_inducing": 6, "window": 30}, learn_hyperparameters=False)
+    ctrl = SafetyController(-np.ones(2), np.ones(2), 2, dataset=(xi, u, z),
+                            compiled_learners=False, **kw)
+    assert ctrl.bank.bank.compiled is False
+    ctrl = SafetyController(-np.ones(2), np.ones(2), 2, dataset=(xi, u, z), **kw)
+    assert ctrl.bank.bank.compiled is afvsgp_bank.COMPILED
+    with pytest.raises(ValueError, match="compiled_learners"):
+        FilterConfig(compiled_learners=1)
