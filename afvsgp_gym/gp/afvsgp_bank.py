@@ -234,6 +234,12 @@ class AFVSGPBank:
                               "(install the package where a C compiler is available)")
         self._compiled = COMPILED if value is None else bool(value)
 
+    def __setstate__(self, state: dict) -> None:
+        """Unpickle; a bank pickled where the core was built runs numpy where it is not."""
+        self.__dict__.update(state)
+        if _core is None:
+            self._compiled = False
+
     @classmethod
     def stack(cls, banks: Sequence[AFVSGPBank],
               max_inducing_candidates: int | None = None,

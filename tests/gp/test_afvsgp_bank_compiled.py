@@ -3,6 +3,7 @@ the independent batch posterior: the same learners through window wrapping and i
 changes, the rare cases it hands back to numpy, and bad input."""
 
 import copy
+import pickle
 import shutil
 import sysconfig
 
@@ -179,3 +180,29 @@ def test_compiled_learners_option_reaches_the_bank():
     assert ctrl.bank.bank.compiled is afvsgp_bank.COMPILED
     with pytest.raises(ValueError, match="compiled_learners"):
         FilterConfig(compiled_learners=1)
+
+
+@needs_core
+def test_posterior_cache_is_shared_by_both_paths(monkeypatch):
+    """The cached posterior factor one path writes is the one the other reads: predicting
+    with a fresh cache from the other path gives the moments of a cache rebuilt by either; a
+    bank unpickled where the core is missing runs numpy."""
+    streams = _streams(P + 60)
+    u = streams[0][1]
+    bank = AFVSGPBank.from_learners(_learners(streams, u), compiled=True)
+    for i in range(P, P + 60):
+        xi, z = _rows(streams, i)
+        bank.update(xi, u[i], z)
+    xs = np.random.default_rng(2).normal(size=(K, 3))
+    tol = 1e3 * float(bank.conditioning()[1].max()) * EPS  # as in the test above
+    for first, second in ((True, False), (False, True)):
+        bank._fresh[:] = False
+        bank.compiled = first
+        b1, s1 = bank.predict_affine(xs)  # refreshes the cache
+        assert bank._fresh.all()
+        bank.compiled = second
+        b2, s2 = bank.predict_affine(xs)  # reads it
+        assert _rel(b2, b1) < tol and _rel(s2, s1) < tol
+    blob = pickle.dumps(bank)
+    monkeypatch.setattr(afvsgp_bank, "_core", None)
+    assert pickle.loads(blob).compiled is False
