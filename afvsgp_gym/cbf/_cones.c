@@ -18,6 +18,8 @@
 #include <math.h>
 #include <string.h>
 
+#include "../_cbuf.h"
+
 #define MAXM 16
 #define MAXK 8
 #define MAX_NEWTON 20
@@ -425,49 +427,36 @@ static int solve_set(Problem *P, int K, const double *tol, int max_binding, doub
     return SET_UNSETTLED;
 }
 
-/* One argument of the Python entry points: its name, its length ('m' actions, 'k' cones,
- * 'a' k x m, 'G' k x (m+1)^2), its item size (8: float64, 1: bool) and whether it is written. */
+/* One argument of the Python entry points: its name, dtype and whether it is written
+ * (afvsgp_gym/_cbuf.h), and its length: 'm' actions, 'k' cones, 'a' k x m, 'G' k x (m+1)^2. */
 typedef struct {
-    const char *name;
-    char len, size, writable;
+    Spec spec;
+    char len;
 } Arg;
 
-/* the buffers b[i] of the arguments o[i] (C-contiguous, of the sizes in spec), m and k from
- * the first two (u_nom: 1..MAXM actions, a0: 1..max_k cones); -1 with an error naming the
- * argument (and every buffer released) */
-static int take(PyObject **o, Py_buffer *b, const Arg *spec, int n_args, Py_ssize_t max_k,
-                Py_ssize_t *m, Py_ssize_t *k)
+/* the buffers b[i] of the arguments o[i], m and k from the first two (u_nom: 1..MAXM
+ * actions, a0: 1..max_k cones); -1 with an error naming the argument (and every buffer
+ * released) */
+static int take_args(PyObject **o, Py_buffer *b, const Arg *arg, int n_args, Py_ssize_t max_k,
+                     Py_ssize_t *m, Py_ssize_t *k)
 {
     for (int i = 0; i < n_args; i++) {
-        const Arg *s = &spec[i];
-        int flags = PyBUF_C_CONTIGUOUS | (s->writable ? PyBUF_WRITABLE : 0);
-        if (PyObject_GetBuffer(o[i], &b[i], flags) < 0) {
-            for (int j = 0; j < i; j++)
-                PyBuffer_Release(&b[j]);
+        const char len = arg[i].len;
+        const Py_ssize_t want = i < 2 ? -1 : len == 'm' ? *m : len == 'k' ? *k
+                                : len == 'a' ? *k * *m : *k * (*m + 1) * (*m + 1);
+        if (take(o[i], &b[i], &arg[i].spec, want) < 0) {
+            release_all(b, i);
             return -1;
         }
-        Py_ssize_t n = -1;
         if (i < 2) { /* u_nom and a0 set m and k */
             const Py_ssize_t top = (i == 0) ? MAXM : max_k, got = b[i].len / 8;
-            if (b[i].itemsize == 8 && got >= 1 && got <= top) {
-                n = got;
-                *(i == 0 ? m : k) = got;
-            } else
-                PyErr_Format(PyExc_ValueError, "%s must hold 1 to %zd float64 items", s->name,
-                             top);
-        } else {
-            const Py_ssize_t want = (s->len == 'm') ? *m : (s->len == 'k') ? *k
-                                    : (s->len == 'a') ? *k * *m : *k * (*m + 1) * (*m + 1);
-            if (b[i].itemsize == s->size && b[i].len == want * s->size)
-                n = want;
-            else
-                PyErr_Format(PyExc_ValueError, "%s must hold %zd items of %d bytes", s->name,
-                             want, (int)s->size);
-        }
-        if (n < 0) {
-            for (int j = 0; j <= i; j++)
-                PyBuffer_Release(&b[j]);
-            return -1;
+            if (got < 1 || got > top) {
+                PyErr_Format(PyExc_ValueError, "%s must hold 1 to %zd float64 items",
+                             arg[i].spec.name, top);
+                release_all(b, i + 1);
+                return -1;
+            }
+            *(i == 0 ? m : k) = got;
         }
     }
     return 0;
@@ -488,16 +477,17 @@ static void set_data(Problem *P, Py_buffer *b, Py_ssize_t m)
 
 static PyObject *py_project(PyObject *self, PyObject *args)
 {
-    static const Arg spec[9] = {{"u_nom", 'm', 8, 0}, {"a0", 'k', 8, 0}, {"a", 'a', 8, 0},
-                                {"G", 'G', 8, 0},     {"low", 'm', 8, 0}, {"high", 'm', 8, 0},
-                                {"u", 'm', 8, 1},     {"lam", 'k', 8, 1}, {"fixed", 'm', 1, 1}};
+    static const Arg spec[9] = {
+        {{"u_nom", 'd', 0}, 'm'}, {{"a0", 'd', 0}, 'k'},  {{"a", 'd', 0}, 'a'},
+        {{"G", 'd', 0}, 'G'},     {{"low", 'd', 0}, 'm'}, {{"high", 'd', 0}, 'm'},
+        {{"u", 'd', 1}, 'm'},     {{"lam", 'd', 1}, 'k'}, {{"fixed", '?', 1}, 'm'}};
     PyObject *o[9];
     Py_buffer b[9];
     Py_ssize_t m = 0, k = 0;
     if (!PyArg_UnpackTuple(args, "project", 9, 9, &o[0], &o[1], &o[2], &o[3], &o[4], &o[5],
                            &o[6], &o[7], &o[8]))
         return NULL;
-    if (take(o, b, spec, 9, MAXK, &m, &k) < 0)
+    if (take_args(o, b, spec, 9, MAXK, &m, &k) < 0)
         return NULL;
     Problem P;
     set_data(&P, b, m);
@@ -509,17 +499,17 @@ static PyObject *py_project(PyObject *self, PyObject *args)
         gram(&P, i, BtB + (size_t)i * m * m);
     P.BtB = BtB;
     const int rc = project(&P, b[6].buf, b[7].buf, b[8].buf);
-    for (int i = 0; i < 9; i++)
-        PyBuffer_Release(&b[i]);
+    release_all(b, 9);
     return PyLong_FromLong(rc);
 }
 
 static PyObject *py_solve(PyObject *self, PyObject *args)
 {
-    static const Arg spec[10] = {{"u_nom", 'm', 8, 0}, {"a0", 'k', 8, 0},  {"a", 'a', 8, 0},
-                                 {"G", 'G', 8, 0},     {"low", 'm', 8, 0}, {"high", 'm', 8, 0},
-                                 {"tol", 'k', 8, 0},   {"u", 'm', 8, 1},   {"lam", 'k', 8, 1},
-                                 {"binding", 'k', 1, 1}};
+    static const Arg spec[10] = {
+        {{"u_nom", 'd', 0}, 'm'}, {{"a0", 'd', 0}, 'k'},  {{"a", 'd', 0}, 'a'},
+        {{"G", 'd', 0}, 'G'},     {{"low", 'd', 0}, 'm'}, {{"high", 'd', 0}, 'm'},
+        {{"tol", 'd', 0}, 'k'},   {{"u", 'd', 1}, 'm'},   {{"lam", 'd', 1}, 'k'},
+        {{"binding", '?', 1}, 'k'}};
     PyObject *o[10];
     Py_buffer b[10];
     Py_ssize_t m = 0, K = 0;
@@ -531,12 +521,11 @@ static PyObject *py_solve(PyObject *self, PyObject *args)
         PyErr_Format(PyExc_ValueError, "max_binding must be in [1, %d]", MAXK);
         return NULL;
     }
-    if (take(o, b, spec, 10, MAXC, &m, &K) < 0)
+    if (take_args(o, b, spec, 10, MAXC, &m, &K) < 0)
         return NULL;
     double *BtB = PyMem_Malloc(sizeof(double) * (size_t)(K * m * m));
     if (BtB == NULL) {
-        for (int i = 0; i < 10; i++)
-            PyBuffer_Release(&b[i]);
+        release_all(b, 10);
         return PyErr_NoMemory();
     }
     Problem P;
@@ -546,8 +535,7 @@ static PyObject *py_solve(PyObject *self, PyObject *args)
     P.BtB = BtB;
     const int rc = solve_set(&P, (int)K, b[6].buf, max_binding, b[7].buf, b[8].buf, b[9].buf);
     PyMem_Free(BtB);
-    for (int i = 0; i < 10; i++)
-        PyBuffer_Release(&b[i]);
+    release_all(b, 10);
     return PyLong_FromLong(rc);
 }
 

@@ -83,7 +83,7 @@ class LoopBank:
     learns = True
 
     def __init__(self, n_barriers: int, action_dim: int, cls_name: str,
-                 shared_hyperparameters: bool = True, compiled: bool | None = None, **kwargs):
+                 shared_hyperparameters: bool = True, **kwargs):
         from afvsgp_gym import gp
 
         self.n_learners, self.action_dim = int(n_barriers), int(action_dim)
@@ -91,7 +91,6 @@ class LoopBank:
         self._kwargs = kwargs
         self._cls(**kwargs)  # constructor checks its arguments now
         self.shared = bool(shared_hyperparameters)
-        self.compiled = compiled
         self.learners: list = []
 
     def _make(self, **override):
@@ -125,10 +124,13 @@ class LoopBank:
 
 
 class AFVSGPLearnerBank(LoopBank):
-    """AFVSGP learners fitted one by one (or shared), then run as one :class:`AFVSGPBank`."""
+    """AFVSGP learners fitted one by one (or shared), then run as one :class:`AFVSGPBank`
+    (``compiled``: its compiled core, see that class)."""
 
-    def __init__(self, n_barriers: int, action_dim: int, cls_name: str = "AFVSGP", **kwargs):
+    def __init__(self, n_barriers: int, action_dim: int, cls_name: str = "AFVSGP",
+                 compiled: bool | None = None, **kwargs):
         super().__init__(n_barriers, action_dim, cls_name, **kwargs)
+        self.compiled = compiled
         self.bank = None
 
     def fit(self, datasets, learn_hyperparameters: bool = True) -> None:
@@ -198,9 +200,10 @@ def make_bank(name: str, n_barriers: int, action_dim: int, learner_kwargs: dict 
     if entry.bank is None:
         return ZeroBank(n_barriers, action_dim, **(learner_kwargs or {}))
     kwargs = {**entry.default_kwargs, **(learner_kwargs or {})}
+    if issubclass(entry.bank, AFVSGPLearnerBank):  # the only bank with a compiled core
+        kwargs["compiled"] = compiled
     return entry.bank(n_barriers, action_dim, entry.gp_class,
-                      shared_hyperparameters=shared_hyperparameters, compiled=compiled,
-                      **kwargs)
+                      shared_hyperparameters=shared_hyperparameters, **kwargs)
 
 
 def make_learner(name: str, action_dim: int, **kwargs):

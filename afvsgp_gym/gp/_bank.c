@@ -47,64 +47,7 @@ static PyObject *np_exp; /* numpy.exp: vectorised, many times faster than libm's
 #define TOO_MANY_ROWS -5 /* more predicted rows than the scratch array holds */
 #define NOT_FINITE -6    /* a sample is not finite: the numpy method skips it */
 
-/* ------------------------------------------------------------------ arguments */
-
-typedef struct {
-    const char *name;
-    char kind;    /* 'd' float64, 'q' int64, '?' bool */
-    int writable;
-} Spec;
-
-/* The buffer of obj as spec says, with exactly n elements; -1 and a ValueError naming it. */
-static int take(PyObject *obj, Py_buffer *buf, const Spec *spec, Py_ssize_t n)
-{
-    int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (spec->writable ? PyBUF_WRITABLE : 0);
-    if (PyObject_GetBuffer(obj, buf, flags) < 0) {
-        PyErr_Clear();
-        PyErr_Format(PyExc_ValueError, "%s must be a C-contiguous%s array", spec->name,
-                     spec->writable ? ", writable" : "");
-        return -1;
-    }
-    const char *f = buf->format;
-    if (f[0] == '<' || f[0] == '=' || f[0] == '@')
-        f++;
-    const int ok_type = (spec->kind == 'd' && f[0] == 'd' && buf->itemsize == 8) ||
-                        (spec->kind == 'q' && (f[0] == 'q' || f[0] == 'l') && buf->itemsize == 8) ||
-                        (spec->kind == '?' && f[0] == '?' && buf->itemsize == 1);
-    if (!ok_type || f[1] != '\0') {
-        PyErr_Format(PyExc_ValueError, "%s must be of dtype %s", spec->name,
-                     spec->kind == 'd' ? "float64" : spec->kind == 'q' ? "int64" : "bool");
-        PyBuffer_Release(buf);
-        return -1;
-    }
-    if (buf->len / buf->itemsize != n) {
-        PyErr_Format(PyExc_ValueError, "%s must hold %zd elements. Got: %zd", spec->name, n,
-                     buf->len / buf->itemsize);
-        PyBuffer_Release(buf);
-        return -1;
-    }
-    return 0;
-}
-
-/* take() for n arrays; on failure the ones taken are released */
-static int take_all(PyObject **obj, Py_buffer *buf, const Spec *spec, const Py_ssize_t *size,
-                    int n)
-{
-    for (int i = 0; i < n; i++) {
-        if (take(obj[i], &buf[i], &spec[i], size[i]) < 0) {
-            for (int j = 0; j < i; j++)
-                PyBuffer_Release(&buf[j]);
-            return -1;
-        }
-    }
-    return 0;
-}
-
-static void release_all(Py_buffer *buf, int n)
-{
-    for (int i = 0; i < n; i++)
-        PyBuffer_Release(&buf[i]);
-}
+#include "../_cbuf.h"
 
 /* ------------------------------------------------------------------ kernel rows */
 
