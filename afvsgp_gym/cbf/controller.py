@@ -256,12 +256,14 @@ class SafetyController:
             raise ValueError(f"{name} must hold {self.n_barriers} BarrierTerms. Got: {len(bset)}")
         return bset
 
-    def _active_rows(self, derivs: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    def _active_rows(self, derivs: np.ndarray, ok: np.ndarray | None) -> np.ndarray:
         """Barriers in the program: ``min(h, h + h'/a_1) < activation_distance`` (and every
-        barrier with non-finite terms, so that the program reports them)."""
+        barrier with non-finite terms, ``ok`` False, so that the program reports them; ``ok``
+        None: all finite)."""
         h = derivs[:, 0]
         near = np.minimum(h, h + derivs[:, 1] / self.hocbf.gains[0]) if derivs.shape[1] > 1 else h
-        return np.flatnonzero((near < self.config.activation_distance) | ~ok)
+        inside = near < self.config.activation_distance
+        return np.flatnonzero(inside if ok is None else inside | ~ok)
 
     def filter(self, u_nom, terms, true_terms=None, u_backup=None) -> FilterResult:
         """Project ``u_nom`` onto the (chance-)constrained safe set (eq. 05).
@@ -288,25 +290,29 @@ class SafetyController:
         if self.learns and warm:
             u_nom = self.exploration.perturb(u_nom, warm=True)
         c0, c = self.hocbf.constraints(bset)
-        c0 = c0 - self.config.barrier_margin * self._margin_gain
-        ok = np.isfinite(c0 + c.sum(axis=1) + bset.derivatives.sum(axis=1) + bset.xi.sum(axis=1))
+        if self.config.barrier_margin:
+            c0 = c0 - self.config.barrier_margin * self._margin_gain
+        # a finite sum means every term is finite: one reduction per array in the usual case
+        ok = None
+        if not math.isfinite(float(c0.sum()) + float(c.sum()) + float(bset.derivatives.sum())
+                             + float(bset.xi.sum())):
+            ok = np.isfinite(c0 + c.sum(axis=1) + bset.derivatives.sum(axis=1)
+                             + bset.xi.sum(axis=1))
         rows = self._active_rows(bset.derivatives, ok)
-        a0, a = c0[rows], c[rows]
-        if not ok.all():  # any non-finite term makes its constraint invalid (flagged fallback)
+        a0, a = c0[rows], c[rows]  # copies (integer indices)
+        if ok is not None:  # any non-finite term makes its constraint invalid (flagged fallback)
             a0 = np.where(ok[rows], a0, np.nan)
-        fill = np.nan if self.learns else 0.0  # nothing learned: Delta B = 0 exactly
-        mean = np.full(K, fill)
-        std = np.full(K, fill)
         G = None
-        pred_rows = rows[ok[rows]] if (self.learns and not warm) else rows[:0]
+        if not (self.learns and not warm):
+            pred_rows = rows[:0]
+        else:
+            pred_rows = rows if ok is None else rows[ok[rows]]
         bvec = sig = None
         if len(pred_rows):
             try:
                 bvec, sig = self.bank.predict_affine(bset.xi[pred_rows], pred_rows)
-                where = np.searchsorted(rows, pred_rows)
-                a0 = a0.copy()
+                where = slice(None) if ok is None else np.searchsorted(rows, pred_rows)
                 a0[where] += bvec[:, 0] + self.residuals.bias[pred_rows]
-                a = a + 0.0
                 a[where] += bvec[:, 1:]
                 u_nom = self._excite(u_nom, pred_rows, sig, a0[where], a[where])
                 if self.config.beta > 0:
@@ -326,6 +332,9 @@ class SafetyController:
         u = res.u
         margins = np.full(K, np.nan)
         margins[rows] = res.margins
+        fill = np.nan if self.learns else 0.0  # nothing learned: Delta B = 0 exactly
+        mean = np.full(K, fill)
+        std = mean.copy()
         if bvec is not None:
             ubar = np.concatenate([[1.0], u])
             mean[pred_rows] = bvec @ ubar
@@ -395,10 +404,11 @@ class SafetyController:
             raise ValueError(f"u_applied must have shape ({self.action_dim},). Got: {u.shape}")
         with np.errstate(invalid="ignore", over="ignore"):
             xi, z = measure_all(before, u, after, dt)
-        bad = ~(np.isfinite(z) & np.all(np.isfinite(xi), axis=1))
-        self.n_skipped_samples += int(bad.sum())
-        z = np.where(bad, np.nan, z)
-        if not np.all(np.isfinite(u)):
+        if not math.isfinite(float(z.sum()) + float(xi.sum())):  # some sample is not finite
+            bad = ~(np.isfinite(z) & np.all(np.isfinite(xi), axis=1))
+            self.n_skipped_samples += int(bad.sum())
+            z = np.where(bad, np.nan, z)
+        if not math.isfinite(float(u.sum())):
             return z
         if self.warming_up:
             self._buffer.append((xi, u.copy(), z))

@@ -140,6 +140,33 @@ WIDE static int exponents(const Dims *D, const double *ind_xi, const double *log
     return 0;
 }
 
+/* acc (cnt) = log s - 1/2 sum_d w_d (wxt[d, t] - x_d)^2: one kernel's exponents at the window
+ * samples t (wxt (b, P), the samples' inputs by dimension) */
+WIDE static void window_exponents(double *restrict acc, const double *restrict w, double lv,
+                                  const double *restrict x, const double *restrict wxt, int b,
+                                  int P, int cnt)
+{
+    for (int t = 0; t < cnt; t++)
+        acc[t] = 0.0;
+    for (int d = 0; d < b; d++) {
+        const double wd = w[d], xd = x[d], *row = wxt + (size_t)d * P;
+        for (int t = 0; t < cnt; t++) {
+            const double e = row[t] - xd;
+            acc[t] += wd * (e * e);
+        }
+    }
+    for (int t = 0; t < cnt; t++)
+        acc[t] = lv - 0.5 * acc[t];
+}
+
+/* y += a (x * w) elementwise (n) */
+WIDE static void add_scaled_product(double *restrict y, double a, const double *restrict x,
+                                    const double *restrict w, int n)
+{
+    for (int t = 0; t < n; t++)
+        y[t] += a * (x[t] * w[t]);
+}
+
 /* work[:n] <- exp(work[:n]) by numpy.exp (work: a float64 array) */
 static int exp_inplace(PyObject *work, Py_ssize_t n)
 {
@@ -526,40 +553,23 @@ static PyObject *py_candidate(PyObject *self, PyObject *args)
     }
     /* the window column k(x, (xi_t, ub_t)) from the differences: exponents (c, cnt) */
     double *E = bf[WORK].buf;
-    for (int i = 0; i < c; i++) {
-        double *acc = E + (size_t)i * cnt;
-        for (int t = 0; t < cnt; t++)
-            acc[t] = 0.0;
-        for (int d_ = 0; d_ < b; d_++) {
-            const double w = L2[i * b + d_], xd = x[d_], *row = wxt + d_ * P;
-            for (int t = 0; t < cnt; t++) {
-                const double e = row[t] - xd;
-                acc[t] += w * (e * e);
-            }
-        }
-        for (int t = 0; t < cnt; t++)
-            acc[t] = lv[i] - 0.5 * acc[t];
-    }
+    for (int i = 0; i < c; i++)
+        window_exponents(E + (size_t)i * cnt, L2 + i * b, lv[i], x, wxt, (int)b, (int)P, cnt);
     if (exp_inplace(o[WORK], c * cnt) != 0) {
         code = EXP_FAILED;
         goto done;
     }
     for (int t = 0; t < cnt; t++)
         col[t] = 0.0;
-    for (int i = 0; i < c; i++) {
-        const double *ur = wubt + i * P, *ex = E + (size_t)i * cnt;
-        for (int t = 0; t < cnt; t++)
-            col[t] += ub[i] * (ex[t] * ur[t]);
-    }
+    for (int i = 0; i < c; i++)
+        add_scaled_product(col, ub[i], E + (size_t)i * cnt, wubt + i * P, cnt);
     /* weights phi^age (age (head - t) mod P), the new row of [r, S] (eq. 30) */
     for (int l = 0; l < m; l++)
         srow[l] = 0.0;
     for (int t = 0; t < cnt; t++) {
         const int age = t <= head ? head - t : head - t + (int)P;
         const double lc = rev[P - 1 - age] * col[t];
-        const double *wr = wk + (size_t)t * mp;
-        for (int l = 0; l < m; l++)
-            srow[l] += lc * wr[l];
+        axpy(srow, lc, wk + (size_t)t * mp, m);
         sdd += lc * col[t];
         rnew += lc * wz[t];
     }

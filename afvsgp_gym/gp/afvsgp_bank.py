@@ -216,6 +216,8 @@ class AFVSGPBank:
         K = self.n_learners
         self._dims = (K, self.input_dim, self._c, self._mp, self.window)
         self._work = np.empty(max(K * self._c * self._mp, self._c * self.window))  # core's scratch
+        # the core's per-step outputs: k_new, k_ss, eq. 27 residuals (read within the step)
+        self._step_out = (np.empty((K, self._mp)), np.empty(K), np.empty(K))
         self._since_refresh = (np.arange(K) * self._refresh_every) // K
         self._synced = bool((self._head == self._head[0]).all()
                             and (self._count == self._count[0]).all())
@@ -237,6 +239,9 @@ class AFVSGPBank:
     def __setstate__(self, state: dict) -> None:
         """Unpickle; a bank pickled where the core was built runs numpy where it is not."""
         self.__dict__.update(state)
+        if "_step_out" not in state:  # pickled before the per-step outputs were kept
+            K = self.n_learners
+            self._step_out = (np.empty((K, self._mp)), np.empty(K), np.empty(K))
         if _core is None:
             self._compiled = False
 
@@ -551,12 +556,12 @@ class AFVSGPBank:
         step, the bookkeeping, the eq. 27 residuals); the periodic rebuilds and inducing-set
         changes it reports due run here. None (nothing changed) when a sample is not finite
         or a kernel exponent overflows: the numpy path takes them."""
-        K, mp = self.n_learners, self._mp
+        K = self.n_learners
         ub = np.empty(self._c)
         ub[0] = 1.0
         ub[1:] = u
         xi, z = np.ascontiguousarray(xi), np.ascontiguousarray(z)
-        k_new, kss, resid = np.empty((K, mp)), np.empty(K), np.empty(K)
+        k_new, kss, resid = self._step_out
         rc, n_cand, refresh, renormalise = _core.update(
             self._dims, self._ind_xi, self.log_var, self.inv_ls2, self._ubt, self.var,
             self._koo_inv,
