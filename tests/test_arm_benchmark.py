@@ -12,3 +12,13 @@ def test_filter_latency_is_part_of_each_timed_step():
     assert np.all(filt > 0.0) and np.all(filt < step)
     assert np.all(learn > 0.0) and np.all(learn < step)  # every learner update is inside
     assert res["n_barriers"][0] == 1 and res["fit_cpu_s"][0] > 0.0
+
+
+def test_learner_time_splits_into_update_and_predictions():
+    res = time_config({"safety_spheres": "ee"}, steps=20, seed=0)
+    upd, pred, learn = res["update"], res["predict"], res["learners"]
+    assert np.all(upd > 0.0)  # every learner learns every step
+    np.testing.assert_allclose(upd + pred, learn, rtol=1e-12)
+    n = res["n_predicted"]
+    assert np.all((n >= 0) & (n <= res["n_active"]))  # only barriers in the program
+    assert np.all((pred > 0.0) == (n > 0))

@@ -11,7 +11,10 @@ times, per control step after the warm-up, with ``perf_counter``:
 - ``step``: the filter's own work, ``SafetyController.filter`` (constraints, the learners'
   predictions for the barriers in the program, the cone program) plus
   ``SafetyController.observe`` (eq. 48 and every learner's update): the path a robot loop runs;
-- ``learners``: the part of it spent in the learner bank (``predict_affine`` + ``update``);
+- ``learners``: the part of it spent in the learner bank (``predict_affine`` + ``update``),
+  and its two parts: ``update`` (every learner, every step) and the prediction time per
+  barrier predicted (only the barriers in the program are: their number is the scenario's
+  geometry, not the bank's batching);
 - ``fit``: the end-of-warm-up hyperparameter fit of all K learners (CPU seconds).
 
 Everything runs in one process. The configurations' episodes of one seed advance one control
@@ -95,17 +98,22 @@ class TimedEpisode:
                                       seed=seed, **spec.get("filter", {}))
         ctrl, bank = env.controller, env.controller.bank
         ctrl.socp.fast_path = bool(spec.get("fast_path", True))
-        clock = {"learners": 0.0}
+        clock = dict.fromkeys(("learners", "update", "predict", "n_predicted"), 0.0)
 
-        def timed(fn):
+        def timed(fn, part):
             def wrapper(*a, **k):
                 t0 = time.perf_counter()
                 out = fn(*a, **k)
-                clock["learners"] += time.perf_counter() - t0
+                dt = time.perf_counter() - t0
+                clock["learners"] += dt
+                clock[part] += dt
+                if part == "predict":
+                    clock["n_predicted"] += len(a[0])
                 return out
             return wrapper
 
-        bank.predict_affine, bank.update = timed(bank.predict_affine), timed(bank.update)
+        bank.predict_affine = timed(bank.predict_affine, "predict")
+        bank.update = timed(bank.update, "update")
         self.fit_cpu = np.nan
         fit = ctrl.fit
 
@@ -117,8 +125,8 @@ class TimedEpisode:
 
         ctrl.fit = timed_fit
         filt, observe = ctrl.filter, ctrl.observe
-        self.out: dict[str, list] = {"step": [], "filter": [], "learners": [],
-                                     "n_active": []}
+        self.out: dict[str, list] = {"step": [], "filter": [], "learners": [], "update": [],
+                                     "predict": [], "n_predicted": [], "n_active": []}
         current = {"t": 0.0}
 
         def timed_filter(*a, **k):
@@ -129,16 +137,18 @@ class TimedEpisode:
             return res
 
         def timed_observe(*a, **k):
-            clock["learners"] = 0.0 if ctrl.warming_up else clock["learners"]
+            if ctrl.warming_up:
+                clock.update(dict.fromkeys(clock, 0.0))
             t0 = time.perf_counter()
             z = observe(*a, **k)
             if not ctrl.warming_up and current.get("post", False):
                 self.out["step"].append(current["t"] + time.perf_counter() - t0)
                 self.out["filter"].append(current["t"])
-                self.out["learners"].append(clock["learners"])
+                for part in ("learners", "update", "predict", "n_predicted"):
+                    self.out[part].append(clock[part])
                 self.out["n_active"].append(current["n"])
             current["post"] = not ctrl.warming_up
-            clock["learners"] = 0.0
+            clock.update(dict.fromkeys(clock, 0.0))
             return z
 
         ctrl.filter, ctrl.observe = timed_filter, timed_observe
@@ -222,11 +232,17 @@ def run(quick: bool = False, steps: int | None = None, rounds: int = 2,
         out[f"{name}: filter p99_s"] = float(np.percentile(filt, 99))
         out[f"{name}: learners median_s"] = float(np.median(learn))
         out[f"{name}: learners p99_s"] = float(np.percentile(learn, 99))
+        out[f"{name}: update median_s"] = float(np.median(np.concatenate(d["update"])))
+        n_pred = np.concatenate(d["n_predicted"])
+        out[f"{name}: prediction per barrier_s"] = float(
+            np.concatenate(d["predict"]).sum() / max(n_pred.sum(), 1.0))
         out[f"{name}: barriers in program (mean)"] = float(np.mean(np.concatenate(d["n_active"])))
         out[f"{name}: fit cpu_s"] = float(np.median(np.concatenate(d["fit_cpu_s"])))
     one = "1 (ee), arm settings"  # K = 21 against K = 1 at equal learner settings
     out["learners median, K=21 / K=1"] = (out["21 (arm): learners median_s"]
                                           / out[f"{one}: learners median_s"])
+    for part in ("update median", "prediction per barrier"):  # the two parts of it
+        out[f"{part}, K=21 / K=1"] = (out[f"21 (arm): {part}_s"] / out[f"{one}: {part}_s"])
     out["fit, K=21 / K=1"] = out["21 (arm): fit cpu_s"] / out[f"{one}: fit cpu_s"]
     for q in ("median", "p99"):
         out[f"step {q}, K=21: arm / method settings"] = (
