@@ -5,9 +5,11 @@
  * predicts the learners of some barriers (predict), one scores a new sample as an inducing
  * point (candidate). The numpy methods' formulas (the posterior in whitened form), the
  * kernel's exponent from the differences to the inducing points (not the numpy methods'
- * expansion: it reads ~8x less memory and cannot overflow), the triangular solves and
- * Cholesky factorisations by the BLAS and LAPACK that scipy ships (scipy.linalg.cython_blas /
- * cython_lapack), the exponentials by numpy.exp. Every array is C-ordered float64 (int64 for
+ * expansion: it reads ~8x less memory and cannot overflow), the Cholesky factorisations and
+ * the eq. 28 product by the LAPACK and BLAS that scipy ships (scipy.linalg.cython_lapack /
+ * cython_blas), the prediction's triangular solves by forward substitution here (at these
+ * sizes, tens of right-hand sides of order Mp, BLAS's dtrsm spends its time on packing), the
+ * exponentials by numpy.exp. Every array is C-ordered float64 (int64 for
  * indices) with the bank's shapes; a return code other than 0 leaves the call to the numpy
  * methods, and when it does the bank was left unchanged (update) or its posterior cache only
  * refreshed (predict).
@@ -17,13 +19,10 @@
 #include <math.h>
 #include <string.h>
 
-typedef void (*trsm_t)(char *, char *, char *, char *, int *, int *, double *, double *,
-                       int *, double *, int *);
 typedef void (*gemm_t)(char *, char *, int *, int *, int *, double *, double *, int *,
                        double *, int *, double *, double *, int *);
 typedef void (*potrf_t)(char *, int *, double *, int *, int *);
 
-static trsm_t dtrsm_;
 static gemm_t dgemm_;
 static potrf_t dpotrf_;
 static PyObject *np_exp; /* numpy.exp: vectorised, many times faster than libm's exp here */
@@ -79,23 +78,81 @@ static void symv(const double *restrict A, const double *restrict x, int n, doub
         axpy(v, x[l], A + (size_t)l * n, n);
 }
 
-/* g (q, q), upper triangle: g_il = sum_p X[p, i] X[p, l] for the column-major (n, q) X, the
- * sum over p outermost (independent accumulators) */
-WIDE static void gram(const double *X, int n, int q, double *g)
+/* g (q, q): g_il = sum_p X[p, i] X[p, l] for the row-major (n, q) X with row stride ldx, the
+ * sum over p outermost (a rank-1 update by each row) */
+WIDE static void gram_rows(const double *restrict X, int n, int ldx, int q, double *restrict g)
 {
     for (int i = 0; i < q * q; i++)
         g[i] = 0.0;
-    for (int p = 0; p < n; p++)
+    for (int p = 0; p < n; p++) {
+        const double *row = X + (size_t)p * ldx;
         for (int i = 0; i < q; i++) {
-            const double xi = X[p + i * n];
-            for (int l = i; l < q; l++)
-                g[i * q + l] += xi * X[p + l * n];
+            const double xi = row[i];
+            double *gi = g + i * q;
+            for (int l = 0; l < q; l++)
+                gi[l] += xi * row[l];
         }
+    }
 }
 
 /* four float64 lanes (GCC/Clang vector extension: AVX2 in the wide clone, two SSE2 halves in
  * the default one); elementwise mul and add round like the scalar ones */
 typedef double v4d __attribute__((vector_size(32)));
+
+/* B <- alpha L^-1 B by forward substitution over rows, b_p <- (alpha b_p - sum_{q<p} L_pq
+ * b_q) / L_pp: L (n, n) lower triangular and row-major, B (n, cols) row-major with row stride
+ * ldb (each row a vector of the cols right-hand sides); eight or four columns at a time in
+ * registers */
+WIDE static void lower_solve_rows(const double *restrict L, int n, double *restrict B, int ldb,
+                                  int cols, double alpha)
+{
+    for (int p = 0; p < n; p++) {
+        double *bp = B + (size_t)p * ldb;
+        const double *lp = L + (size_t)p * n;
+        const double d = lp[p];
+        const v4d va = {alpha, alpha, alpha, alpha}, vd = {d, d, d, d};
+        int j = 0;
+        for (; j + 8 <= cols; j += 8) {
+            v4d lo, hi;
+            memcpy(&lo, bp + j, sizeof lo);
+            memcpy(&hi, bp + j + 4, sizeof hi);
+            lo *= va;
+            hi *= va;
+            for (int q = 0; q < p; q++) {
+                const double *bq = B + (size_t)q * ldb + j;
+                const v4d l = {lp[q], lp[q], lp[q], lp[q]};
+                v4d x0, x1;
+                memcpy(&x0, bq, sizeof x0);
+                memcpy(&x1, bq + 4, sizeof x1);
+                lo -= l * x0;
+                hi -= l * x1;
+            }
+            lo /= vd;
+            hi /= vd;
+            memcpy(bp + j, &lo, sizeof lo);
+            memcpy(bp + j + 4, &hi, sizeof hi);
+        }
+        for (; j + 4 <= cols; j += 4) {
+            v4d lo;
+            memcpy(&lo, bp + j, sizeof lo);
+            lo *= va;
+            for (int q = 0; q < p; q++) {
+                const v4d l = {lp[q], lp[q], lp[q], lp[q]};
+                v4d x0;
+                memcpy(&x0, B + (size_t)q * ldb + j, sizeof x0);
+                lo -= l * x0;
+            }
+            lo /= vd;
+            memcpy(bp + j, &lo, sizeof lo);
+        }
+        for (; j < cols; j++) {
+            double acc = alpha * bp[j];
+            for (int q = 0; q < p; q++)
+                acc -= lp[q] * B[(size_t)q * ldb + j];
+            bp[j] = acc / d;
+        }
+    }
+}
 
 /* The exponents of Kt (c, Mp) of learner k at x (b) (eq. 21) into e, from the differences:
  * log s_i - 1/2 sum_d (x_d - o_jd)^2 / l_id^2 (ind_xi (K, Mp, b), log_var (K, c), il2 (K, c,
@@ -400,17 +457,16 @@ static PyObject *py_predict(PyObject *self, PyObject *args)
         }
     }
     const int ncol = (int)(mp + c + 1);
-    double *work = PyMem_Malloc(sizeof(double) *
-                                (size_t)(mp * ncol + c * c + (c + 1) * (c + 1) + b * mp));
+    double *work = PyMem_Malloc(
+        sizeof(double) * (size_t)(mp * ncol + mp * mp + c * c + (c + 1) * (c + 1) + b * mp));
     if (work == NULL) {
         release_all(bf, N);
         return PyErr_NoMemory();
     }
-    double *gg = work + mp * ncol, *E = bf[WORK].buf;
+    double *gg = work + mp * ncol + mp * mp, *E = bf[WORK].buf;
     double *sq = gg + c * c + (c + 1) * (c + 1);
     int m_ = (int)mp, info = 0, rc = 0;
-    double unit = 1.0;
-    char L = 'L', R = 'R', U = 'U', T = 'T', Nn = 'N';
+    char L = 'L';
     for (Py_ssize_t j = 0; j < n && rc == 0; j++)
         rc = exponents(&D, oxi, lvar, il2, (int)rows[j], xi + j * b, E + j * c * mp, sq);
     if (rc == 0 && n > 0)
@@ -424,49 +480,49 @@ static PyObject *py_predict(PyObject *self, PyObject *args)
         const double *st = stats + (size_t)k * mp * (mp + 1);
         double *Lk = (double *)loo + (size_t)k * mp * mp, *LDk = ld + (size_t)k * mp * mp;
         double inv = 1.0 / (noise[k] * scale[k]);
-        /* work (column-major, mp x ncol) = [S, Kt', r / s2'] */
-        double *W = work, *X = work + mp * mp; /* the last c + 1 columns */
-        for (int p = 0; p < mp; p++) {
-            for (int i = 0; i < c; i++)
-                X[p + i * mp] = kt[i * mp + p];
-            X[p + c * mp] = st[p * (mp + 1)] * inv;
-        }
-        int cols = (int)(c + 1);
         const int refresh = !fresh[k];
-        if (refresh) {
-            for (int q = 0; q < mp; q++)
-                for (int p = 0; p < mp; p++)
-                    W[p + q * mp] = st[p * (mp + 1) + 1 + q];
-            cols = ncol;
+        /* work (mp, ldb), row-major: row p = [S_p, Kt'_p, r_p / s2'], S only to refresh L_D */
+        const int off = refresh ? (int)mp : 0, ldb = off + (int)c + 1;
+        double *Bm = work, *X = work + off;
+        for (int p = 0; p < mp; p++) {
+            double *row = Bm + (size_t)p * ldb;
+            if (refresh)
+                memcpy(row, st + p * (mp + 1) + 1, sizeof(double) * (size_t)mp);
+            for (int i = 0; i < c; i++)
+                row[off + i] = kt[i * mp + p];
+            row[off + c] = st[p * (mp + 1)] * inv;
         }
-        double *B = refresh ? W : X;
-        /* L^-1 [S, Kt', r / s2']: row-major lower L is column-major upper L' */
-        dtrsm_(&L, &U, &T, &Nn, &m_, &cols, &unit, Lk, &m_, B, &m_);
+        /* L^-1 [S, Kt', r / s2'] (Lk: the row-major lower factor of K_oo) */
+        lower_solve_rows(Lk, m_, Bm, ldb, ldb, 1.0);
         if (refresh) {
-            /* inv L^-1 S L^-T + I, its Cholesky factor */
-            dtrsm_(&R, &U, &Nn, &Nn, &m_, &m_, &inv, Lk, &m_, W, &m_);
+            /* A = inv L^-1 S L^-T + I (the transpose of (L^-1 S)' solved again), its Cholesky
+             * factor (LAPACK, column-major lower: A's buffer read as A') */
+            double *A = work + mp * ncol;
             for (int p = 0; p < mp; p++)
-                W[p + p * mp] += 1.0;
-            dpotrf_(&L, &m_, W, &m_, &info);
+                for (int q = 0; q < mp; q++)
+                    A[q * mp + p] = Bm[(size_t)p * ldb + q];
+            lower_solve_rows(Lk, m_, A, m_, m_, inv);
+            for (int p = 0; p < mp; p++)
+                A[p + p * mp] += 1.0;
+            dpotrf_(&L, &m_, A, &m_, &info);
             if (info != 0) {
                 rc = NOT_PD;
                 break;
             }
             for (int p = 0; p < mp; p++)
                 for (int q = 0; q < mp; q++)
-                    LDk[p * mp + q] = q <= p ? W[p + q * mp] : 0.0;
+                    LDk[p * mp + q] = q <= p ? A[p + q * mp] : 0.0;
             fresh[k] = 1;
         }
         /* G'G before G becomes H */
-        gram(X, (int)mp, (int)c, gg);
-        int cc = (int)(c + 1);
-        dtrsm_(&L, &U, &T, &Nn, &m_, &cc, &unit, LDk, &m_, X, &m_);
-        const double *cv = X + c * mp;
-        memcpy(cvec + (size_t)k * mp, cv, sizeof(double) * (size_t)mp);
+        gram_rows(X, m_, ldb, (int)c, gg);
+        lower_solve_rows(LDk, m_, X, ldb, (int)c + 1, 1.0);
+        for (int p = 0; p < mp; p++)
+            cvec[(size_t)k * mp + p] = X[(size_t)p * ldb + c];
         double *bj = bout + j * c, *sj = sout + j * c * c;
         /* [H, cv]'[H, cv]: H'H and H'cv (the last column) */
         double *hh = gg + c * c;
-        gram(X, (int)mp, (int)(c + 1), hh);
+        gram_rows(X, m_, ldb, (int)c + 1, hh);
         for (int i = 0; i < c; i++) {
             bj[i] = hh[i * (c + 1) + c];
             for (int l = i; l < c; l++) {
@@ -679,9 +735,6 @@ static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_bank",
 
 PyMODINIT_FUNC PyInit__bank(void)
 {
-    dtrsm_ = (trsm_t)capi("scipy.linalg.cython_blas", "dtrsm");
-    if (dtrsm_ == NULL)
-        return NULL;
     dgemm_ = (gemm_t)capi("scipy.linalg.cython_blas", "dgemm");
     if (dgemm_ == NULL)
         return NULL;

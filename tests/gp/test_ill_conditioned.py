@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 from mp_reference import MpProblem
 
-from afvsgp_gym.gp import AFVSGP, SOGP, VSGP, ADPKernel
+from afvsgp_gym.gp import AFVSGP, SOGP, VSGP, ADPKernel, afvsgp_bank
 from afvsgp_gym.gp._linalg import DEFAULT_JITTER, jitter_for, ubar
 from afvsgp_gym.gp.bound import weighted_bound, weighted_bound_and_grad
 from afvsgp_gym.gp.hyper import DEFAULT_PRIOR, noise_box, theta_box
@@ -162,9 +162,12 @@ def _affine_tol(prob, params, jitter, xs, var):
     return g * tol_b, g * tol_s + 3 * gamma(prob.m) * scale
 
 
-def test_predictions_at_reproducer_match_high_precision(repro):
+@pytest.mark.parametrize("compiled", [False, pytest.param(True, marks=pytest.mark.skipif(
+    not afvsgp_bank.COMPILED, reason="compiled core not built"))])
+def test_predictions_at_reproducer_match_high_precision(repro, compiled):
     """VSGP (whitened from its kernel rows), AFVSGP (from accumulated S, r: general and
-    one-point paths) and SOGP against the 40-digit posterior, within the rounding bound."""
+    one-point paths, the latter by the bank's numpy method or its compiled core) and SOGP
+    against the 40-digit posterior, within the rounding bound."""
     r, p = repro, repro["params"]
     xi, u, z, xo, uo = r["xi"], r["u"], r["z"], r["xo"], r["uo"]
     kern, s2 = r["kernel"], r["s2"]
@@ -180,6 +183,8 @@ def test_predictions_at_reproducer_match_high_precision(repro):
     for name, gp in learners.items():
         gp.fit(xi, u, z, learn_hyperparameters=False)
         assert gp.kernel_ is not kern
+        if name == "afvsgp":
+            gp._bank.compiled = compiled
         bvec, sig = gp.predict_affine(xs)
         assert np.all(np.abs(bvec - b_ref) <= tol_b), (name, np.abs(bvec - b_ref).max())
         assert np.all(np.abs(sig - s_ref) <= tol_s), (name, np.abs(sig - s_ref).max())
