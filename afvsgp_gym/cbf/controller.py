@@ -303,7 +303,7 @@ class SafetyController:
         if ok is not None:  # any non-finite term makes its constraint invalid (flagged fallback)
             a0 = np.where(ok[rows], a0, np.nan)
         G = None
-        if not (self.learns and not warm):
+        if warm or not self.learns:
             pred_rows = rows[:0]
         else:
             pred_rows = rows if ok is None else rows[ok[rows]]

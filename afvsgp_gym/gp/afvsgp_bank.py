@@ -216,8 +216,7 @@ class AFVSGPBank:
         K = self.n_learners
         self._dims = (K, self.input_dim, self._c, self._mp, self.window)
         self._work = np.empty(max(K * self._c * self._mp, self._c * self.window))  # core's scratch
-        # the core's per-step outputs: k_new, k_ss, eq. 27 residuals (read within the step)
-        self._step_out = (np.empty((K, self._mp)), np.empty(K), np.empty(K))
+        self._step_out = self._new_step_out()
         self._since_refresh = (np.arange(K) * self._refresh_every) // K
         self._synced = bool((self._head == self._head[0]).all()
                             and (self._count == self._count[0]).all())
@@ -236,12 +235,17 @@ class AFVSGPBank:
                               "(install the package where a C compiler is available)")
         self._compiled = COMPILED if value is None else bool(value)
 
+    def _new_step_out(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The core's per-step outputs: k_new (K, Mp), k_ss (K,), the eq. 27 residuals (K,)
+        (read within the step)."""
+        K = self.n_learners
+        return np.empty((K, self._mp)), np.empty(K), np.empty(K)
+
     def __setstate__(self, state: dict) -> None:
         """Unpickle; a bank pickled where the core was built runs numpy where it is not."""
         self.__dict__.update(state)
         if "_step_out" not in state:  # pickled before the per-step outputs were kept
-            K = self.n_learners
-            self._step_out = (np.empty((K, self._mp)), np.empty(K), np.empty(K))
+            self._step_out = self._new_step_out()
         if _core is None:
             self._compiled = False
 
