@@ -427,6 +427,70 @@ static int solve_set(Problem *P, int K, const double *tol, int max_binding, doub
     return SET_UNSETTLED;
 }
 
+/* The KKT certificate of u for the whole program of K cones (fastpath.certify, the same
+ * test): every margin c_q(u) (into c) >= -tol_q, the binding cones' multipliers lam_q >= 0,
+ * and the distance bound ||rho|| + sqrt(||rho||^2 + 2 comp) <= dist_tol (1 + max|u|) with rho
+ * = u - u_nom - sum_q lam_q grad c_q(u) less what the box faces u lies on absorb, comp =
+ * sum lam_q c_q over the binding margins above their tolerance. 1: certified, 0: not (also
+ * at a cone's apex and for NaN). */
+static int certificate(const Problem *P, int K, const double *tol, const double *u,
+                       const double *lam, const unsigned char *binding, double dist_tol,
+                       double *c)
+{
+    const int m = P->m, n1 = m + 1;
+    int ok = 1;
+    for (int q = 0; q < K; q++) {
+        c[q] = margin(P, q, u);
+        ok &= c[q] >= 0.0 || c[q] + tol[q] >= 0.0; /* false for NaN */
+    }
+    if (!ok)
+        return 0;
+    double w[MAXM], comp = 0.0;
+    for (int j = 0; j < m; j++)
+        w[j] = u[j] - P->u_nom[j];
+    for (int q = 0; q < K; q++) {
+        if (!binding[q])
+            continue;
+        if (!(lam[q] >= 0.0))
+            return 0;
+        if (c[q] > tol[q])
+            comp += lam[q] * c[q];
+        const double *Gq = P->G + (size_t)q * n1 * n1, *aq = P->a + (size_t)q * m;
+        double v[MAXM + 1], s2 = 0.0;
+        for (int r = 0; r < n1; r++) {
+            const double *row = Gq + (size_t)r * n1;
+            double x = row[0];
+            for (int j = 0; j < m; j++)
+                x += row[j + 1] * u[j];
+            v[r] = x;
+            s2 += x * x;
+        }
+        const double nv = sqrt(s2);
+        if (!(nv > 0.0))
+            return 0;
+        for (int j = 0; j < m; j++) {
+            double x = 0.0;
+            for (int r = 0; r < n1; r++)
+                x += Gq[(size_t)r * n1 + j + 1] * v[r];
+            w[j] -= lam[q] * (aq[j] - x / nv);
+        }
+    }
+    double r2 = 0.0, umax = 0.0;
+    for (int j = 0; j < m; j++) {
+        double wj = w[j];
+        if (u[j] <= P->low[j])
+            wj = wj < 0.0 ? wj : 0.0;
+        else if (u[j] >= P->high[j])
+            wj = wj > 0.0 ? wj : 0.0;
+        else if (!(P->low[j] < u[j] && u[j] < P->high[j]))
+            return 0; /* NaN */
+        r2 += wj * wj;
+        umax = fmax(umax, fabs(u[j]));
+    }
+    const double r = sqrt(r2);
+    return r + sqrt(r2 + 2.0 * comp) <= dist_tol * (1.0 + umax);
+}
+
 /* One argument of the Python entry points: its name, dtype and whether it is written
  * (afvsgp_gym/_cbuf.h), and its length: 'm' actions, 'k' cones, 'a' k x m, 'G' k x (m+1)^2. */
 typedef struct {
@@ -539,11 +603,61 @@ static PyObject *py_solve(PyObject *self, PyObject *args)
     return PyLong_FromLong(rc);
 }
 
+static PyObject *py_certify(PyObject *self, PyObject *args)
+{
+    static const Arg spec[11] = {
+        {{"u_nom", 'd', 0}, 'm'}, {{"a0", 'd', 0}, 'k'},   {{"a", 'd', 0}, 'a'},
+        {{"G", 'd', 0}, 'G'},     {{"low", 'd', 0}, 'm'},  {{"high", 'd', 0}, 'm'},
+        {{"tol", 'd', 0}, 'k'},   {{"u", 'd', 0}, 'm'},    {{"lam", 'd', 0}, 'k'},
+        {{"binding", '?', 0}, 'k'}, {{"margins", 'd', 1}, 'k'}};
+    PyObject *o[11];
+    Py_buffer b[11];
+    Py_ssize_t m = 0, K = 0;
+    double dist_tol;
+    if (!PyArg_ParseTuple(args, "OOOOOOOOOOOd", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5],
+                          &o[6], &o[7], &o[8], &o[9], &o[10], &dist_tol))
+        return NULL;
+    if (take_args(o, b, spec, 11, PY_SSIZE_T_MAX, &m, &K) < 0)
+        return NULL;
+    Problem P;
+    set_data(&P, b, m);
+    const int ok = certificate(&P, (int)K, b[6].buf, b[7].buf, b[8].buf, b[9].buf, dist_tol,
+                               b[10].buf);
+    release_all(b, 11);
+    return PyBool_FromLong(ok);
+}
+
+static PyObject *py_margins(PyObject *self, PyObject *args)
+{
+    static const Arg spec[5] = {{{"u", 'd', 0}, 'm'},   {{"a0", 'd', 0}, 'k'},
+                                {{"a", 'd', 0}, 'a'},   {{"G", 'd', 0}, 'G'},
+                                {{"margins", 'd', 1}, 'k'}};
+    PyObject *o[5];
+    Py_buffer b[5];
+    Py_ssize_t m = 0, K = 0;
+    if (!PyArg_UnpackTuple(args, "margins", 5, 5, &o[0], &o[1], &o[2], &o[3], &o[4]))
+        return NULL;
+    if (take_args(o, b, spec, 5, PY_SSIZE_T_MAX, &m, &K) < 0)
+        return NULL;
+    Problem P = {.m = (int)m, .a0 = b[1].buf, .a = b[2].buf, .G = b[3].buf};
+    double *c = b[4].buf;
+    for (Py_ssize_t q = 0; q < K; q++)
+        c[q] = margin(&P, (int)q, b[0].buf);
+    release_all(b, 5);
+    Py_RETURN_NONE;
+}
+
 static PyMethodDef methods[] = {
     {"solve", py_solve, METH_VARARGS,
      "solve(u_nom, a0, a, G, low, high, tol, u, lam, binding, max_binding) -> int: 0 when "
      "the binding set settled with no other cone violated beyond tol. u, lam (float64) and "
      "binding (bool, one per cone) are the start and are overwritten with the answer."},
+    {"certify", py_certify, METH_VARARGS,
+     "certify(u_nom, a0, a, G, low, high, tol, u, lam, binding, margins, dist_tol) -> bool: "
+     "the KKT certificate of u for every cone (binding: those with a multiplier lam); "
+     "margins (float64, one per cone) is overwritten with c_q(u)."},
+    {"margins", py_margins, METH_VARARGS,
+     "margins(u, a0, a, G, out) -> None: out[q] = a0[q] + a[q] @ u - ||G[q] [1, u]||."},
     {"project", py_project, METH_VARARGS,
      "project(u_nom, a0, a, G, low, high, u, lam, fixed) -> int: 0 when settled. u, lam "
      "(float64) and fixed (bool) are the start and are overwritten with the answer."},

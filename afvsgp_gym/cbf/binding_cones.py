@@ -81,3 +81,30 @@ def solve_binding_set(u_nom, a0, a, G, low, high, tol, u, lam, binding, max_bind
     if _cones.solve(*arrays, u, lam, binding, int(max_binding)) != 0:
         return None
     return u, lam, binding
+
+
+def certify_set(u_nom, a0, a, G, low, high, tol, u, lam, binding, dist_tol: float):
+    """``(certified, margins)``: :func:`fastpath.certify` of the point ``u`` with the
+    multipliers ``lam`` (K,) of the cones ``binding`` (K,) (as :func:`solve_binding_set`
+    returns them) for the whole program, compiled; ``margins`` (K,) are the ``c_q(u)``.
+    None when the compiled core is missing or too small for the data."""
+    K, m = np.shape(a)
+    if _cones is None or m > MAX_ACTIONS or K < 1:
+        return None
+    margins = np.empty(K)
+    arrays = [np.ascontiguousarray(x, dtype=np.float64)
+              for x in (u_nom, a0, a, G, low, high, tol, u, lam)]
+    ok = _cones.certify(*arrays, np.ascontiguousarray(binding, dtype=bool), margins,
+                        float(dist_tol))
+    return ok, margins
+
+
+def cone_margins(u, a0, a, G) -> np.ndarray | None:
+    """``a0 + a @ u - ||G ubar||`` (K,) for every cone, compiled; None when the compiled
+    core is missing or too small for the data."""
+    K, m = np.shape(a)
+    if _cones is None or m > MAX_ACTIONS or K < 1:
+        return None
+    out = np.empty(K)
+    _cones.margins(*[np.ascontiguousarray(x, dtype=np.float64) for x in (u, a0, a, G)], out)
+    return out

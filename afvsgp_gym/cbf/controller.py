@@ -35,8 +35,12 @@ import numpy as np
 from scipy.linalg.lapack import dpotrf
 
 from afvsgp_gym.cbf.config import FilterConfig
-from afvsgp_gym.cbf.exploration import Exploration, relative_gain_uncertainty
-from afvsgp_gym.cbf.fastpath import clip
+from afvsgp_gym.cbf.exploration import Exploration, exploration_scale
+
+try:
+    from afvsgp_gym.cbf import _step
+except ImportError:  # built without a C compiler: the numpy versions
+    _step = None
 from afvsgp_gym.cbf.hocbf import HOCBF
 from afvsgp_gym.cbf.learners import REGISTRY, check_learner_name, make_bank
 from afvsgp_gym.cbf.measurement import measure_all
@@ -114,9 +118,17 @@ def cone_matrix(sigma: np.ndarray, beta: float) -> np.ndarray:
     return (beta * np.sqrt(np.maximum(w, 0.0)))[:, None] * v.T
 
 
-def cone_matrices(sigma: np.ndarray, beta: float) -> np.ndarray:
+def cone_matrices(sigma: np.ndarray, beta: float, compiled: bool | None = None) -> np.ndarray:
     """:func:`cone_matrix` of every ``Sigma`` in the stack ``sigma`` (k, m+1, m+1): one
-    batched Cholesky when all are numerically positive definite, else one by one."""
+    batched Cholesky when all are numerically positive definite, else one by one
+    (``compiled``: the batch in the compiled core, None: when it is built)."""
+    if ((compiled is None or compiled) and _step is not None and sigma.ndim == 3
+            and 1 <= sigma.shape[1] <= 17):
+        out = np.empty(sigma.shape)
+        n, c = sigma.shape[:2]
+        if _step.cone_factors(n, c, np.ascontiguousarray(sigma, dtype=np.float64),
+                              float(beta), out) == 0:
+            return out
     sym = 0.5 * (sigma + sigma.transpose(0, 2, 1))
     try:
         low = np.linalg.cholesky(sym)
@@ -371,19 +383,13 @@ class SafetyController:
         proposal that is safe with margin, or with a confident model, passes unchanged."""
         if self.exploration.online_noise <= 0 or not math.isfinite(float(u_nom.sum())):
             return u_nom
-        u = clip(u_nom, self.low, self.high)
-        ubar = np.empty(u.size + 1)
-        ubar[0] = 1.0
-        ubar[1:] = u
-        std = np.sqrt(np.maximum(((sig @ ubar) * ubar).sum(axis=1), 0.0))
-        noise = np.sqrt(self.bank.noise_variance(rows))
-        uncertain = std > self.config.exploration_threshold * noise
-        deciding = a0 + a @ u < 2.0 * max(self.config.beta, 1.0) * std
-        gated = np.flatnonzero(uncertain & deciding)
-        if not len(gated):
+        rho = exploration_scale(sig, a0, a, u_nom, self.low, self.high,
+                                np.sqrt(self.bank.noise_variance(rows)),
+                                self.exploration.half_range, self.config.exploration_threshold,
+                                2.0 * max(self.config.beta, 1.0))
+        if rho < 0.0:  # no barrier gated (NaN is not: full noise)
             return u_nom
-        rho = relative_gain_uncertainty(sig[gated], a[gated], self.exploration.half_range)
-        return self.exploration.perturb(u_nom, warm=False, scale=float(rho.max()))
+        return self.exploration.perturb(u_nom, warm=False, scale=rho)
 
     # ------------------------------------------------------------------ learning
     def observe(self, terms_before, u_applied, terms_after, dt: float) -> np.ndarray:

@@ -16,7 +16,12 @@ import numpy as np
 
 from afvsgp_gym.cbf.fastpath import clip
 
-__all__ = ["Exploration", "relative_gain_uncertainty"]
+try:
+    from afvsgp_gym.cbf import _step
+except ImportError:  # built without a C compiler: the numpy versions
+    _step = None
+
+__all__ = ["Exploration", "exploration_scale", "relative_gain_uncertainty"]
 
 
 class Exploration:
@@ -64,3 +69,29 @@ def relative_gain_uncertainty(sigma: np.ndarray, gain: np.ndarray,
         return np.sqrt(np.maximum(var, 0.0)) / norm
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.sqrt(np.maximum(var, 0.0)) / norm
+
+
+def exploration_scale(sigma: np.ndarray, a0: np.ndarray, a: np.ndarray, u_nom: np.ndarray,
+                      low: np.ndarray, high: np.ndarray, noise_std: np.ndarray,
+                      half_range: np.ndarray, threshold: float, reach: float,
+                      compiled: bool | None = None) -> float:
+    """The scale of the online exploration noise at the proposal ``u_nom``, or -1.0 for none.
+
+    With ``u = clip(u_nom)`` and ``ubar = [1, u]``, barrier ``k`` (``sigma`` (k, m+1, m+1) its
+    eq. 51 covariance, ``a0 + a u`` its mean margin) is gated when its predicted standard
+    deviation ``std_k = sqrt(ubar' Sigma_k ubar)`` exceeds ``threshold`` noise standard
+    deviations ``noise_std`` and the mean margin is below ``reach std_k``. The answer is the
+    largest :func:`relative_gain_uncertainty` among the gated barriers (NaN if one is NaN),
+    -1.0 when none is gated. ``compiled``: the compiled core (None: when it is built)."""
+    n, m = np.shape(a)
+    if (compiled is None or compiled) and _step is not None and n and m + 1 <= 17:
+        arrays = [np.ascontiguousarray(x, dtype=np.float64)
+                  for x in (sigma, a0, a, u_nom, low, high, noise_std, half_range)]
+        return _step.exploration_scale(n, m, *arrays, float(threshold), float(reach))
+    u = clip(u_nom, low, high)
+    ubar = np.concatenate([[1.0], u])
+    std = np.sqrt(np.maximum(((sigma @ ubar) * ubar).sum(axis=1), 0.0))
+    gated = np.flatnonzero((std > threshold * noise_std) & (a0 + a @ u < reach * std))
+    if not len(gated):
+        return -1.0
+    return float(relative_gain_uncertainty(sigma[gated], a[gated], half_range).max())

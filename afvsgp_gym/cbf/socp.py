@@ -182,6 +182,10 @@ class SOCPFilter:
 
     def margins(self, u, a0, a, G=None) -> np.ndarray:
         """``a0 + a @ u - ||G ubar||`` for every constraint."""
+        if G is not None and self.compiled and len(a0) > 1:
+            out = binding_cones.cone_margins(u, a0, a, G)
+            if out is not None:
+                return out
         out = np.asarray(a, dtype=np.float64) @ u + np.asarray(a0, dtype=np.float64)
         if G is not None:
             G = np.asarray(G, dtype=np.float64)
@@ -452,14 +456,10 @@ class SOCPFilter:
         if sol is None:
             return None
         u, lams, binding = sol
-        rows = np.flatnonzero(binding)
-        c = self.margins(u, a0, a, G)
-        grads = [fastpath.cone_margin_gradient(u, float(a0[j]), a[j], G[j])[1]
-                 for j in rows.tolist()]
-        if any(g is None for g in grads):
-            return None
-        if fastpath.certify(u, u_nom, c, tol, rows, lams[rows], np.array(grads), low, high):
-            return u, "cone" if rows.size == 1 else "cones", c
+        ok, c = binding_cones.certify_set(u_nom, a0, a, G, low, high, tol.array(), u, lams,
+                                          binding, fastpath.DIST_TOL)
+        if ok:
+            return u, "cone" if int(binding.sum()) == 1 else "cones", c
         return None
 
     def _project_one(self, u_nom, a0: float, a, G):

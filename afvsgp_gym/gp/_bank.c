@@ -268,9 +268,10 @@ static const double *Ki_(const double *kinv, int k, Py_ssize_t mp)
  * phi; [r, S] += scale (k_new [z, k_new'] - phi^P k_old [z_old, k_old']) (k_old, z_old the
  * slot's sample when the window is full); the slot <- the new sample; head, count, n_seen,
  * since advance, fresh is cleared; resid = k_ss - k_new' K_oo^-1 k_new (eq. 27). Returns
- * (code, candidates, refresh due, renormalisation due): the number of learners whose resid
- * exceeds max(add_floor k_ss, s2), whether some since reached refresh_every, some scale
- * 1e100. Code NOT_FINITE or OVERFLOW: nothing changed. */
+ * (code, candidates, best, refresh due, renormalisation due): the number of learners whose
+ * resid exceeds max(add_floor k_ss, s2), the one of them with the largest resid / k_ss (the
+ * first if tied; -1 for none), whether some since reached refresh_every, some scale 1e100.
+ * Code NOT_FINITE or OVERFLOW: nothing changed. */
 static PyObject *py_update(PyObject *self, PyObject *args)
 {
     enum { INDXI, LOGVAR, IL2, UBT, VAR, KOOINV, STATS, SCALE, WK, WZ, WXT, WUBT, XI, UB, Z,
@@ -315,8 +316,8 @@ static PyObject *py_update(PyObject *self, PyObject *args)
     long long *since = bf[SINCE].buf;
     char *fresh = bf[FRESH].buf;
     const double *noise = bf[NOISE].buf;
-    int rc = 0, n_cand = 0, refresh_due = 0, renorm_due = 0;
-    double total = 0.0;
+    int rc = 0, n_cand = 0, best = -1, refresh_due = 0, renorm_due = 0;
+    double total = 0.0, best_rel = 0.0;
     for (Py_ssize_t i = 0; i < K * b; i++)
         total += xi[i];
     for (Py_ssize_t i = 0; i < K; i++)
@@ -391,7 +392,13 @@ static PyObject *py_update(PyObject *self, PyObject *args)
             q += kn[p] * v[p];
         resid[k] = kss[k] - q;
         const double floor_ = add_floor * kss[k];
-        n_cand += resid[k] > (floor_ > noise[k] ? floor_ : noise[k]);
+        if (resid[k] > (floor_ > noise[k] ? floor_ : noise[k])) {
+            n_cand++;
+            if (best < 0 || resid[k] / kss[k] > best_rel) {
+                best = k;
+                best_rel = resid[k] / kss[k];
+            }
+        }
         head[k] = slot;
         count[k] += !full;
         seen[k] += 1;
@@ -403,7 +410,7 @@ static PyObject *py_update(PyObject *self, PyObject *args)
     release_all(bf, N);
     if (rc == EXP_FAILED)
         return NULL;
-    return Py_BuildValue("iiii", rc, n_cand, refresh_due, renorm_due);
+    return Py_BuildValue("iiiii", rc, n_cand, best, refresh_due, renorm_due);
 }
 
 /* ------------------------------------------------------------------ predict */
@@ -691,6 +698,76 @@ done:
     return Py_BuildValue("iiddd", code, drop, dd, sdd, rnew);
 }
 
+/* ------------------------------------------------------------------ inducing set */
+
+/* K_oo^-1 of learner k after an inducing-set change (eqs. 29-30): with refactor, L =
+ * chol(K_oo[:m, :m]) (LAPACK) into l_oo first (else l_oo holds it already, e.g. the bordered
+ * factor); then K_oo^-1 = L^-T L^-1 into koo_inv[:m, :m] (L^-1 by forward substitution) and
+ * fresh[k] cleared. NOT_PD (nothing changed) when the factorisation fails. */
+static PyObject *py_factor_inverse(PyObject *self, PyObject *args)
+{
+    enum { KOO, LOO, KINV, FRESH, N };
+    static const Spec spec[N] = {{"koo", 'd', 0}, {"l_oo", 'd', 1}, {"koo_inv", 'd', 1},
+                                 {"fresh", '?', 1}};
+    PyObject *o[N];
+    Py_buffer bf[N];
+    Dims D;
+    int k, m, refactor;
+    if (!PyArg_ParseTuple(args, "(iiiii)iipOOOO", &D.K, &D.b, &D.c, &D.mp, &D.P, &k, &m,
+                          &refactor, &o[0], &o[1], &o[2], &o[3]))
+        return NULL;
+    if (D.K < 1 || D.mp < 1 || D.mp > MAXW || k < 0 || k >= D.K || m < 1 || m > D.mp) {
+        PyErr_SetString(PyExc_ValueError, "k and m must index the bank");
+        return NULL;
+    }
+    const Py_ssize_t mp = D.mp, K = D.K;
+    const Py_ssize_t size[N] = {K * mp * mp, K * mp * mp, K * mp * mp, K};
+    if (take_all(o, bf, spec, size, N) < 0)
+        return NULL;
+    const double *koo = (const double *)bf[KOO].buf + (size_t)k * mp * mp;
+    double *lo = (double *)bf[LOO].buf + (size_t)k * mp * mp;
+    double *kinv = (double *)bf[KINV].buf + (size_t)k * mp * mp;
+    double *L = PyMem_Malloc(sizeof(double) * 3 * (size_t)m * m);
+    if (L == NULL) {
+        release_all(bf, N);
+        return PyErr_NoMemory();
+    }
+    double *X = L + (size_t)m * m, *g = X + (size_t)m * m;
+    int rc = 0;
+    for (int i = 0; i < m; i++)
+        for (int j = 0; j < m; j++)
+            L[i * m + j] = refactor ? koo[i * mp + j] : (j <= i ? lo[i * mp + j] : 0.0);
+    if (refactor) {
+        /* the row-major block read as column-major is the same symmetric matrix: its "U"
+         * factor, read row-major, is the lower L */
+        char uplo = 'U';
+        int n = m, info = 0;
+        dpotrf_(&uplo, &n, L, &n, &info);
+        if (info != 0)
+            rc = NOT_PD;
+        for (int i = 0; i < m && rc == 0; i++)
+            for (int j = i + 1; j < m; j++)
+                L[i * m + j] = 0.0;
+    }
+    if (rc == 0) {
+        for (int i = 0; i < m * m; i++)
+            X[i] = 0.0;
+        for (int i = 0; i < m; i++)
+            X[i * m + i] = 1.0;
+        lower_solve_rows(L, m, X, m, m, 1.0); /* X = L^-1 */
+        gram_rows(X, m, m, m, g);             /* g = X' X */
+        for (int i = 0; i < m; i++) {
+            memcpy(kinv + (size_t)i * mp, g + (size_t)i * m, sizeof(double) * (size_t)m);
+            if (refactor)
+                memcpy(lo + (size_t)i * mp, L + (size_t)i * m, sizeof(double) * (size_t)m);
+        }
+        ((char *)bf[FRESH].buf)[k] = 0;
+    }
+    PyMem_Free(L);
+    release_all(bf, N);
+    return PyLong_FromLong(rc);
+}
+
 /* ------------------------------------------------------------------ module */
 
 static void *capi(const char *module, const char *name)
@@ -716,8 +793,8 @@ static PyMethodDef methods[] = {
     {"update", py_update, METH_VARARGS,
      "update(dims, ind_xi, log_var, inv_ls2, ubt, var, koo_inv, stats, scale, wk, wz, wxt, wubt, xi, ub, "
      "z, k_new, kss, resid, work, head, count, n_seen, fresh, since, noise_variance, inv_phi, "
-     "phi_p, add_floor, refresh_every) -> (code, candidates, refresh due, renormalisation "
-     "due): the window step of every learner at their shared ring position (code 0), or a "
+     "phi_p, add_floor, refresh_every) -> (code, candidates, best candidate, refresh due, "
+     "renormalisation due): the window step of every learner at their shared ring position (code 0), or a "
      "negative code (nothing changed)."},
     {"predict", py_predict, METH_VARARGS,
      "predict(dims, n, ind_xi, log_var, inv_ls2, ubt, var, l_oo, stats, scale, noise_variance, l_d, "
@@ -727,6 +804,10 @@ static PyMethodDef methods[] = {
      "candidate(dims, k, m, head, count, kss, jitter, swap_margin, l_oo, koo_inv, stats, scale, "
      "wk, wz, wxt, wubt, inv_ls2, log_var, pow_rev, xi, ub, k_new, lvec, col, srow) -> (code, "
      "drop, dd, s_dd, r_new): the eqs. 27-28 decision on a new inducing point."},
+    {"factor_inverse", py_factor_inverse, METH_VARARGS,
+     "factor_inverse(dims, k, m, refactor, koo, l_oo, koo_inv, fresh) -> int: L = "
+     "chol(K_oo) of learner k into l_oo (with refactor) and K_oo^-1 into koo_inv (0), or "
+     "NOT_PD (nothing changed)."},
     {NULL, NULL, 0, NULL},
 };
 

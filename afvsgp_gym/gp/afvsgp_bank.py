@@ -566,7 +566,7 @@ class AFVSGPBank:
         ub[1:] = u
         xi, z = np.ascontiguousarray(xi), np.ascontiguousarray(z)
         k_new, kss, resid = self._step_out
-        rc, n_cand, refresh, renormalise = _core.update(
+        rc, n_cand, best, refresh, renormalise = _core.update(
             self._dims, self._ind_xi, self.log_var, self.inv_ls2, self._ubt, self.var,
             self._koo_inv,
             self._stats, self._scale, self._wk, self._wz, self._wxt, self._wubt, xi, ub, z,
@@ -583,7 +583,10 @@ class AFVSGPBank:
             for k in np.flatnonzero(self._scale > 1e100):
                 self._renormalise(k)
         if n_cand and self.adapt_inducing:
-            self._add_candidates(None, slice(None), xi, ub, kss, k_new, resid)
+            if self.max_inducing_candidates == 1:  # the core found the one to offer
+                self._consider_add(best, xi[best], ub, float(kss[best]), k_new[best])
+            else:
+                self._add_candidates(None, slice(None), xi, ub, kss, k_new, resid)
         return np.ones(K, dtype=bool)
 
     def _add_candidates(self, idx, sel, xi: np.ndarray, ub: np.ndarray, kss: np.ndarray,
@@ -793,7 +796,12 @@ class AFVSGPBank:
         if drop is None:  # the bordered factor
             lo[pos, :pos] = cand.lvec
             lo[pos, pos] = math.sqrt(cand.dd)
-        else:
+        if self._compiled and _core.factor_inverse(self._dims, k, mm, drop is not None,
+                                                   self._koo, self._l_oo, self._koo_inv,
+                                                   self._fresh) == 0:
+            self.n_inducing_[k] = mm
+            return
+        if drop is not None:
             low_n, info = dpotrf(koo[:mm, :mm], lower=1, clean=1)  # O(M^3 / 3)
             if info != 0:
                 low_n = jittered_cholesky(koo[:mm, :mm], name="K_oo")
