@@ -282,3 +282,110 @@ def test_compiled_solver_option_reaches_the_solver():
         binding_cones.AVAILABLE
     with pytest.raises(ValueError, match="compiled_solver"):
         FilterConfig(compiled_solver="yes")
+
+
+class _FixedTol:
+    """fastpath.Tolerance with given values."""
+
+    def __init__(self, tol):
+        self.tol = tol
+
+    def at(self, idx):
+        return self.tol[idx]
+
+
+def _python_certificate(u, u_nom, a0, a, G, low, high, tol, lam, binding) -> bool:
+    """fastpath.certify with the gradients of fastpath.cone_margin_gradient (numpy)."""
+    rows = np.flatnonzero(binding)
+    grads = [fastpath.cone_margin_gradient(u, float(a0[j]), a[j], G[j])[1] for j in rows]
+    if any(g is None for g in grads):
+        return False
+    return bool(fastpath.certify(u, u_nom, _margins(u, a0, a, G), _FixedTol(tol), rows,
+                                 lam[rows], np.array(grads), low, high))
+
+
+@needs_core
+def test_compiled_certificate_decides_as_the_numpy_one(monkeypatch):
+    """binding_cones.certify_set (the certificate in C) against fastpath.certify with numpy
+    gradients: the same decision on the binding-set answers the filter found, on answers moved
+    off the optimum by 1e-6 (not certified), with a multiplier negated, and at NaN; its
+    margins equal the reference formula's to the rounding of c_q (a few eps times the terms'
+    size)."""
+    eps = np.finfo(float).eps
+    found = []
+    solve = binding_cones.solve_binding_set
+
+    def recording(*args):
+        sol = solve(*args)
+        if sol is not None:
+            found.append((args, sol))
+        return sol
+
+    monkeypatch.setattr(binding_cones, "solve_binding_set", recording)
+    _cones_instances(8, seed=7)
+    assert len(found) >= 8
+    checked = certified = 0
+    for (u_nom, a0, a, G, low, high, tol, *_), (u, lam, binding) in found:
+        moved = np.clip(u + 1e-6 * np.sign(u_nom - u), low, high)
+        neg = lam.copy()
+        neg[np.flatnonzero(binding)[0]] *= -1.0
+        nan_u = u.copy()
+        nan_u[0] = np.nan
+        for point, mult in [(u, lam), (moved, lam), (u, neg), (nan_u, lam)]:
+            ok, c = binding_cones.certify_set(u_nom, a0, a, G, low, high, tol, point, mult,
+                                              binding, fastpath.DIST_TOL)
+            if point is u and mult is lam:
+                certified += ok
+            else:
+                assert not ok
+            if np.isfinite(point).all():
+                assert ok == _python_certificate(point, u_nom, a0, a, G, low, high, tol,
+                                                 mult, binding)
+            ref = _margins(point, a0, a, G)
+            size = np.abs(a0) + np.abs(a) @ np.abs(point) + np.abs(G).sum(axis=(1, 2)) * (
+                1.0 + np.abs(point).max())
+            if np.isfinite(point).all():
+                assert np.all(np.abs(c - ref) <= 20 * (a.shape[1] + 1) * eps * size)
+            else:
+                assert np.isnan(c).all()
+            checked += 1
+    assert checked == 4 * len(found)
+    assert certified >= 8  # the filter's certified answers among them
+
+
+@needs_core
+def test_compiled_margins_match_the_reference_formula():
+    """binding_cones.cone_margins and SOCPFilter.margins (which uses it for several cones)
+    against the reference margins, to the rounding of the terms, at a point near a cone's
+    apex (||G ubar|| ~ 1e-12) too."""
+    rng = np.random.default_rng(3)
+    eps = np.finfo(float).eps
+    m, K = 7, 9
+    low, high = -np.ones(m), np.ones(m)
+    filt = SOCPFilter(low, high)
+    for scale in (1.0, 1e-12):
+        a0, a = rng.normal(size=K), rng.normal(size=(K, m))
+        G = scale * rng.normal(size=(K, m + 1, m + 1))
+        u = rng.uniform(low, high)
+        ref = _margins(u, a0, a, G)
+        size = np.abs(a0) + np.abs(a) @ np.abs(u) + np.abs(G).sum(axis=(1, 2)) * 2.0
+        for got in (binding_cones.cone_margins(u, a0, a, G), filt.margins(u, a0, a, G)):
+            assert np.all(np.abs(got - ref) <= 20 * (m + 1) * eps * size)
+
+
+@needs_core
+def test_bad_input_to_the_compiled_certificate_is_refused():
+    from afvsgp_gym.cbf import _cones
+
+    m, k = 7, 3
+    args = dict(u_nom=np.zeros(m), a0=np.ones(k), a=np.ones((k, m)),
+                G=np.ones((k, m + 1, m + 1)), low=-np.ones(m), high=np.ones(m),
+                tol=np.ones(k), u=np.zeros(m), lam=np.zeros(k),
+                binding=np.zeros(k, dtype=bool), margins=np.zeros(k))
+    for name, bad in [("G", np.ones((k, m, m))), ("lam", np.zeros(k + 1)),
+                      ("binding", np.zeros(k)), ("margins", np.zeros(k, dtype=np.float32))]:
+        with pytest.raises(ValueError, match=name):
+            _cones.certify(*{**args, name: bad}.values(), 1e-9)
+    with pytest.raises(ValueError, match="a0"):
+        _cones.margins(np.zeros(m), np.ones((0,)), np.ones((0, m)),
+                       np.ones((0, m + 1, m + 1)), np.zeros(0))

@@ -71,6 +71,15 @@ def test_compiled_equals_numpy_through_inducing_events(max_candidates):
     for name in ("_head", "_count", "n_seen_", "_since_refresh", "n_inducing_"):
         np.testing.assert_array_equal(getattr(comp, name), getattr(ref, name), err_msg=name)
     _assert_equals_batch_posterior(comp, streams, u, n, seed=8)
+    # the core's factor and inverse of K_oo after the inducing-set changes, by their own
+    # error bounds: Cholesky's backward error (Higham, Thm 10.3), the inverse's residual
+    for k in range(K):
+        m = int(comp.n_inducing_[k])
+        koo, low = comp._koo[k, :m, :m], comp._l_oo[k, :m, :m]
+        gamma = (m + 1) * EPS / (1 - (m + 1) * EPS)
+        assert np.all(np.abs(low @ low.T - koo) <= 2 * gamma * np.abs(low) @ np.abs(low.T))
+        resid = comp._koo_inv[k, :m, :m] @ koo - np.eye(m)
+        assert np.abs(resid).max() <= 10 * m * np.linalg.cond(koo) * EPS
 
 
 @needs_core
@@ -142,6 +151,19 @@ def test_compiled_entry_points_refuse_bad_input():
     bad[16] = np.empty((n, c))[:, ::-1]
     with pytest.raises(ValueError, match="b_out must be a C-contiguous"):
         core.predict(*bad)
+    with pytest.raises(ValueError, match="k and m"):
+        core.factor_inverse(bank._dims, K, 3, True, bank._koo, bank._l_oo, bank._koo_inv,
+                            bank._fresh)
+    with pytest.raises(ValueError, match="koo_inv must be of dtype float64"):
+        core.factor_inverse(bank._dims, 0, 3, True, bank._koo, bank._l_oo,
+                            bank._koo_inv.astype(np.float32), bank._fresh)
+    not_pd = bank._koo.copy()
+    not_pd[0, 1, 1] = -1.0
+    l_oo, koo_inv = bank._l_oo.copy(), bank._koo_inv.copy()
+    assert core.factor_inverse(bank._dims, 0, 3, True, not_pd, bank._l_oo, bank._koo_inv,
+                               bank._fresh) == -2  # NOT_PD, nothing written
+    np.testing.assert_array_equal(bank._l_oo, l_oo)
+    np.testing.assert_array_equal(bank._koo_inv, koo_inv)
     before = copy.deepcopy(bank)
     with pytest.raises(ValueError, match="update needs xi"):
         bank.update(np.zeros((K, 4)), u[0], np.zeros(K))
