@@ -50,6 +50,23 @@ typedef struct {
     const double *BtB; /* (K, m, m): B_i' B_i, B_i = G_i[:, 1:] */
 } Problem;
 
+/* v = G_q ubar (m + 1) of cone q at u; returns ||v||^2 */
+static double cone_vector(const Problem *P, int q, const double *u, double *v)
+{
+    const int m = P->m, n1 = m + 1;
+    const double *Gq = P->G + (size_t)q * n1 * n1;
+    double s2 = 0.0;
+    for (int r = 0; r < n1; r++) {
+        const double *row = Gq + (size_t)r * n1;
+        double x = row[0];
+        for (int j = 0; j < m; j++)
+            x += row[j + 1] * u[j];
+        v[r] = x;
+        s2 += x * x;
+    }
+    return s2;
+}
+
 /* c_i, grad c_i, w_i and ||v_i|| at u for the binding set; APEX if some v_i = 0 */
 static int terms(const Problem *P, const double *u, double *c, double grad[][MAXM],
                  double w[][MAXM], double *nv)
@@ -58,16 +75,8 @@ static int terms(const Problem *P, const double *u, double *c, double grad[][MAX
     for (int i = 0; i < P->k; i++) {
         const int q = P->idx[i];
         const double *Gi = P->G + (size_t)q * n1 * n1, *ai = P->a + (size_t)q * m;
-        double v[MAXM + 1], s2 = 0.0;
-        for (int r = 0; r < n1; r++) {
-            const double *row = Gi + (size_t)r * n1;
-            double x = row[0];
-            for (int j = 0; j < m; j++)
-                x += row[j + 1] * u[j];
-            v[r] = x;
-            s2 += x * x;
-        }
-        const double n = sqrt(s2);
+        double v[MAXM + 1];
+        const double n = sqrt(cone_vector(P, q, u, v));
         if (!(n > 0.0))
             return APEX;
         nv[i] = n;
@@ -456,16 +465,8 @@ static int certificate(const Problem *P, int K, const double *tol, const double 
         if (c[q] > tol[q])
             comp += lam[q] * c[q];
         const double *Gq = P->G + (size_t)q * n1 * n1, *aq = P->a + (size_t)q * m;
-        double v[MAXM + 1], s2 = 0.0;
-        for (int r = 0; r < n1; r++) {
-            const double *row = Gq + (size_t)r * n1;
-            double x = row[0];
-            for (int j = 0; j < m; j++)
-                x += row[j + 1] * u[j];
-            v[r] = x;
-            s2 += x * x;
-        }
-        const double nv = sqrt(s2);
+        double v[MAXM + 1];
+        const double nv = sqrt(cone_vector(P, q, u, v));
         if (!(nv > 0.0))
             return 0;
         for (int j = 0; j < m; j++) {
