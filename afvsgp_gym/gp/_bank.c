@@ -3,17 +3,16 @@
  * The compiled core of afvsgp_gym.gp.afvsgp_bank.AFVSGPBank (its docstring states the method
  * and the state's layout): one call streams a sample into every learner (update), one
  * predicts the learners of some barriers (predict), one scores a new sample as an inducing
- * point (candidate), one installs it (install). The numpy methods' formulas (the posterior in
- * whitened form), the kernel's exponent from the differences to the inducing points (not the
- * numpy methods' expansion: it reads ~8x less memory and cannot overflow), the Cholesky
- * factorisations and the eq. 28 product by the LAPACK and BLAS that scipy ships
- * (scipy.linalg.cython_lapack / cython_blas), the prediction's triangular solves by forward
- * substitution here (at these sizes, tens of right-hand sides of order Mp, BLAS's dtrsm spends
- * its time on packing), the exponentials by numpy.exp. Every array is C-ordered float64
- * (int64 for indices) with the bank's shapes; a return code other than 0 leaves the call to
- * the numpy methods, and when it does the bank was left unchanged (update), its posterior
- * cache only refreshed (predict), or the new point's rows written but not its factor
- * (install).
+ * point (candidate). The numpy methods' formulas (the posterior in whitened form), the
+ * kernel's exponent from the differences to the inducing points (not the numpy methods'
+ * expansion: it reads ~8x less memory and cannot overflow), the Cholesky factorisations and
+ * the eq. 28 product by the LAPACK and BLAS that scipy ships (scipy.linalg.cython_lapack /
+ * cython_blas), the prediction's triangular solves by forward substitution here (at these
+ * sizes, tens of right-hand sides of order Mp, BLAS's dtrsm spends its time on packing), the
+ * exponentials by numpy.exp. Every array is C-ordered float64 (int64 for
+ * indices) with the bank's shapes; a return code other than 0 leaves the call to the numpy
+ * methods, and when it does the bank was left unchanged (update) or its posterior cache only
+ * refreshed (predict).
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -701,16 +700,38 @@ done:
 
 /* ------------------------------------------------------------------ inducing set */
 
-/* K_oo^-1 of one learner after an inducing-set change (eqs. 29-30), its (mp, mp) blocks koo,
- * lo, kinv: with refactor, L = chol(koo[:m, :m]) (LAPACK) into lo first (else lo holds it
- * already, e.g. the bordered factor); then K_oo^-1 = L^-T L^-1 into kinv[:m, :m] (L^-1 by
- * forward substitution). NOT_PD (nothing written) when the factorisation fails. */
-static int factor_inverse_one(const double *koo, double *lo, double *kinv, Py_ssize_t mp, int m,
-                              int refactor)
+/* K_oo^-1 of learner k after an inducing-set change (eqs. 29-30): with refactor, L =
+ * chol(K_oo[:m, :m]) (LAPACK) into l_oo first (else l_oo holds it already, e.g. the bordered
+ * factor); then K_oo^-1 = L^-T L^-1 into koo_inv[:m, :m] (L^-1 by forward substitution) and
+ * fresh[k] cleared. NOT_PD (nothing changed) when the factorisation fails. */
+static PyObject *py_factor_inverse(PyObject *self, PyObject *args)
 {
+    enum { KOO, LOO, KINV, FRESH, N };
+    static const Spec spec[N] = {{"koo", 'd', 0}, {"l_oo", 'd', 1}, {"koo_inv", 'd', 1},
+                                 {"fresh", '?', 1}};
+    PyObject *o[N];
+    Py_buffer bf[N];
+    Dims D;
+    int k, m, refactor;
+    if (!PyArg_ParseTuple(args, "(iiiii)iipOOOO", &D.K, &D.b, &D.c, &D.mp, &D.P, &k, &m,
+                          &refactor, &o[0], &o[1], &o[2], &o[3]))
+        return NULL;
+    if (D.K < 1 || D.mp < 1 || D.mp > MAXW || k < 0 || k >= D.K || m < 1 || m > D.mp) {
+        PyErr_SetString(PyExc_ValueError, "k and m must index the bank");
+        return NULL;
+    }
+    const Py_ssize_t mp = D.mp, K = D.K;
+    const Py_ssize_t size[N] = {K * mp * mp, K * mp * mp, K * mp * mp, K};
+    if (take_all(o, bf, spec, size, N) < 0)
+        return NULL;
+    const double *koo = (const double *)bf[KOO].buf + (size_t)k * mp * mp;
+    double *lo = (double *)bf[LOO].buf + (size_t)k * mp * mp;
+    double *kinv = (double *)bf[KINV].buf + (size_t)k * mp * mp;
     double *L = PyMem_Malloc(sizeof(double) * 3 * (size_t)m * m);
-    if (L == NULL)
-        return NO_MEMORY;
+    if (L == NULL) {
+        release_all(bf, N);
+        return PyErr_NoMemory();
+    }
     double *X = L + (size_t)m * m, *g = X + (size_t)m * m;
     int rc = 0;
     for (int i = 0; i < m; i++)
@@ -740,84 +761,10 @@ static int factor_inverse_one(const double *koo, double *lo, double *kinv, Py_ss
             if (refactor)
                 memcpy(lo + (size_t)i * mp, L + (size_t)i * m, sizeof(double) * (size_t)m);
         }
+        ((char *)bf[FRESH].buf)[k] = 0;
     }
     PyMem_Free(L);
-    return rc;
-}
-
-/* Learner k's newest sample (x, ubar) installed as inducing point in slot pos (eqs. 29-30)
- * from candidate()'s answer: appended (pos = m, the set grows to m + 1) or in the dropped
- * point's slot (pos < m = Mp). The point's input and ubar into ind_xi, ind_ub and ubt; its
- * row and column of K_oo, krow = k_new[:mm] with krow[pos] = k_ss + jitter; of [r, S], r_new
- * and srow (length m) with srow[pos] = s_dd; its window column col (count) into wk; when
- * appended, the bordered factor's row [lvec, sqrt(dd)] into l_oo; then factor_inverse_one
- * (refactored when a point was dropped) and fresh[k] cleared. Returns 0, or NOT_PD (the
- * rows are written, the factor and inverse are not: the numpy method jitters). */
-static PyObject *py_install(PyObject *self, PyObject *args)
-{
-    enum { INDXI, INDUB, UBT, KOO, STATS, WK, LOO, KINV, FRESH, XI, UB, KNEW, LVEC, COL, SROW,
-           N };
-    static const Spec spec[N] = {
-        {"ind_xi", 'd', 1}, {"ind_ub", 'd', 1}, {"ubt", 'd', 1},   {"koo", 'd', 1},
-        {"stats", 'd', 1},  {"wk", 'd', 1},     {"l_oo", 'd', 1},  {"koo_inv", 'd', 1},
-        {"fresh", '?', 1},  {"xi", 'd', 0},     {"ub", 'd', 0},    {"k_new", 'd', 0},
-        {"lvec", 'd', 0},   {"col", 'd', 0},    {"srow", 'd', 0}};
-    PyObject *o[N];
-    Py_buffer bf[N];
-    Dims D;
-    int k, m, cnt, pos;
-    double kss, jitter, dd, sdd, rnew;
-    if (!PyArg_ParseTuple(args, "(iiiii)iiiidddddOOOOOOOOOOOOOOO", &D.K, &D.b, &D.c, &D.mp,
-                          &D.P, &k, &m, &cnt, &pos, &kss, &jitter, &dd, &sdd, &rnew, &o[0],
-                          &o[1], &o[2], &o[3], &o[4], &o[5], &o[6], &o[7], &o[8], &o[9],
-                          &o[10], &o[11], &o[12], &o[13], &o[14]))
-        return NULL;
-    const Py_ssize_t K = D.K, b = D.b, c = D.c, mp = D.mp, P = D.P;
-    if (K < 1 || b < 1 || c < 1 || mp < 1 || mp > MAXW || P < 1 || k < 0 || k >= K || m < 1 ||
-        m > mp || cnt < 1 || cnt > P || pos < 0 || pos > m || (pos == m && m == mp)) {
-        PyErr_SetString(PyExc_ValueError, "dims, k, m, count or pos out of range");
-        return NULL;
-    }
-    const int append = pos == m, mm = append ? m + 1 : m;
-    if (!(dd > 0.0)) {
-        PyErr_SetString(PyExc_ValueError, "dd must be positive");
-        return NULL;
-    }
-    const Py_ssize_t size[N] = {K * mp * b, K * mp * c, K * c * mp, K * mp * mp,
-                                K * mp * (mp + 1), K * P * mp, K * mp * mp, K * mp * mp, K,
-                                b, c, mp, m, cnt, m};
-    if (take_all(o, bf, spec, size, N) < 0)
-        return NULL;
-    const double *x = bf[XI].buf, *ub = bf[UB].buf, *kn = bf[KNEW].buf;
-    const double *lvec = bf[LVEC].buf, *col = bf[COL].buf, *srow = bf[SROW].buf;
-    const size_t off = (size_t)k * mp * mp;
-    double *koo = (double *)bf[KOO].buf + off, *lo = (double *)bf[LOO].buf + off;
-    double *st = (double *)bf[STATS].buf + (size_t)k * mp * (mp + 1);
-    double *wk = (double *)bf[WK].buf + (size_t)k * P * mp;
-    double *ubt = (double *)bf[UBT].buf + (size_t)k * c * mp;
-    memcpy((double *)bf[INDXI].buf + ((size_t)k * mp + pos) * b, x, sizeof(double) * (size_t)b);
-    memcpy((double *)bf[INDUB].buf + ((size_t)k * mp + pos) * c, ub, sizeof(double) * (size_t)c);
-    for (int i = 0; i < c; i++)
-        ubt[i * mp + pos] = ub[i];
-    const double kpp = kss + jitter;
-    st[pos * (mp + 1)] = rnew;
-    for (int i = 0; i < mm; i++) {
-        const double kv = i == pos ? kpp : kn[i], sv = i == pos ? sdd : srow[i];
-        koo[pos * mp + i] = koo[i * mp + pos] = kv;
-        st[pos * (mp + 1) + 1 + i] = st[i * (mp + 1) + pos + 1] = sv;
-    }
-    for (int t = 0; t < cnt; t++)
-        wk[(size_t)t * mp + pos] = col[t];
-    if (append) { /* the bordered factor */
-        memcpy(lo + (size_t)pos * mp, lvec, sizeof(double) * (size_t)pos);
-        lo[pos * mp + pos] = sqrt(dd);
-    }
-    const int rc = factor_inverse_one(koo, lo, (double *)bf[KINV].buf + off, mp, mm, !append);
-    if (rc == 0)
-        ((char *)bf[FRESH].buf)[k] = 0;
     release_all(bf, N);
-    if (rc == NO_MEMORY)
-        return PyErr_NoMemory();
     return PyLong_FromLong(rc);
 }
 
@@ -857,11 +804,10 @@ static PyMethodDef methods[] = {
      "candidate(dims, k, m, head, count, kss, jitter, swap_margin, l_oo, koo_inv, stats, scale, "
      "wk, wz, wxt, wubt, inv_ls2, log_var, pow_rev, xi, ub, k_new, lvec, col, srow) -> (code, "
      "drop, dd, s_dd, r_new): the eqs. 27-28 decision on a new inducing point."},
-    {"install", py_install, METH_VARARGS,
-     "install(dims, k, m, count, pos, kss, jitter, dd, s_dd, r_new, ind_xi, ind_ub, ubt, koo, "
-     "stats, wk, l_oo, koo_inv, fresh, xi, ub, k_new, lvec, col, srow) -> int: learner k's "
-     "new inducing point in slot pos (eqs. 29-30), its factor and K_oo^-1 (0), or NOT_PD (the "
-     "rows written, the factor not)."},
+    {"factor_inverse", py_factor_inverse, METH_VARARGS,
+     "factor_inverse(dims, k, m, refactor, koo, l_oo, koo_inv, fresh) -> int: L = "
+     "chol(K_oo) of learner k into l_oo (with refactor) and K_oo^-1 into koo_inv (0), or "
+     "NOT_PD (nothing changed)."},
     {NULL, NULL, 0, NULL},
 };
 

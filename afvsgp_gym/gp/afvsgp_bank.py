@@ -761,28 +761,46 @@ class AFVSGPBank:
         the slot of the point ``cand.drop``; ``K_oo``, its factor and inverse, ``[r, S]``,
         the kernel rows and the window's kernel column follow."""
         m = int(self.n_inducing_[k])
-        drop = cand.drop
-        pos, mm = (m, m + 1) if drop is None else (drop, m)
+        kn = k_new[:m]
+        cnt = self._count[k]
+        jit = self.jitter[k]
+        drop, srow, sdiag = cand.drop, cand.srow, cand.sdiag
         self.n_added_[k] += 1
-        if drop is not None:
+        if drop is None:  # the new point goes last
+            pos, mm = m, m + 1
+            krow, srow = np.append(kn, kss + jit), np.append(srow, sdiag)
+        else:  # the new point takes the dropped point's slot
+            pos, mm = drop, m
             self.n_removed_[k] += 1
-        # the numpy methods' exponent rows of the new point (eq. 21 expanded)
-        sx = self.inv_ls2[k] * xi  # (c, b)
+            krow = kn.copy()
+            krow[pos] = kss + jit
+            srow = srow.copy()
+            srow[pos] = sdiag
+        # the new point in slot pos (eqs. 29-30)
+        self._ind_xi[k, pos] = xi
+        self._ind_ub[k, pos] = ub
+        il2 = self.inv_ls2[k]
+        sx = il2 * xi  # (c, b)
+        b = self.input_dim
         a = self._amat[k].reshape(self._c, self._mp, -1)
-        a[:, pos, : self.input_dim] = sx
-        a[:, pos, self.input_dim] = self.log_var[k] - 0.5 * (sx @ xi)
-        if self._compiled:
-            if _core.install(self._dims, k, m, int(self._count[k]), pos, float(kss),
-                             float(self.jitter[k]), cand.dd, cand.sdiag, cand.r_new,
-                             self._ind_xi, self._ind_ub, self._ubt, self._koo, self._stats,
-                             self._wk, self._l_oo, self._koo_inv, self._fresh,
-                             np.ascontiguousarray(xi), ub, np.ascontiguousarray(k_new),
-                             cand.lvec, cand.col, cand.srow) == 0:
-                self.n_inducing_[k] = mm
-                return
-        else:
-            self._write_point(k, pos, mm, xi, ub, kss, k_new, cand)
-        koo, lo = self._koo[k], self._l_oo[k]
+        a[:, pos, :b] = sx
+        a[:, pos, b] = self.log_var[k] - 0.5 * (sx @ xi)
+        self._ubt[k, :, pos] = ub
+        koo = self._koo[k]
+        koo[pos, :mm] = koo[:mm, pos] = krow
+        st = self._stats[k]
+        st[pos, 0] = cand.r_new
+        st[pos, 1 : mm + 1] = st[:mm, pos + 1] = srow
+        self._wk[k, :cnt, pos] = cand.col
+        lo = self._l_oo[k]
+        if drop is None:  # the bordered factor
+            lo[pos, :pos] = cand.lvec
+            lo[pos, pos] = math.sqrt(cand.dd)
+        if self._compiled and _core.factor_inverse(self._dims, k, mm, drop is not None,
+                                                   self._koo, self._l_oo, self._koo_inv,
+                                                   self._fresh) == 0:
+            self.n_inducing_[k] = mm
+            return
         if drop is not None:
             low_n, info = dpotrf(koo[:mm, :mm], lower=1, clean=1)  # O(M^3 / 3)
             if info != 0:
@@ -790,29 +808,3 @@ class AFVSGPBank:
             lo[:mm, :mm] = low_n
         self.n_inducing_[k] = mm
         self._set_koo_inv(k)
-
-    def _write_point(self, k: int, pos: int, mm: int, xi: np.ndarray, ub: np.ndarray,
-                     kss: float, k_new: np.ndarray, cand: _Candidate) -> None:
-        """:meth:`_install`'s rows of the new point in slot ``pos`` (``mm`` points after it):
-        its input, ``ubar``, row and column of ``K_oo`` and ``[r, S]``, window column, and
-        (appended) the bordered factor's row."""
-        kn = k_new[:mm]
-        if cand.drop is None:
-            krow, srow = np.append(kn[:pos], kss + self.jitter[k]), np.append(cand.srow, cand.sdiag)
-        else:
-            krow, srow = kn.copy(), cand.srow.copy()
-            krow[pos] = kss + self.jitter[k]
-            srow[pos] = cand.sdiag
-        self._ind_xi[k, pos] = xi
-        self._ind_ub[k, pos] = ub
-        self._ubt[k, :, pos] = ub
-        koo = self._koo[k]
-        koo[pos, :mm] = koo[:mm, pos] = krow
-        st = self._stats[k]
-        st[pos, 0] = cand.r_new
-        st[pos, 1 : mm + 1] = st[:mm, pos + 1] = srow
-        self._wk[k, : self._count[k], pos] = cand.col
-        if cand.drop is None:  # the bordered factor
-            lo = self._l_oo[k]
-            lo[pos, :pos] = cand.lvec
-            lo[pos, pos] = math.sqrt(cand.dd)

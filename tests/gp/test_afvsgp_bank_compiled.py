@@ -12,7 +12,7 @@ import pytest
 from gp_batch_formulas import synthetic
 from test_afvsgp_bank import K, P, _assert_equals_batch_posterior, _learners, _rows, _streams
 
-from afvsgp_gym.gp import AFVSGP, ADPKernel, afvsgp_bank
+from afvsgp_gym.gp import afvsgp_bank
 from afvsgp_gym.gp.afvsgp_bank import AFVSGPBank
 
 EPS = np.finfo(np.float64).eps
@@ -83,8 +83,8 @@ def test_compiled_equals_numpy_through_inducing_events(max_candidates):
 
 
 def _first_installs(bank, streams, u, n):
-    """The bank's state just before its first appended and its first swapped inducing point,
-    with ``_install``'s arguments: {"append" | "drop": (bank copy, args)}."""
+    """The bank's state just before its first swapped inducing point, with ``_install``'s
+    arguments: {"drop": (bank copy, args)} (and "append" when a point was appended first)."""
     seen = {}
     install = bank._install
 
@@ -100,74 +100,34 @@ def _first_installs(bank, streams, u, n):
     for i in range(P, n):
         xi, z = _rows(streams, i)
         bank.update(xi, u[i], z)
-        if len(seen) == 2:
+        if "drop" in seen:
             break
     del bank._install
     return seen
 
 
 @needs_core
-def test_compiled_install_writes_the_numpy_rows():
-    """One new inducing point, appended or in a dropped point's slot (eqs. 29-30), installed
-    by the core and by the numpy method from the same state: the same input, ubar, K_oo and
-    [r, S] rows, window column and counters, bit for bit (copies); the factor is the bordered
-    one, bit for bit, when appended, and both factors meet Cholesky's backward-error bound
-    (Higham, Thm 10.3) when refactored; both inverses of K_oo meet the residual bound."""
+def test_indefinite_swap_takes_the_jittered_cholesky_on_both_paths():
+    """A swap of inducing points that leaves K_oo indefinite (the new pivot just below the
+    Schur complement's zero, eqs. 29-30): the core's factorisation refuses it (NOT_PD) and
+    the bank takes the jittered Cholesky, with the same factor, inverse and statistics as the
+    numpy path from the same state."""
     n = P + 10 * P
     streams = _streams(n)
     u = streams[0][1]
-    learners = []
-    for k, (xi, _, z, _) in enumerate(streams):  # fitted on 3 distinct samples: 3 of 8 points
-        ker = ADPKernel(np.full((3, 3), 1.0 + 0.2 * k), np.array([1.0, 0.6, 0.4]))
-        rep = np.arange(P) % 3
-        learners.append(AFVSGP(ker, 0.0025 * (k + 1), num_inducing=8, window=P, forgetting=0.95,
-                               add_threshold=0.05, swap_margin=0.0).fit(xi[rep], u[rep], z[rep],
-                                                                         False))
-    bank = AFVSGPBank.from_learners(learners, compiled=True)
-    assert bank.n_inducing_.max() < bank._mp
-    seen = _first_installs(bank, streams, u, n)
-    assert set(seen) == {"append", "drop"}
-    for kind, (state, args) in seen.items():
-        comp, ref = copy.deepcopy(state), copy.deepcopy(state)
-        ref._compiled = False
-        comp._install(*args)
-        ref._install(*args)
-        for name in ("_ind_xi", "_ind_ub", "_ubt", "_amat", "_koo", "_stats", "_wk",
-                     "n_inducing_", "n_added_", "n_removed_", "_fresh"):
-            np.testing.assert_array_equal(getattr(comp, name), getattr(ref, name),
-                                          err_msg=f"{kind}: {name}")
-        k = args[0]
-        m = int(comp.n_inducing_[k])
-        koo = comp._koo[k, :m, :m]
-        gamma = (m + 1) * EPS / (1 - (m + 1) * EPS)
-        if kind == "append":  # the old factor bordered by the row [L^-1 k_new, sqrt(dd)]
-            cand = args[-1]
-            np.testing.assert_array_equal(comp._l_oo[k], ref._l_oo[k])
-            np.testing.assert_array_equal(comp._l_oo[k, : m - 1, : m - 1],
-                                          state._l_oo[k, : m - 1, : m - 1])
-            np.testing.assert_array_equal(comp._l_oo[k, m - 1, :m],
-                                          np.append(cand.lvec, np.sqrt(cand.dd)))
-        for bank in (comp, ref):
-            low = bank._l_oo[k, :m, :m]
-            assert np.all(np.abs(low @ low.T - koo) <= 2 * gamma * np.abs(low) @ np.abs(low.T))
-            resid = bank._koo_inv[k, :m, :m] @ koo - np.eye(m)
-            assert np.abs(resid).max() <= 10 * m * np.linalg.cond(koo) * EPS, kind
-    # a swap that leaves K_oo indefinite (the new pivot just below the Schur complement's
-    # zero): the core writes the rows and hands the factorisation to the numpy method's
-    # jittered Cholesky, as the numpy path does
-    state, (k, xi, ub, kss, k_new, cand) = seen["drop"]
+    bank = AFVSGPBank.from_learners(_learners(streams, u), compiled=True)
+    state, (k, xi, ub, kss, k_new, cand) = _first_installs(bank, streams, u, n)["drop"]
     m = int(state.n_inducing_[k])
     keep = np.delete(np.arange(m), cand.drop)
     kn = k_new[keep]
     pivot = kn @ np.linalg.solve(state._koo[k][np.ix_(keep, keep)], kn)  # Schur complement 0
     comp, ref = copy.deepcopy(state), copy.deepcopy(state)
     ref._compiled = False
-    for bank in (comp, ref):
+    for b in (comp, ref):
         with pytest.warns(RuntimeWarning, match="needed jitter"):
-            bank._install(k, xi, ub, pivot * (1 - 1e-6) - state.jitter[k], k_new, cand)
-    for name in ("_koo", "_l_oo", "_koo_inv", "_stats", "n_inducing_"):
+            b._install(k, xi, ub, pivot * (1 - 1e-6) - state.jitter[k], k_new, cand)
+    for name in ("_koo", "_l_oo", "_koo_inv", "_stats", "_wk", "n_inducing_"):
         np.testing.assert_array_equal(getattr(comp, name), getattr(ref, name), err_msg=name)
-    m = int(comp.n_inducing_[k])
     assert np.linalg.eigvalsh(comp._koo[k, :m, :m]).min() < 0 < np.diag(comp._l_oo[k]).min()
 
 
@@ -240,28 +200,19 @@ def test_compiled_entry_points_refuse_bad_input():
     bad[16] = np.empty((n, c))[:, ::-1]
     with pytest.raises(ValueError, match="b_out must be a C-contiguous"):
         core.predict(*bad)
-    mp, cnt = bank._mp, int(bank._count[0])
-    m = int(bank.n_inducing_[0])
-    inst = [bank._dims, 0, m, cnt, 0, 1.0, 1e-6, 0.5, 0.1, 0.2, bank._ind_xi, bank._ind_ub,
-            bank._ubt, bank._koo, bank._stats, bank._wk, bank._l_oo, bank._koo_inv,
-            bank._fresh, np.zeros(3), np.ones(c), np.zeros(mp), np.zeros(m), np.zeros(cnt),
-            np.zeros(m)]
-    for i, value, match in ((4, m + 1, "pos"), (1, K, "k, m"), (7, 0.0, "dd must be positive"),
-                            (23, np.zeros(cnt + 1), f"col must hold {cnt} elements"),
-                            (22, np.zeros(m + 1), f"lvec must hold {m} elements"),
-                            (14, bank._stats[:, :, ::-1], "stats must be a C-contiguous"),
-                            (17, bank._koo_inv.astype(np.float32),
-                             "koo_inv must be of dtype float64")):
-        bad = list(inst)
-        bad[i] = value
-        with pytest.raises(ValueError, match=match):
-            core.install(*bad)
-    bad = [a.copy() if isinstance(a, np.ndarray) else a for a in inst]
-    bad[4], bad[5] = 1, -1.0  # a dropped point's slot, refactored: K_oo[1, 1] < 0, not PD
-    assert core.install(*bad) == -2  # the rows written, the factor and inverse not
-    assert bad[13][0, 1, 1] == -1.0 + 1e-6
-    np.testing.assert_array_equal(bad[16], bank._l_oo)
-    np.testing.assert_array_equal(bad[17], bank._koo_inv)
+    with pytest.raises(ValueError, match="k and m"):
+        core.factor_inverse(bank._dims, K, 3, True, bank._koo, bank._l_oo, bank._koo_inv,
+                            bank._fresh)
+    with pytest.raises(ValueError, match="koo_inv must be of dtype float64"):
+        core.factor_inverse(bank._dims, 0, 3, True, bank._koo, bank._l_oo,
+                            bank._koo_inv.astype(np.float32), bank._fresh)
+    not_pd = bank._koo.copy()
+    not_pd[0, 1, 1] = -1.0
+    l_oo, koo_inv = bank._l_oo.copy(), bank._koo_inv.copy()
+    assert core.factor_inverse(bank._dims, 0, 3, True, not_pd, bank._l_oo, bank._koo_inv,
+                               bank._fresh) == -2  # NOT_PD, nothing written
+    np.testing.assert_array_equal(bank._l_oo, l_oo)
+    np.testing.assert_array_equal(bank._koo_inv, koo_inv)
     before = copy.deepcopy(bank)
     with pytest.raises(ValueError, match="update needs xi"):
         bank.update(np.zeros((K, 4)), u[0], np.zeros(K))
