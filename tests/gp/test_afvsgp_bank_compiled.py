@@ -82,28 +82,27 @@ def test_compiled_equals_numpy_through_inducing_events(max_candidates):
         assert np.abs(resid).max() <= 10 * m * np.linalg.cond(koo) * EPS
 
 
-def _first_installs(bank, streams, u, n):
-    """The bank's state just before its first swapped inducing point, with ``_install``'s
-    arguments: {"drop": (bank copy, args)} (and "append" when a point was appended first)."""
-    seen = {}
+def _before_first_swap(bank, streams, u, n):
+    """``(bank copy, _install's arguments)`` just before the bank's first swap of an inducing
+    point (a point dropped for the new one), streaming samples P to n."""
+    seen = []
     install = bank._install
 
     def spy(*args):
-        kind = "append" if args[-1].drop is None else "drop"
-        if kind not in seen:
+        if not seen and args[-1].drop is not None:
             state = copy.deepcopy(bank)
             state.__dict__.pop("_install", None)
-            seen[kind] = (state, copy.deepcopy(args))
+            seen.append((state, copy.deepcopy(args)))
         install(*args)
 
     bank._install = spy
     for i in range(P, n):
         xi, z = _rows(streams, i)
         bank.update(xi, u[i], z)
-        if "drop" in seen:
+        if seen:
             break
     del bank._install
-    return seen
+    return seen[0]
 
 
 @needs_core
@@ -116,7 +115,7 @@ def test_indefinite_swap_takes_the_jittered_cholesky_on_both_paths():
     streams = _streams(n)
     u = streams[0][1]
     bank = AFVSGPBank.from_learners(_learners(streams, u), compiled=True)
-    state, (k, xi, ub, kss, k_new, cand) = _first_installs(bank, streams, u, n)["drop"]
+    state, (k, xi, ub, kss, k_new, cand) = _before_first_swap(bank, streams, u, n)
     m = int(state.n_inducing_[k])
     keep = np.delete(np.arange(m), cand.drop)
     kn = k_new[keep]
