@@ -32,10 +32,10 @@ static PyObject *np_exp; /* numpy.exp: vectorised, many times faster than libm's
 #define NOT_PD -2     /* a Cholesky factorisation failed: the numpy methods jitter */
 #define NO_MEMORY -3
 
-/* The hot loops also in an AVX2 version, chosen at load time (no FMA: the rounding is the
- * same whichever version runs). */
+/* The hot loops also in AVX-512 and AVX2 versions, chosen at load time (no FMA, and every
+ * vector operation elementwise: the rounding is the same whichever version runs). */
 #if defined(__GNUC__) && defined(__x86_64__) && defined(__linux__)
-#define WIDE __attribute__((target_clones("avx2", "default")))
+#define WIDE __attribute__((target_clones("avx512f", "avx2", "default")))
 #else
 #define WIDE
 #endif
@@ -54,28 +54,115 @@ typedef struct {
     int K, b, c, mp, P; /* learners, input and ubar dimensions, inducing slots, window */
 } Dims;
 
+/* Small loops, inlined into the WIDE functions that call them (and so vectorised for each
+ * clone). */
+
 /* y += a x + b w (n) */
-WIDE static void axpby(double *restrict y, double a, const double *restrict x, double b,
-                  const double *restrict w, int n)
+static inline void axpby(double *restrict y, double a, const double *restrict x, double b,
+                         const double *restrict w, int n)
 {
     for (int l = 0; l < n; l++)
         y[l] += a * x[l] + b * w[l];
 }
 
 /* y += a x (n) */
-WIDE static void axpy(double *restrict y, double a, const double *restrict x, int n)
+static inline void axpy(double *restrict y, double a, const double *restrict x, int n)
 {
     for (int l = 0; l < n; l++)
         y[l] += a * x[l];
 }
 
-/* v = A x for a symmetric (n, n) A, by columns (independent accumulators) */
-static void symv(const double *restrict A, const double *restrict x, int n, double *restrict v)
+/* eight float64 lanes (GCC/Clang vector extension): one AVX-512 register in the avx512f clone,
+ * two AVX2 ones in the avx2 clone, four SSE2 ones in the default one; elementwise mul, add and
+ * div round like the scalar ones */
+typedef double v8d __attribute__((vector_size(64)));
+
+/* out_a[j], out_b[j] (n) = sum_r wa[r] rows[r, j], sum_r wb[r] rows[r, j] over r = 0 .. nrows - 1
+ * in order, from 0.0 (rows row-major with stride ld; out_b, wb NULL for one sum): each output
+ * the same sum of the same products as nrows calls of axpy, but 32 outputs at a time in
+ * independent vector accumulators (blocks of eight starting at min(8t, n - 8): the last
+ * overlaps the one before and recomputes the same values) */
+__attribute__((always_inline)) static inline void
+weighted_row_sums2(const double *restrict rows, size_t ld, const double *restrict wa,
+                   const double *restrict wb, int nrows, int n, double *restrict out_a,
+                   double *restrict out_b)
 {
-    for (int p = 0; p < n; p++)
-        v[p] = 0.0;
-    for (int l = 0; l < n; l++)
-        axpy(v, x[l], A + (size_t)l * n, n);
+    if (n < 8) {
+        for (int j = 0; j < n; j++)
+            out_a[j] = 0.0;
+        for (int r = 0; r < nrows; r++)
+            axpy(out_a, wa[r], rows + (size_t)r * ld, n);
+        if (out_b != NULL) {
+            for (int j = 0; j < n; j++)
+                out_b[j] = 0.0;
+            for (int r = 0; r < nrows; r++)
+                axpy(out_b, wb[r], rows + (size_t)r * ld, n);
+        }
+        return;
+    }
+    const int nb = (n + 7) / 8;
+    for (int t = 0; t < nb; t += 4) {
+        int j[4];
+        for (int u = 0; u < 4; u++)
+            j[u] = 8 * (t + u) + 8 <= n ? 8 * (t + u) : n - 8;
+        v8d a[4], b[4];
+        for (int u = 0; u < 4; u++)
+            a[u] = b[u] = (v8d){0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0};
+        if (out_b != NULL) {
+            for (int r = 0; r < nrows; r++) {
+                const double *row = rows + (size_t)r * ld, x = wa[r], y = wb[r];
+                const v8d xv = {x, x, x, x, x, x, x, x}, yv = {y, y, y, y, y, y, y, y};
+                for (int u = 0; u < 4; u++) {
+                    v8d s;
+                    memcpy(&s, row + j[u], sizeof s);
+                    a[u] += xv * s;
+                    b[u] += yv * s;
+                }
+            }
+        } else {
+            for (int r = 0; r < nrows; r++) {
+                const double *row = rows + (size_t)r * ld, x = wa[r];
+                const v8d xv = {x, x, x, x, x, x, x, x};
+                for (int u = 0; u < 4; u++) {
+                    v8d s;
+                    memcpy(&s, row + j[u], sizeof s);
+                    a[u] += xv * s;
+                }
+            }
+        }
+        for (int u = 0; u < 4; u++) {
+            memcpy(out_a + j[u], &a[u], sizeof a[0]);
+            if (out_b != NULL)
+                memcpy(out_b + j[u], &b[u], sizeof b[0]);
+        }
+    }
+}
+
+/* out[j] (n) = sum_r wts[r] rows[r, j] in order (weighted_row_sums2 with one sum) */
+__attribute__((always_inline)) static inline void
+weighted_row_sums(const double *restrict rows, size_t ld, const double *restrict wts, int nrows,
+                  int n, double *restrict out)
+{
+    weighted_row_sums2(rows, ld, wts, NULL, nrows, n, out, NULL);
+}
+
+/* v = A x for a symmetric (n, n) A, by columns (x[l] times column l, summed over l in order) */
+static inline void symv(const double *restrict A, const double *restrict x, int n,
+                        double *restrict v)
+{
+    weighted_row_sums(A, (size_t)n, x, n, n, v);
+}
+
+/* prefetch bytes from p into the caches (for writing when write) */
+static inline void prefetch(const void *p, size_t bytes, int write)
+{
+    const char *c = p;
+    for (size_t o = 0; o < bytes; o += 64) {
+        if (write)
+            __builtin_prefetch(c + o, 1, 3);
+        else
+            __builtin_prefetch(c + o, 0, 3);
+    }
 }
 
 /* g (q, q): g_il = sum_p X[p, i] X[p, l] for the row-major (n, q) X with row stride ldx, the
@@ -95,61 +182,81 @@ WIDE static void gram_rows(const double *restrict X, int n, int ldx, int q, doub
     }
 }
 
-/* four float64 lanes (GCC/Clang vector extension: AVX2 in the wide clone, two SSE2 halves in
- * the default one); elementwise mul and add round like the scalar ones */
-typedef double v4d __attribute__((vector_size(32)));
+/* Row p of lower_solve_rows on the cnt blocks of eight columns starting at j[u]: each block
+ * from bp's values on entry (so a block may overlap another), bp <- (alpha bp - sum_{q<p}
+ * L_pq b_q) / L_pp in vector accumulators, stored at the end */
+__attribute__((always_inline)) static inline void
+solve_row_blocks(const double *restrict lp, int p, const double *restrict B, int ldb,
+                 double *restrict bp, double alpha, const int *j, int cnt)
+{
+    const double d = lp[p];
+    const v8d va = {alpha, alpha, alpha, alpha, alpha, alpha, alpha, alpha};
+    const v8d vd = {d, d, d, d, d, d, d, d};
+    v8d acc[4];
+    for (int u = 0; u < cnt; u++) {
+        memcpy(&acc[u], bp + j[u], sizeof acc[0]);
+        acc[u] *= va;
+    }
+    for (int q = 0; q < p; q++) {
+        const double *bq = B + (size_t)q * ldb;
+        const double l = lp[q];
+        const v8d lv = {l, l, l, l, l, l, l, l};
+        for (int u = 0; u < cnt; u++) {
+            v8d x;
+            memcpy(&x, bq + j[u], sizeof x);
+            acc[u] -= lv * x;
+        }
+    }
+    for (int u = 0; u < cnt; u++) {
+        acc[u] /= vd;
+        memcpy(bp + j[u], &acc[u], sizeof acc[0]);
+    }
+}
 
 /* B <- alpha L^-1 B by forward substitution over rows, b_p <- (alpha b_p - sum_{q<p} L_pq
  * b_q) / L_pp: L (n, n) lower triangular and row-major, B (n, cols) row-major with row stride
- * ldb (each row a vector of the cols right-hand sides); eight or four columns at a time in
- * registers */
+ * ldb (each row a vector of the cols right-hand sides). With cols >= 8, up to 32 columns at a
+ * time in independent vector accumulators: blocks of eight, plus one at cols - 8 when cols is
+ * not a multiple of 8, which overlaps the block before it (the same values again); the groups
+ * run from the last, so that every block starts from the values on entry. */
 WIDE static void lower_solve_rows(const double *restrict L, int n, double *restrict B, int ldb,
                                   int cols, double alpha)
 {
+    if (cols < 8) {
+        for (int p = 0; p < n; p++) {
+            double *bp = B + (size_t)p * ldb;
+            const double *lp = L + (size_t)p * n;
+            for (int j = 0; j < cols; j++) {
+                double acc = alpha * bp[j];
+                for (int q = 0; q < p; q++)
+                    acc -= lp[q] * B[(size_t)q * ldb + j];
+                bp[j] = acc / lp[p];
+            }
+        }
+        return;
+    }
+    const int nf = cols / 8, nb = nf + (cols % 8 != 0);
     for (int p = 0; p < n; p++) {
         double *bp = B + (size_t)p * ldb;
         const double *lp = L + (size_t)p * n;
-        const double d = lp[p];
-        const v4d va = {alpha, alpha, alpha, alpha}, vd = {d, d, d, d};
-        int j = 0;
-        for (; j + 8 <= cols; j += 8) {
-            v4d lo, hi;
-            memcpy(&lo, bp + j, sizeof lo);
-            memcpy(&hi, bp + j + 4, sizeof hi);
-            lo *= va;
-            hi *= va;
-            for (int q = 0; q < p; q++) {
-                const double *bq = B + (size_t)q * ldb + j;
-                const v4d l = {lp[q], lp[q], lp[q], lp[q]};
-                v4d x0, x1;
-                memcpy(&x0, bq, sizeof x0);
-                memcpy(&x1, bq + 4, sizeof x1);
-                lo -= l * x0;
-                hi -= l * x1;
+        for (int g = nb; g > 0; g -= 4) {
+            const int g0 = g >= 4 ? g - 4 : 0, cnt = g - g0;
+            int j[4];
+            for (int u = 0; u < cnt; u++)
+                j[u] = g0 + u < nf ? 8 * (g0 + u) : cols - 8;
+            switch (cnt) { /* constant counts: the accumulators stay in registers */
+            case 4:
+                solve_row_blocks(lp, p, B, ldb, bp, alpha, j, 4);
+                break;
+            case 3:
+                solve_row_blocks(lp, p, B, ldb, bp, alpha, j, 3);
+                break;
+            case 2:
+                solve_row_blocks(lp, p, B, ldb, bp, alpha, j, 2);
+                break;
+            default:
+                solve_row_blocks(lp, p, B, ldb, bp, alpha, j, 1);
             }
-            lo /= vd;
-            hi /= vd;
-            memcpy(bp + j, &lo, sizeof lo);
-            memcpy(bp + j + 4, &hi, sizeof hi);
-        }
-        for (; j + 4 <= cols; j += 4) {
-            v4d lo;
-            memcpy(&lo, bp + j, sizeof lo);
-            lo *= va;
-            for (int q = 0; q < p; q++) {
-                const v4d l = {lp[q], lp[q], lp[q], lp[q]};
-                v4d x0;
-                memcpy(&x0, B + (size_t)q * ldb + j, sizeof x0);
-                lo -= l * x0;
-            }
-            lo /= vd;
-            memcpy(bp + j, &lo, sizeof lo);
-        }
-        for (; j < cols; j++) {
-            double acc = alpha * bp[j];
-            for (int q = 0; q < p; q++)
-                acc -= lp[q] * B[(size_t)q * ldb + j];
-            bp[j] = acc / d;
         }
     }
 }
@@ -172,33 +279,12 @@ WIDE static int exponents(const Dims *D, const double *ind_xi, const double *log
             row[j] = t * t;
         }
     }
+    for (size_t i = 0; i < c; i += 2) /* the sums over d in order, two kernels at a time */
+        weighted_row_sums2(sq, mp, L2 + i * b, i + 1 < c ? L2 + (i + 1) * b : NULL, (int)b,
+                           (int)mp, e + i * mp, i + 1 < c ? e + (i + 1) * mp : NULL);
     int bad = 0;
     for (size_t i = 0; i < c; i++) {
         double *er = e + i * mp;
-        const double *w = L2 + i * b;
-        /* eight sums in two vector registers, over d in order; the last block overlaps the
-         * one before (the same sums again, the same values) */
-        for (size_t j8 = 0; mp >= 8 && j8 < mp; j8 += 8) {
-            const size_t j = j8 + 8 <= mp ? j8 : mp - 8;
-            v4d lo = {0.0, 0.0, 0.0, 0.0}, hi = lo;
-            for (size_t d = 0; d < b; d++) {
-                const double *sr = sq + d * mp + j;
-                v4d s0, s1;
-                memcpy(&s0, sr, sizeof s0);
-                memcpy(&s1, sr + 4, sizeof s1);
-                const v4d wd = {w[d], w[d], w[d], w[d]};
-                lo += wd * s0;
-                hi += wd * s1;
-            }
-            memcpy(er + j, &lo, sizeof lo);
-            memcpy(er + j + 4, &hi, sizeof hi);
-        }
-        for (size_t j = mp >= 8 ? mp : 0; j < mp; j++) {
-            double a = 0.0;
-            for (size_t d = 0; d < b; d++)
-                a += w[d] * sq[d * mp + j];
-            er[j] = a;
-        }
         for (size_t j = 0; j < mp; j++) {
             er[j] = lv[i] - 0.5 * er[j];
             bad |= isnan(er[j]);
@@ -262,6 +348,65 @@ static const double *Ki_(const double *kinv, int k, Py_ssize_t mp)
 }
 
 /* ------------------------------------------------------------------ update */
+
+/* k_new (mp) = ub' (Kt * Ubar) of one learner (eq. 22): the rows of kt (c, mp) are scaled
+ * in place by those of U (the inducing points' ubar, transposed), then summed with weights
+ * ub in order */
+WIDE static void kernel_row(double *restrict kt, const double *restrict U,
+                            const double *restrict ub, int c, int mp, double *restrict kn)
+{
+    for (int i = 0; i < c * mp; i++)
+        kt[i] *= U[i];
+    weighted_row_sums(kt, (size_t)mp, ub, c, mp, kn);
+}
+
+/* One learner's window step on [r, S] st (mp, mp + 1) (eqs. 24-26): st += s kn [z, kn'] (zs =
+ * z s) and, when full, + f ko [z_old, ko'] (zo = z_old f); then the slot's kernel row ko <- kn.
+ * Returns kn' K_oo^-1 kn (eq. 27) with Ki = K_oo^-1. */
+WIDE static double window_step(double *restrict st, const double *restrict kn,
+                               double *restrict ko, double s, double zs, int full, double f,
+                               double zo, const double *restrict Ki, int mp)
+{
+    if (full) {
+        for (int p = 0; p < mp; p++) {
+            double *row = st + p * (mp + 1);
+            const double kp = kn[p], op = ko[p];
+            row[0] += kp * zs + op * zo;
+            axpby(row + 1, kp * s, kn, op * f, ko, mp);
+        }
+    } else {
+        for (int p = 0; p < mp; p++) {
+            double *row = st + p * (mp + 1);
+            row[0] += kn[p] * zs;
+            axpy(row + 1, kn[p] * s, kn, mp);
+        }
+    }
+    memcpy(ko, kn, sizeof(double) * (size_t)mp);
+    double v[MAXW];
+    symv(Ki, kn, mp, v);
+    double q = 0.0;
+    for (int p = 0; p < mp; p++)
+        q += kn[p] * v[p];
+    return q;
+}
+
+/* Prefetch what the window step of learner k reads and writes (its K_oo^-1, [r, S], the
+ * slot's kernel row and its column of the window's inputs): the 21 learners' state, ~0.5 MB,
+ * is out of the caches between control steps, and the hardware prefetchers do not run ahead
+ * across these many short arrays. */
+static inline void prefetch_learner(const Dims *D, int k, int slot, const double *kinv,
+                                    const double *stats, const double *wk, const double *wxt,
+                                    const double *wubt)
+{
+    const size_t mp = (size_t)D->mp, b = (size_t)D->b, c = (size_t)D->c, P = (size_t)D->P;
+    prefetch(kinv + k * mp * mp, sizeof(double) * mp * mp, 0);
+    prefetch(stats + k * mp * (mp + 1), sizeof(double) * mp * (mp + 1), 1);
+    prefetch(wk + (k * P + (size_t)slot) * mp, sizeof(double) * mp, 1);
+    for (size_t d = 0; d < b; d++)
+        __builtin_prefetch(wxt + (k * b + d) * P + (size_t)slot, 1, 3);
+    for (size_t i = 0; i < c; i++)
+        __builtin_prefetch(wubt + (k * c + i) * P + (size_t)slot, 1, 3);
+}
 
 /* The window step of every learner, all at one ring position (eqs. 24-26), for finite
  * samples: with kt of the new sample, k_new = ubar' Kt, k_ss = s . ubar^2; scale <- scale /
@@ -336,60 +481,37 @@ static PyObject *py_update(PyObject *self, PyObject *args)
         release_all(bf, N);
         return PyErr_NoMemory();
     }
-    for (int k = 0; k < D.K && rc == 0; k++)
+    for (int k = 0; k < D.K && rc == 0; k++) {
+        if (k + 1 < D.K)
+            prefetch(oxi + (k + 1) * mp * b, sizeof(double) * (size_t)(mp * b), 0);
         rc = exponents(&D, oxi, lvar, il2, k, xi + k * b, E + k * c * mp, sq);
+    }
     PyMem_Free(sq);
     if (rc == 0)
         rc = exp_inplace(o[WORK], K * c * mp);
     for (int k = 0; k < D.K && rc == 0; k++) {
-        double *kt = E + k * c * mp;
-        const double *U = ubt + k * c * mp;
-        double *kn = knew + k * mp;
-        for (int j = 0; j < mp; j++)
-            kn[j] = 0.0;
-        for (int i = 0; i < c; i++) {
-            double *kr = kt + i * mp;
-            const double *ur = U + i * mp;
-            for (int j = 0; j < mp; j++)
-                kr[j] *= ur[j];
-            axpy(kn, ub[i], kr, (int)mp);
-        }
+        if (k + 1 < D.K)
+            prefetch(ubt + (k + 1) * c * mp, sizeof(double) * (size_t)(c * mp), 0);
+        kernel_row(E + k * c * mp, ubt + k * c * mp, ub, (int)c, (int)mp, knew + k * mp);
         double s = 0.0;
         for (int i = 0; i < c; i++)
             s += var[k * c + i] * (ub[i] * ub[i]);
         kss[k] = s;
     }
     for (int k = 0; k < D.K && rc == 0; k++) {
-        const double s = scale[k] * inv_phi, zs = z[k] * s;
-        const double *kn = knew + k * mp;
-        double *st = stats + k * mp * (mp + 1), *ko = wk + (k * P + slot) * mp;
+        if (k + 1 < D.K)
+            prefetch_learner(&D, k + 1, slot, kinv, stats, wk, wxt, wubt);
+        const double s = scale[k] * inv_phi;
+        double *ko = wk + (k * P + slot) * mp;
         scale[k] = s;
-        if (full) {
-            const double f = -phi_p * s, zo = wz[k * P + slot] * f;
-            for (int p = 0; p < mp; p++) {
-                double *row = st + p * (mp + 1);
-                const double kp = kn[p], op = ko[p];
-                row[0] += kp * zs + op * zo;
-                axpby(row + 1, kp * s, kn, op * f, ko, (int)mp);
-            }
-        } else {
-            for (int p = 0; p < mp; p++) {
-                double *row = st + p * (mp + 1);
-                row[0] += kn[p] * zs;
-                axpy(row + 1, kn[p] * s, kn, (int)mp);
-            }
-        }
-        memcpy(ko, kn, sizeof(double) * (size_t)mp);
+        const double f = full ? -phi_p * s : 0.0, zo = full ? wz[k * P + slot] * f : 0.0;
+        const double q = window_step(stats + k * mp * (mp + 1), knew + k * mp, ko, s, z[k] * s,
+                                     full, f, zo, Ki_(kinv, k, mp), (int)mp);
         wz[k * P + slot] = z[k];
         for (int d = 0; d < b; d++)
             wxt[(k * b + d) * P + slot] = xi[k * b + d];
         for (int i = 0; i < c; i++)
             wubt[(k * c + i) * P + slot] = ub[i];
-        double v[MAXW];
-        symv(Ki_(kinv, k, mp), kn, (int)mp, v);
-        double q = 0.0;
-        for (int p = 0; p < mp; p++)
-            q += kn[p] * v[p];
         resid[k] = kss[k] - q;
         const double floor_ = add_floor * kss[k];
         if (resid[k] > (floor_ > noise[k] ? floor_ : noise[k])) {
@@ -548,6 +670,14 @@ static PyObject *py_predict(PyObject *self, PyObject *args)
 
 /* ------------------------------------------------------------------ inducing candidate */
 
+/* srow (m) = lcs' wk[:cnt, :m] (the new row of S, eq. 30; wk row stride ld), the sum over the
+ * window in slot order */
+WIDE static void window_row_sums(const double *wk, size_t ld, const double *lcs, int cnt, int m,
+                                 double *srow)
+{
+    weighted_row_sums(wk, ld, lcs, cnt, m, srow);
+}
+
 /* Learner k's newest sample (x, ubar, k_ss, k_new) as an inducing point (eqs. 27-30), the
  * decision only: lvec = L^-1 k_new[:m], d = k_ss - |lvec|^2; if d <= 1e-6 k_ss, 0. Else the
  * statistics are renormalised (scale 1), col = k(x, window) (slot order), lc = phi^age col,
@@ -619,7 +749,7 @@ static PyObject *py_candidate(PyObject *self, PyObject *args)
             st[i] *= f;
         *scale = 1.0;
     }
-    tmp = PyMem_Malloc(sizeof(double) * (size_t)(3 * (m + 1) * (m + 1) + (m + 1)));
+    tmp = PyMem_Malloc(sizeof(double) * (size_t)(3 * (m + 1) * (m + 1) + (m + 1) + cnt));
     if (tmp == NULL) {
         code = NO_MEMORY;
         goto done;
@@ -637,15 +767,15 @@ static PyObject *py_candidate(PyObject *self, PyObject *args)
     for (int i = 0; i < c; i++)
         add_scaled_product(col, ub[i], E + (size_t)i * cnt, wubt + i * P, cnt);
     /* weights phi^age (age (head - t) mod P), the new row of [r, S] (eq. 30) */
-    for (int l = 0; l < m; l++)
-        srow[l] = 0.0;
+    double *lcs = tmp + 3 * (m + 1) * (m + 1) + (m + 1);
     for (int t = 0; t < cnt; t++) {
         const int age = t <= head ? head - t : head - t + (int)P;
         const double lc = rev[P - 1 - age] * col[t];
-        axpy(srow, lc, wk + (size_t)t * mp, m);
+        lcs[t] = lc;
         sdd += lc * col[t];
         rnew += lc * wz[t];
     }
+    window_row_sums(wk, (size_t)mp, lcs, cnt, m, srow);
     dd = d + jitter;
     if (m + 1 > mp) {
         /* eq. 28 on the enlarged set: K_e^-1 = [[K^-1 + w w'/dd, -w/dd], [-w'/dd, 1/dd]] */
