@@ -166,9 +166,43 @@ static inline void prefetch(const void *p, size_t bytes, int write)
 }
 
 /* g (q, q): g_il = sum_p X[p, i] X[p, l] for the row-major (n, q) X with row stride ldx, the
- * sum over p outermost (a rank-1 update by each row) */
+ * sum over p outermost (a rank-1 update by each row). For q = 8 or 9 (the Franka's ubar and
+ * [ubar, 1]) the sums stay in vector accumulators: row i of g's first eight columns in one,
+ * the ninth column's first eight rows in another (x_i x_8 = x_8 x_i exactly, so g_8l = g_l8) */
 WIDE static void gram_rows(const double *restrict X, int n, int ldx, int q, double *restrict g)
 {
+    if (q == 8 || q == 9) {
+        const v8d zero = {0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0};
+        v8d acc[9], last = zero;
+        double corner = 0.0;
+        for (int i = 0; i < 9; i++)
+            acc[i] = zero;
+        for (int p = 0; p < n; p++) {
+            const double *row = X + (size_t)p * ldx;
+            v8d r;
+            memcpy(&r, row, sizeof r);
+            for (int i = 0; i < 8; i++) {
+                const v8d xi = {row[i], row[i], row[i], row[i], row[i], row[i], row[i], row[i]};
+                acc[i] += xi * r;
+            }
+            if (q == 9) {
+                const double x8 = row[8];
+                const v8d xv = {x8, x8, x8, x8, x8, x8, x8, x8};
+                acc[8] += xv * r;
+                last += r * xv;
+                corner += x8 * x8;
+            }
+        }
+        for (int i = 0; i < 8; i++)
+            memcpy(g + i * q, &acc[i], sizeof acc[0]);
+        if (q == 9) {
+            memcpy(g + 8 * q, &acc[8], sizeof acc[0]);
+            for (int i = 0; i < 8; i++)
+                g[i * q + 8] = last[i];
+            g[8 * q + 8] = corner;
+        }
+        return;
+    }
     for (int i = 0; i < q * q; i++)
         g[i] = 0.0;
     for (int p = 0; p < n; p++) {
