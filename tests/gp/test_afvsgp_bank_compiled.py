@@ -12,7 +12,7 @@ import pytest
 from gp_batch_formulas import synthetic
 from test_afvsgp_bank import K, P, _assert_equals_batch_posterior, _learners, _rows, _streams
 
-from afvsgp_gym.gp import afvsgp_bank
+from afvsgp_gym.gp import AFVSGP, ADPKernel, afvsgp_bank
 from afvsgp_gym.gp.afvsgp_bank import AFVSGPBank
 
 EPS = np.finfo(np.float64).eps
@@ -80,6 +80,52 @@ def test_compiled_equals_numpy_through_inducing_events(max_candidates):
         assert np.all(np.abs(low @ low.T - koo) <= 2 * gamma * np.abs(low) @ np.abs(low.T))
         resid = comp._koo_inv[k, :m, :m] @ koo - np.eye(m)
         assert np.abs(resid).max() <= 10 * m * np.linalg.cond(koo) * EPS
+
+
+@needs_core
+@pytest.mark.parametrize("b, m, num_inducing", [(20, 7, 30), (5, 7, 41), (4, 3, 12), (3, 2, 5)])
+def test_compiled_equals_numpy_at_the_vector_paths_shapes(b, m, num_inducing):
+    """At the shapes that take the core's vector paths (blocks of eight outputs, the last one
+    overlapping the one before, in groups of four: the Franka's input b = 20, ubar of 8 and
+    Mp = 30; Mp = 41, a second group; Mp = 12, one overlapping block; Mp = 5, below a block;
+    ubar of 8, 4 and 3, kernels summed two at a time and the Gram products of 8 and 9
+    columns) the compiled bank makes the numpy methods' inducing-set decisions and predicts
+    their moments, to the conditioning tolerance of the test above."""
+    k_learners, window = 3, 60
+    n = window + 6 * window
+    rng = np.random.default_rng(b * 100 + num_inducing)
+    streams = [synthetic(np.random.default_rng(30 + k), n, b=b, m=m, noise_std=0.05)
+               for k in range(k_learners)]
+    u = streams[0][1]
+    learners = []
+    for k, (xi, _, z, _) in enumerate(streams):
+        ls = np.sqrt(b) * (1.0 + 0.2 * k) * np.linspace(0.8, 1.4, (m + 1) * b)
+        ker = ADPKernel(ls.reshape(m + 1, b), np.linspace(1.0, 0.4, m + 1))
+        learners.append(AFVSGP(ker, 0.0025 * (k + 1), num_inducing=num_inducing,
+                               window=window, forgetting=0.95, add_threshold=0.05,
+                               swap_margin=0.0).fit(xi[:window], u[:window], z[:window], False))
+    comp = AFVSGPBank.from_learners(learners, compiled=True)
+    ref = AFVSGPBank.from_learners(learners, compiled=False)
+    worst, cond = 0.0, 1.0
+    for i in range(window, n):
+        xi = np.array([s[0][i] for s in streams])
+        z = np.array([s[2][i] for s in streams])
+        np.testing.assert_array_equal(comp.update(xi, u[i], z), ref.update(xi, u[i], z))
+        if i % 3 == 0:
+            rows = np.sort(rng.choice(k_learners, size=rng.integers(1, k_learners + 1),
+                                      replace=False))
+            xs = rng.normal(size=(len(rows), b))
+            bc, sc = comp.predict_affine(xs, rows)
+            br, sr = ref.predict_affine(xs, rows)
+            worst = max(worst, _rel(bc, br), _rel(sc, sr))
+            cond = max(cond, float(ref.conditioning()[1].max()))
+    np.testing.assert_array_equal(comp.n_added_, ref.n_added_)
+    np.testing.assert_array_equal(comp.n_removed_, ref.n_removed_)
+    np.testing.assert_array_equal(comp.n_inducing_, ref.n_inducing_)
+    assert comp.n_added_.min() > 0
+    assert 0.0 < worst < 1e3 * cond * EPS, (worst, cond)
+    for name in ("_stats", "_wk", "_koo", "_koo_inv", "_ind_xi"):
+        assert _rel(getattr(comp, name), getattr(ref, name)) < 1e3 * cond * EPS, name
 
 
 def _before_first_swap(bank, streams, u, n):
