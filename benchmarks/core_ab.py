@@ -111,16 +111,16 @@ def interleaved(fn, cores: dict, n: int, thrash: bool = False) -> dict[str, floa
 
 def lockstep(cores: dict, seed: int, steps: int = 1500) -> dict[str, dict[str, float]]:
     """Two 21-barrier episodes of ``seed`` advanced one step each in turn, one per core."""
-    eps = {}
-    for name, core in cores.items():
-        bank_module._core = core
-        eps[name] = TimedEpisode(CONFIGS[ARM], steps=steps, seed=seed)
-    order = list(cores)
-    while any(ep.remaining > 0 for ep in eps.values()):
-        for name in order:
-            bank_module._core = cores[name]
-            eps[name].step()
-        order.reverse()
+    eps = {name: TimedEpisode(CONFIGS[ARM], steps=steps, seed=seed) for name in cores}
+    installed, order = bank_module._core, list(cores)
+    try:
+        while any(ep.remaining > 0 for ep in eps.values()):
+            for name in order:
+                bank_module._core = cores[name]
+                eps[name].step()
+            order.reverse()
+    finally:
+        bank_module._core = installed
     out = {}
     for name, ep in eps.items():
         r = ep.result()
@@ -151,14 +151,12 @@ def main(argv: list[str] | None = None) -> None:
             label = f"{name}{' after 8 MB written' if thrash else ''}"
             print(f"{label:32s} old {med['old'] * 1e6:7.1f} us  new {med['new'] * 1e6:7.1f} us"
                   f"  new/old {med['new'] / med['old']:.3f}", flush=True)
-    bank_module._core = new
     for seed in args.episode_seeds:
         res = lockstep(cores, seed)
         for key in res["old"]:
             o, n = res["old"][key], res["new"][key]
             print(f"episode seed {seed}, {key:16s} old {o * 1e6:7.0f} us  new {n * 1e6:7.0f} us"
                   f"  new/old {n / o:.3f}", flush=True)
-    bank_module._core = new
 
 
 if __name__ == "__main__":

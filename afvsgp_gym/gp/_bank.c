@@ -88,15 +88,13 @@ weighted_row_sums2(const double *restrict rows, size_t ld, const double *restric
                    double *restrict out_b)
 {
     if (n < 8) {
-        for (int j = 0; j < n; j++)
-            out_a[j] = 0.0;
-        for (int r = 0; r < nrows; r++)
-            axpy(out_a, wa[r], rows + (size_t)r * ld, n);
-        if (out_b != NULL) {
+        for (int pass = 0; pass < (out_b != NULL ? 2 : 1); pass++) {
+            double *out = pass ? out_b : out_a;
+            const double *w = pass ? wb : wa;
             for (int j = 0; j < n; j++)
-                out_b[j] = 0.0;
+                out[j] = 0.0;
             for (int r = 0; r < nrows; r++)
-                axpy(out_b, wb[r], rows + (size_t)r * ld, n);
+                axpy(out, w[r], rows + (size_t)r * ld, n);
         }
         return;
     }
@@ -705,7 +703,7 @@ static PyObject *py_predict(PyObject *self, PyObject *args)
 /* ------------------------------------------------------------------ inducing candidate */
 
 /* srow (m) = lcs' wk[:cnt, :m] (the new row of S, eq. 30; wk row stride ld), the sum over the
- * window in slot order */
+ * window in slot order (a WIDE function, so that the sum gets the vector clones) */
 WIDE static void window_row_sums(const double *wk, size_t ld, const double *lcs, int cnt, int m,
                                  double *srow)
 {

@@ -37,6 +37,30 @@ def _rel(a, b):
     return float(np.max(np.abs(a - b)) / np.max(np.abs(b)))
 
 
+def _stream_side_by_side(comp, ref, streams, u, steps, every, seed):
+    """Stream ``steps`` of ``streams`` into the compiled and numpy banks side by side, with
+    equal update masks and, at the end, equal inducing-set decisions; every ``every`` steps
+    predict random subsets of learners at random points. Returns (worst relative difference
+    of the moments, largest cond(K_oo + S/s2) seen)."""
+    rng = np.random.default_rng(seed)
+    n_learners, dim = comp.n_learners, comp.input_dim
+    worst, cond = 0.0, 1.0
+    for i in steps:
+        xi, z = _rows(streams, i)
+        np.testing.assert_array_equal(comp.update(xi, u[i], z), ref.update(xi, u[i], z))
+        if i % every == 0:
+            rows = np.sort(rng.choice(n_learners, size=rng.integers(1, n_learners + 1),
+                                      replace=False))
+            xs = rng.normal(size=(len(rows), dim))
+            bc, sc = comp.predict_affine(xs, rows)
+            br, sr = ref.predict_affine(xs, rows)
+            worst = max(worst, _rel(bc, br), _rel(sc, sr))
+            cond = max(cond, float(ref.conditioning()[1].max()))
+    for name in ("n_added_", "n_removed_", "n_inducing_"):
+        np.testing.assert_array_equal(getattr(comp, name), getattr(ref, name), err_msg=name)
+    return worst, cond
+
+
 @needs_core
 @pytest.mark.parametrize("max_candidates", [None, 1])
 def test_compiled_equals_numpy_through_inducing_events(max_candidates):
@@ -50,20 +74,7 @@ def test_compiled_equals_numpy_through_inducing_events(max_candidates):
     u = streams[0][1]
     comp, ref = _pair(streams, u)
     comp.max_inducing_candidates = ref.max_inducing_candidates = max_candidates
-    rng = np.random.default_rng(4)
-    worst, cond = 0.0, 1.0
-    for i in range(P, n):
-        xi, z = _rows(streams, i)
-        np.testing.assert_array_equal(comp.update(xi, u[i], z), ref.update(xi, u[i], z))
-        if i % 5 == 0:
-            rows = np.sort(rng.choice(K, size=rng.integers(1, K + 1), replace=False))
-            xs = rng.normal(size=(len(rows), 3))
-            bc, sc = comp.predict_affine(xs, rows)
-            br, sr = ref.predict_affine(xs, rows)
-            worst = max(worst, _rel(bc, br), _rel(sc, sr))
-            cond = max(cond, float(ref.conditioning()[1].max()))
-    np.testing.assert_array_equal(comp.n_added_, ref.n_added_)
-    np.testing.assert_array_equal(comp.n_removed_, ref.n_removed_)
+    worst, cond = _stream_side_by_side(comp, ref, streams, u, range(P, n), every=5, seed=4)
     assert comp.n_added_.min() > 20 and comp.n_removed_.min() > 0
     assert 0.0 < worst < 1e3 * cond * EPS, (worst, cond)
     for name in ("_stats", "_wk", "_koo", "_l_oo", "_ind_xi", "_scale"):
@@ -93,7 +104,6 @@ def test_compiled_equals_numpy_at_the_vector_paths_shapes(b, m, num_inducing):
     their moments, to the conditioning tolerance of the test above."""
     k_learners, window = 3, 60
     n = window + 6 * window
-    rng = np.random.default_rng(b * 100 + num_inducing)
     streams = [synthetic(np.random.default_rng(30 + k), n, b=b, m=m, noise_std=0.05)
                for k in range(k_learners)]
     u = streams[0][1]
@@ -106,22 +116,8 @@ def test_compiled_equals_numpy_at_the_vector_paths_shapes(b, m, num_inducing):
                                swap_margin=0.0).fit(xi[:window], u[:window], z[:window], False))
     comp = AFVSGPBank.from_learners(learners, compiled=True)
     ref = AFVSGPBank.from_learners(learners, compiled=False)
-    worst, cond = 0.0, 1.0
-    for i in range(window, n):
-        xi = np.array([s[0][i] for s in streams])
-        z = np.array([s[2][i] for s in streams])
-        np.testing.assert_array_equal(comp.update(xi, u[i], z), ref.update(xi, u[i], z))
-        if i % 3 == 0:
-            rows = np.sort(rng.choice(k_learners, size=rng.integers(1, k_learners + 1),
-                                      replace=False))
-            xs = rng.normal(size=(len(rows), b))
-            bc, sc = comp.predict_affine(xs, rows)
-            br, sr = ref.predict_affine(xs, rows)
-            worst = max(worst, _rel(bc, br), _rel(sc, sr))
-            cond = max(cond, float(ref.conditioning()[1].max()))
-    np.testing.assert_array_equal(comp.n_added_, ref.n_added_)
-    np.testing.assert_array_equal(comp.n_removed_, ref.n_removed_)
-    np.testing.assert_array_equal(comp.n_inducing_, ref.n_inducing_)
+    worst, cond = _stream_side_by_side(comp, ref, streams, u, range(window, n), every=3,
+                                       seed=b * 100 + num_inducing)
     assert comp.n_added_.min() > 0
     assert 0.0 < worst < 1e3 * cond * EPS, (worst, cond)
     for name in ("_stats", "_wk", "_koo", "_koo_inv", "_ind_xi"):
