@@ -15,6 +15,7 @@ setup(
         Extension("afvsgp_gym.cbf._step", ["afvsgp_gym/cbf/_step.c"], optional=True,
                   depends=["afvsgp_gym/_cbuf.h"], extra_compile_args=["-O2", "-ffp-contract=off"]),
         Extension("afvsgp_gym.gp._bank", ["afvsgp_gym/gp/_bank.c"], optional=True,
-                  depends=["afvsgp_gym/_cbuf.h"], extra_compile_args=["-O3", "-ffp-contract=off"]),
+                  depends=["afvsgp_gym/_cbuf.h", "afvsgp_gym/gp/_bank_simd.h"],
+                  extra_compile_args=["-O3", "-ffp-contract=off"]),
     ],
 )

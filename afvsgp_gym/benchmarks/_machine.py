@@ -10,8 +10,9 @@ import numpy as np
 
 
 def machine() -> str:
-    """CPU model name (from /proc/cpuinfo where present), core count, Python version and
-    whether numpy runs AVX-512 kernels on it (its float64 ``exp`` is vectorised only there)."""
+    """CPU model name (from /proc/cpuinfo where present), core count, Python version, whether
+    numpy runs AVX-512 kernels on it (its float64 ``exp`` is vectorised only there) and which
+    copy of the learners' compiled hot loops runs."""
     cpu = platform.processor() or platform.machine()
     try:
         with open("/proc/cpuinfo") as fh:
@@ -23,7 +24,19 @@ def machine() -> str:
         pass
     out = f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}"
     avx512 = _numpy_avx512()
-    return out if avx512 is None else f"{out}, numpy AVX-512 {'yes' if avx512 else 'no'}"
+    if avx512 is not None:
+        out += f", numpy AVX-512 {'yes' if avx512 else 'no'}"
+    simd = _learners_core_simd()
+    return out if simd is None else f"{out}, learners' core {simd}"
+
+
+def _learners_core_simd() -> str | None:
+    """The copy of the learners' compiled hot loops in use ('avx512f', 'avx2', 'base')."""
+    try:
+        from afvsgp_gym.gp import _bank
+    except ImportError:
+        return None
+    return _bank.simd()[0]
 
 
 def _numpy_avx512() -> bool | None:

@@ -32,14 +32,6 @@ static PyObject *np_exp; /* numpy.exp: vectorised, many times faster than libm's
 #define NOT_PD -2     /* a Cholesky factorisation failed: the numpy methods jitter */
 #define NO_MEMORY -3
 
-/* The hot loops also in AVX-512 and AVX2 versions, chosen at load time (no FMA, and every
- * vector operation elementwise: the rounding is the same whichever version runs). */
-#if defined(__GNUC__) && defined(__x86_64__) && defined(__linux__)
-#define WIDE __attribute__((target_clones("avx512f", "avx2", "default")))
-#else
-#define WIDE
-#endif
-
 #define MAXW 4096 /* columns of the whitening workspace: Mp + c + 1 */
 #define MAXB 1024 /* input dimension */
 #define EXP_FAILED -4 /* numpy.exp raised (the exception is set) */
@@ -54,101 +46,79 @@ typedef struct {
     int K, b, c, mp, P; /* learners, input and ubar dimensions, inducing slots, window */
 } Dims;
 
-/* Small loops, inlined into the WIDE functions that call them (and so vectorised for each
- * clone). */
+/* The hot loops, one copy per instruction set (_bank_simd.h), chosen when the module loads:
+ * every copy does the same arithmetic in the same order, so the choice changes the speed,
+ * never a digit. */
+typedef struct {
+    const char *name;
+    void (*weighted_row_sums)(const double *, size_t, const double *, int, int, double *);
+    void (*symv)(const double *restrict, const double *restrict, int, double *restrict);
+    void (*gram_rows)(const double *restrict, int, int, int, double *restrict);
+    void (*lower_solve_rows)(const double *restrict, int, double *restrict, int, int, double);
+    int (*exponents)(const Dims *, const double *, const double *, const double *, int,
+                     const double *, double *restrict, double *restrict);
+    void (*window_exponents)(double *restrict, const double *restrict, double,
+                             const double *restrict, const double *restrict, int, int, int);
+    void (*add_scaled_product)(double *restrict, double, const double *restrict,
+                               const double *restrict, int);
+    void (*kernel_row)(double *restrict, const double *restrict, const double *restrict, int,
+                       int, double *restrict);
+    double (*window_step)(double *restrict, const double *restrict, double *restrict, double,
+                          double, int, double, double, const double *restrict, int);
+} Simd;
 
-/* y += a x + b w (n) */
-static inline void axpby(double *restrict y, double a, const double *restrict x, double b,
-                         const double *restrict w, int n)
+#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__)
+#define SIMD_X86 1
+#pragma GCC push_options
+#pragma GCC target("avx512f")
+#define VL 8
+#define SIMD(name) name##_avx512f
+#define SIMD_NAME "avx512f"
+#include "_bank_simd.h"
+#undef VL
+#undef SIMD
+#undef SIMD_NAME
+#pragma GCC pop_options
+#pragma GCC push_options
+#pragma GCC target("avx2")
+#define VL 4
+#define SIMD(name) name##_avx2
+#define SIMD_NAME "avx2"
+#include "_bank_simd.h"
+#undef VL
+#undef SIMD
+#undef SIMD_NAME
+#pragma GCC pop_options
+#endif
+#define VL 2 /* x86-64's SSE2, aarch64's NEON */
+#define SIMD(name) name##_base
+#define SIMD_NAME "base"
+#include "_bank_simd.h"
+#undef VL
+#undef SIMD
+#undef SIMD_NAME
+
+/* every copy, widest first */
+static const Simd *const simd_tables[] = {
+#ifdef SIMD_X86
+    &table_avx512f, &table_avx2,
+#endif
+    &table_base};
+#define N_SIMD ((int)(sizeof simd_tables / sizeof simd_tables[0]))
+
+static const Simd *simd = &table_base; /* the copy in use */
+
+/* whether this CPU runs copy t */
+static int simd_runs(const Simd *t)
 {
-    for (int l = 0; l < n; l++)
-        y[l] += a * x[l] + b * w[l];
-}
-
-/* y += a x (n) */
-static inline void axpy(double *restrict y, double a, const double *restrict x, int n)
-{
-    for (int l = 0; l < n; l++)
-        y[l] += a * x[l];
-}
-
-/* eight float64 lanes (GCC/Clang vector extension): one AVX-512 register in the avx512f clone,
- * two AVX2 ones in the avx2 clone, four SSE2 ones in the default one; elementwise mul, add and
- * div round like the scalar ones */
-typedef double v8d __attribute__((vector_size(64)));
-
-/* out_a[j], out_b[j] (n) = sum_r wa[r] rows[r, j], sum_r wb[r] rows[r, j] over r = 0 .. nrows - 1
- * in order, from 0.0 (rows row-major with stride ld; out_b, wb NULL for one sum): each output
- * the same sum of the same products as nrows calls of axpy, but 32 outputs at a time in
- * independent vector accumulators (blocks of eight starting at min(8t, n - 8): the last
- * overlaps the one before and recomputes the same values) */
-__attribute__((always_inline)) static inline void
-weighted_row_sums2(const double *restrict rows, size_t ld, const double *restrict wa,
-                   const double *restrict wb, int nrows, int n, double *restrict out_a,
-                   double *restrict out_b)
-{
-    if (n < 8) {
-        for (int pass = 0; pass < (out_b != NULL ? 2 : 1); pass++) {
-            double *out = pass ? out_b : out_a;
-            const double *w = pass ? wb : wa;
-            for (int j = 0; j < n; j++)
-                out[j] = 0.0;
-            for (int r = 0; r < nrows; r++)
-                axpy(out, w[r], rows + (size_t)r * ld, n);
-        }
-        return;
-    }
-    const int nb = (n + 7) / 8;
-    for (int t = 0; t < nb; t += 4) {
-        int j[4];
-        for (int u = 0; u < 4; u++)
-            j[u] = 8 * (t + u) + 8 <= n ? 8 * (t + u) : n - 8;
-        v8d a[4], b[4];
-        for (int u = 0; u < 4; u++)
-            a[u] = b[u] = (v8d){0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0};
-        if (out_b != NULL) {
-            for (int r = 0; r < nrows; r++) {
-                const double *row = rows + (size_t)r * ld, x = wa[r], y = wb[r];
-                const v8d xv = {x, x, x, x, x, x, x, x}, yv = {y, y, y, y, y, y, y, y};
-                for (int u = 0; u < 4; u++) {
-                    v8d s;
-                    memcpy(&s, row + j[u], sizeof s);
-                    a[u] += xv * s;
-                    b[u] += yv * s;
-                }
-            }
-        } else {
-            for (int r = 0; r < nrows; r++) {
-                const double *row = rows + (size_t)r * ld, x = wa[r];
-                const v8d xv = {x, x, x, x, x, x, x, x};
-                for (int u = 0; u < 4; u++) {
-                    v8d s;
-                    memcpy(&s, row + j[u], sizeof s);
-                    a[u] += xv * s;
-                }
-            }
-        }
-        for (int u = 0; u < 4; u++) {
-            memcpy(out_a + j[u], &a[u], sizeof a[0]);
-            if (out_b != NULL)
-                memcpy(out_b + j[u], &b[u], sizeof b[0]);
-        }
-    }
-}
-
-/* out[j] (n) = sum_r wts[r] rows[r, j] in order (weighted_row_sums2 with one sum) */
-__attribute__((always_inline)) static inline void
-weighted_row_sums(const double *restrict rows, size_t ld, const double *restrict wts, int nrows,
-                  int n, double *restrict out)
-{
-    weighted_row_sums2(rows, ld, wts, NULL, nrows, n, out, NULL);
-}
-
-/* v = A x for a symmetric (n, n) A, by columns (x[l] times column l, summed over l in order) */
-static inline void symv(const double *restrict A, const double *restrict x, int n,
-                        double *restrict v)
-{
-    weighted_row_sums(A, (size_t)n, x, n, n, v);
+#ifdef SIMD_X86
+    __builtin_cpu_init();
+    if (t == &table_avx512f)
+        return __builtin_cpu_supports("avx512f");
+    if (t == &table_avx2)
+        return __builtin_cpu_supports("avx2");
+#endif
+    return t == &table_base;
 }
 
 /* prefetch bytes from p into the caches (for writing when write) */
@@ -161,195 +131,6 @@ static inline void prefetch(const void *p, size_t bytes, int write)
         else
             __builtin_prefetch(c + o, 0, 3);
     }
-}
-
-/* g (q, q): g_il = sum_p X[p, i] X[p, l] for the row-major (n, q) X with row stride ldx, the
- * sum over p outermost (a rank-1 update by each row). For q = 8 or 9 (the Franka's ubar and
- * [ubar, 1]) the sums stay in vector accumulators: row i of g's first eight columns in one,
- * the ninth column's first eight rows in another (x_i x_8 = x_8 x_i exactly, so g_8l = g_l8) */
-WIDE static void gram_rows(const double *restrict X, int n, int ldx, int q, double *restrict g)
-{
-    if (q == 8 || q == 9) {
-        const v8d zero = {0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0};
-        v8d acc[9], last = zero;
-        double corner = 0.0;
-        for (int i = 0; i < 9; i++)
-            acc[i] = zero;
-        for (int p = 0; p < n; p++) {
-            const double *row = X + (size_t)p * ldx;
-            v8d r;
-            memcpy(&r, row, sizeof r);
-            for (int i = 0; i < 8; i++) {
-                const v8d xi = {row[i], row[i], row[i], row[i], row[i], row[i], row[i], row[i]};
-                acc[i] += xi * r;
-            }
-            if (q == 9) {
-                const double x8 = row[8];
-                const v8d xv = {x8, x8, x8, x8, x8, x8, x8, x8};
-                acc[8] += xv * r;
-                last += r * xv;
-                corner += x8 * x8;
-            }
-        }
-        for (int i = 0; i < 8; i++)
-            memcpy(g + i * q, &acc[i], sizeof acc[0]);
-        if (q == 9) {
-            memcpy(g + 8 * q, &acc[8], sizeof acc[0]);
-            for (int i = 0; i < 8; i++)
-                g[i * q + 8] = last[i];
-            g[8 * q + 8] = corner;
-        }
-        return;
-    }
-    for (int i = 0; i < q * q; i++)
-        g[i] = 0.0;
-    for (int p = 0; p < n; p++) {
-        const double *row = X + (size_t)p * ldx;
-        for (int i = 0; i < q; i++) {
-            const double xi = row[i];
-            double *gi = g + i * q;
-            for (int l = 0; l < q; l++)
-                gi[l] += xi * row[l];
-        }
-    }
-}
-
-/* Row p of lower_solve_rows on the cnt blocks of eight columns starting at j[u]: each block
- * from bp's values on entry (so a block may overlap another), bp <- (alpha bp - sum_{q<p}
- * L_pq b_q) / L_pp in vector accumulators, stored at the end */
-__attribute__((always_inline)) static inline void
-solve_row_blocks(const double *restrict lp, int p, const double *restrict B, int ldb,
-                 double *restrict bp, double alpha, const int *j, int cnt)
-{
-    const double d = lp[p];
-    const v8d va = {alpha, alpha, alpha, alpha, alpha, alpha, alpha, alpha};
-    const v8d vd = {d, d, d, d, d, d, d, d};
-    v8d acc[4];
-    for (int u = 0; u < cnt; u++) {
-        memcpy(&acc[u], bp + j[u], sizeof acc[0]);
-        acc[u] *= va;
-    }
-    for (int q = 0; q < p; q++) {
-        const double *bq = B + (size_t)q * ldb;
-        const double l = lp[q];
-        const v8d lv = {l, l, l, l, l, l, l, l};
-        for (int u = 0; u < cnt; u++) {
-            v8d x;
-            memcpy(&x, bq + j[u], sizeof x);
-            acc[u] -= lv * x;
-        }
-    }
-    for (int u = 0; u < cnt; u++) {
-        acc[u] /= vd;
-        memcpy(bp + j[u], &acc[u], sizeof acc[0]);
-    }
-}
-
-/* B <- alpha L^-1 B by forward substitution over rows, b_p <- (alpha b_p - sum_{q<p} L_pq
- * b_q) / L_pp: L (n, n) lower triangular and row-major, B (n, cols) row-major with row stride
- * ldb (each row a vector of the cols right-hand sides). With cols >= 8, up to 32 columns at a
- * time in independent vector accumulators: blocks of eight, plus one at cols - 8 when cols is
- * not a multiple of 8, which overlaps the block before it (the same values again); the groups
- * run from the last, so that every block starts from the values on entry. */
-WIDE static void lower_solve_rows(const double *restrict L, int n, double *restrict B, int ldb,
-                                  int cols, double alpha)
-{
-    if (cols < 8) {
-        for (int p = 0; p < n; p++) {
-            double *bp = B + (size_t)p * ldb;
-            const double *lp = L + (size_t)p * n;
-            for (int j = 0; j < cols; j++) {
-                double acc = alpha * bp[j];
-                for (int q = 0; q < p; q++)
-                    acc -= lp[q] * B[(size_t)q * ldb + j];
-                bp[j] = acc / lp[p];
-            }
-        }
-        return;
-    }
-    const int nf = cols / 8, nb = nf + (cols % 8 != 0);
-    for (int p = 0; p < n; p++) {
-        double *bp = B + (size_t)p * ldb;
-        const double *lp = L + (size_t)p * n;
-        for (int g = nb; g > 0; g -= 4) {
-            const int g0 = g >= 4 ? g - 4 : 0, cnt = g - g0;
-            int j[4];
-            for (int u = 0; u < cnt; u++)
-                j[u] = g0 + u < nf ? 8 * (g0 + u) : cols - 8;
-            switch (cnt) { /* constant counts: the accumulators stay in registers */
-            case 4:
-                solve_row_blocks(lp, p, B, ldb, bp, alpha, j, 4);
-                break;
-            case 3:
-                solve_row_blocks(lp, p, B, ldb, bp, alpha, j, 3);
-                break;
-            case 2:
-                solve_row_blocks(lp, p, B, ldb, bp, alpha, j, 2);
-                break;
-            default:
-                solve_row_blocks(lp, p, B, ldb, bp, alpha, j, 1);
-            }
-        }
-    }
-}
-
-/* The exponents of Kt (c, Mp) of learner k at x (b) (eq. 21) into e, from the differences:
- * log s_i - 1/2 sum_d (x_d - o_jd)^2 / l_id^2 (ind_xi (K, Mp, b), log_var (K, c), il2 (K, c,
- * b)), the squares sq (b, Mp) as scratch; OVERFLOW when one is NaN. */
-WIDE static int exponents(const Dims *D, const double *ind_xi, const double *log_var,
-                          const double *il2, int k, const double *x, double *restrict e,
-                          double *restrict sq)
-{
-    const size_t b = (size_t)D->b, c = (size_t)D->c, mp = (size_t)D->mp;
-    const double *O = ind_xi + (size_t)k * mp * b, *L2 = il2 + (size_t)k * c * b;
-    const double *lv = log_var + (size_t)k * c;
-    for (size_t d = 0; d < b; d++) { /* stored by rows of d: strided reads, packed writes */
-        const double xd = x[d], *od = O + d;
-        double *row = sq + d * mp;
-        for (size_t j = 0; j < mp; j++) {
-            const double t = xd - od[j * b];
-            row[j] = t * t;
-        }
-    }
-    for (size_t i = 0; i < c; i += 2) /* the sums over d in order, two kernels at a time */
-        weighted_row_sums2(sq, mp, L2 + i * b, i + 1 < c ? L2 + (i + 1) * b : NULL, (int)b,
-                           (int)mp, e + i * mp, i + 1 < c ? e + (i + 1) * mp : NULL);
-    int bad = 0;
-    for (size_t i = 0; i < c; i++) {
-        double *er = e + i * mp;
-        for (size_t j = 0; j < mp; j++) {
-            er[j] = lv[i] - 0.5 * er[j];
-            bad |= isnan(er[j]);
-        }
-    }
-    return bad ? OVERFLOW : 0;
-}
-
-/* acc (cnt) = log s - 1/2 sum_d w_d (wxt[d, t] - x_d)^2: one kernel's exponents at the window
- * samples t (wxt (b, P), the samples' inputs by dimension) */
-WIDE static void window_exponents(double *restrict acc, const double *restrict w, double lv,
-                                  const double *restrict x, const double *restrict wxt, int b,
-                                  int P, int cnt)
-{
-    for (int t = 0; t < cnt; t++)
-        acc[t] = 0.0;
-    for (int d = 0; d < b; d++) {
-        const double wd = w[d], xd = x[d], *row = wxt + (size_t)d * P;
-        for (int t = 0; t < cnt; t++) {
-            const double e = row[t] - xd;
-            acc[t] += wd * (e * e);
-        }
-    }
-    for (int t = 0; t < cnt; t++)
-        acc[t] = lv - 0.5 * acc[t];
-}
-
-/* y += a (x * w) elementwise (n) */
-WIDE static void add_scaled_product(double *restrict y, double a, const double *restrict x,
-                                    const double *restrict w, int n)
-{
-    for (int t = 0; t < n; t++)
-        y[t] += a * (x[t] * w[t]);
 }
 
 /* work[:n] <- exp(work[:n]) by numpy.exp (work: a float64 array) */
@@ -380,47 +161,6 @@ static const double *Ki_(const double *kinv, int k, Py_ssize_t mp)
 }
 
 /* ------------------------------------------------------------------ update */
-
-/* k_new (mp) = ub' (Kt * Ubar) of one learner (eq. 22): the rows of kt (c, mp) are scaled
- * in place by those of U (the inducing points' ubar, transposed), then summed with weights
- * ub in order */
-WIDE static void kernel_row(double *restrict kt, const double *restrict U,
-                            const double *restrict ub, int c, int mp, double *restrict kn)
-{
-    for (int i = 0; i < c * mp; i++)
-        kt[i] *= U[i];
-    weighted_row_sums(kt, (size_t)mp, ub, c, mp, kn);
-}
-
-/* One learner's window step on [r, S] st (mp, mp + 1) (eqs. 24-26): st += s kn [z, kn'] (zs =
- * z s) and, when full, + f ko [z_old, ko'] (zo = z_old f); then the slot's kernel row ko <- kn.
- * Returns kn' K_oo^-1 kn (eq. 27) with Ki = K_oo^-1. */
-WIDE static double window_step(double *restrict st, const double *restrict kn,
-                               double *restrict ko, double s, double zs, int full, double f,
-                               double zo, const double *restrict Ki, int mp)
-{
-    if (full) {
-        for (int p = 0; p < mp; p++) {
-            double *row = st + p * (mp + 1);
-            const double kp = kn[p], op = ko[p];
-            row[0] += kp * zs + op * zo;
-            axpby(row + 1, kp * s, kn, op * f, ko, mp);
-        }
-    } else {
-        for (int p = 0; p < mp; p++) {
-            double *row = st + p * (mp + 1);
-            row[0] += kn[p] * zs;
-            axpy(row + 1, kn[p] * s, kn, mp);
-        }
-    }
-    memcpy(ko, kn, sizeof(double) * (size_t)mp);
-    double v[MAXW];
-    symv(Ki, kn, mp, v);
-    double q = 0.0;
-    for (int p = 0; p < mp; p++)
-        q += kn[p] * v[p];
-    return q;
-}
 
 /* Prefetch what the window step of learner k reads and writes (its K_oo^-1, [r, S], the
  * slot's kernel row and its column of the window's inputs): the 21 learners' state, ~0.5 MB,
@@ -516,7 +256,7 @@ static PyObject *py_update(PyObject *self, PyObject *args)
     for (int k = 0; k < D.K && rc == 0; k++) {
         if (k + 1 < D.K)
             prefetch(oxi + (k + 1) * mp * b, sizeof(double) * (size_t)(mp * b), 0);
-        rc = exponents(&D, oxi, lvar, il2, k, xi + k * b, E + k * c * mp, sq);
+        rc = simd->exponents(&D, oxi, lvar, il2, k, xi + k * b, E + k * c * mp, sq);
     }
     PyMem_Free(sq);
     if (rc == 0)
@@ -524,7 +264,7 @@ static PyObject *py_update(PyObject *self, PyObject *args)
     for (int k = 0; k < D.K && rc == 0; k++) {
         if (k + 1 < D.K)
             prefetch(ubt + (k + 1) * c * mp, sizeof(double) * (size_t)(c * mp), 0);
-        kernel_row(E + k * c * mp, ubt + k * c * mp, ub, (int)c, (int)mp, knew + k * mp);
+        simd->kernel_row(E + k * c * mp, ubt + k * c * mp, ub, (int)c, (int)mp, knew + k * mp);
         double s = 0.0;
         for (int i = 0; i < c; i++)
             s += var[k * c + i] * (ub[i] * ub[i]);
@@ -537,7 +277,7 @@ static PyObject *py_update(PyObject *self, PyObject *args)
         double *ko = wk + (k * P + slot) * mp;
         scale[k] = s;
         const double f = full ? -phi_p * s : 0.0, zo = full ? wz[k * P + slot] * f : 0.0;
-        const double q = window_step(stats + k * mp * (mp + 1), knew + k * mp, ko, s, z[k] * s,
+        const double q = simd->window_step(stats + k * mp * (mp + 1), knew + k * mp, ko, s, z[k] * s,
                                      full, f, zo, Ki_(kinv, k, mp), (int)mp);
         wz[k * P + slot] = z[k];
         for (int d = 0; d < b; d++)
@@ -629,7 +369,7 @@ static PyObject *py_predict(PyObject *self, PyObject *args)
     int m_ = (int)mp, info = 0, rc = 0;
     char L = 'L';
     for (Py_ssize_t j = 0; j < n && rc == 0; j++)
-        rc = exponents(&D, oxi, lvar, il2, (int)rows[j], xi + j * b, E + j * c * mp, sq);
+        rc = simd->exponents(&D, oxi, lvar, il2, (int)rows[j], xi + j * b, E + j * c * mp, sq);
     if (rc == 0 && n > 0)
         rc = exp_inplace(o[WORK], n * c * mp);
     for (Py_ssize_t j = 0; j < n && rc == 0; j++) {
@@ -654,7 +394,7 @@ static PyObject *py_predict(PyObject *self, PyObject *args)
             row[off + c] = st[p * (mp + 1)] * inv;
         }
         /* L^-1 [S, Kt', r / s2'] (Lk: the row-major lower factor of K_oo) */
-        lower_solve_rows(Lk, m_, Bm, ldb, ldb, 1.0);
+        simd->lower_solve_rows(Lk, m_, Bm, ldb, ldb, 1.0);
         if (refresh) {
             /* A = inv L^-1 S L^-T + I (the transpose of (L^-1 S)' solved again), its Cholesky
              * factor (LAPACK, column-major lower: A's buffer read as A') */
@@ -662,7 +402,7 @@ static PyObject *py_predict(PyObject *self, PyObject *args)
             for (int p = 0; p < mp; p++)
                 for (int q = 0; q < mp; q++)
                     A[q * mp + p] = Bm[(size_t)p * ldb + q];
-            lower_solve_rows(Lk, m_, A, m_, m_, inv);
+            simd->lower_solve_rows(Lk, m_, A, m_, m_, inv);
             for (int p = 0; p < mp; p++)
                 A[p + p * mp] += 1.0;
             dpotrf_(&L, &m_, A, &m_, &info);
@@ -676,14 +416,14 @@ static PyObject *py_predict(PyObject *self, PyObject *args)
             fresh[k] = 1;
         }
         /* G'G before G becomes H */
-        gram_rows(X, m_, ldb, (int)c, gg);
-        lower_solve_rows(LDk, m_, X, ldb, (int)c + 1, 1.0);
+        simd->gram_rows(X, m_, ldb, (int)c, gg);
+        simd->lower_solve_rows(LDk, m_, X, ldb, (int)c + 1, 1.0);
         for (int p = 0; p < mp; p++)
             cvec[(size_t)k * mp + p] = X[(size_t)p * ldb + c];
         double *bj = bout + j * c, *sj = sout + j * c * c;
         /* [H, cv]'[H, cv]: H'H and H'cv (the last column) */
         double *hh = gg + c * c;
-        gram_rows(X, m_, ldb, (int)c + 1, hh);
+        simd->gram_rows(X, m_, ldb, (int)c + 1, hh);
         for (int i = 0; i < c; i++) {
             bj[i] = hh[i * (c + 1) + c];
             for (int l = i; l < c; l++) {
@@ -701,14 +441,6 @@ static PyObject *py_predict(PyObject *self, PyObject *args)
 }
 
 /* ------------------------------------------------------------------ inducing candidate */
-
-/* srow (m) = lcs' wk[:cnt, :m] (the new row of S, eq. 30; wk row stride ld), the sum over the
- * window in slot order (a WIDE function, so that the sum gets the vector clones) */
-WIDE static void window_row_sums(const double *wk, size_t ld, const double *lcs, int cnt, int m,
-                                 double *srow)
-{
-    weighted_row_sums(wk, ld, lcs, cnt, m, srow);
-}
 
 /* Learner k's newest sample (x, ubar, k_ss, k_new) as an inducing point (eqs. 27-30), the
  * decision only: lvec = L^-1 k_new[:m], d = k_ss - |lvec|^2; if d <= 1e-6 k_ss, 0. Else the
@@ -789,7 +521,7 @@ static PyObject *py_candidate(PyObject *self, PyObject *args)
     /* the window column k(x, (xi_t, ub_t)) from the differences: exponents (c, cnt) */
     double *E = bf[WORK].buf;
     for (int i = 0; i < c; i++)
-        window_exponents(E + (size_t)i * cnt, L2 + i * b, lv[i], x, wxt, (int)b, (int)P, cnt);
+        simd->window_exponents(E + (size_t)i * cnt, L2 + i * b, lv[i], x, wxt, (int)b, (int)P, cnt);
     if (exp_inplace(o[WORK], c * cnt) != 0) {
         code = EXP_FAILED;
         goto done;
@@ -797,7 +529,7 @@ static PyObject *py_candidate(PyObject *self, PyObject *args)
     for (int t = 0; t < cnt; t++)
         col[t] = 0.0;
     for (int i = 0; i < c; i++)
-        add_scaled_product(col, ub[i], E + (size_t)i * cnt, wubt + i * P, cnt);
+        simd->add_scaled_product(col, ub[i], E + (size_t)i * cnt, wubt + i * P, cnt);
     /* weights phi^age (age (head - t) mod P), the new row of [r, S] (eq. 30) */
     double *lcs = tmp + 3 * (m + 1) * (m + 1) + (m + 1);
     for (int t = 0; t < cnt; t++) {
@@ -807,13 +539,13 @@ static PyObject *py_candidate(PyObject *self, PyObject *args)
         sdd += lc * col[t];
         rnew += lc * wz[t];
     }
-    window_row_sums(wk, (size_t)mp, lcs, cnt, m, srow);
+    simd->weighted_row_sums(wk, (size_t)mp, lcs, cnt, m, srow);
     dd = d + jitter;
     if (m + 1 > mp) {
         /* eq. 28 on the enlarged set: K_e^-1 = [[K^-1 + w w'/dd, -w/dd], [-w'/dd, 1/dd]] */
         const int n1 = m + 1;
         double *kinv = tmp, *se = kinv + n1 * n1, *prod = se + n1 * n1, *w = prod + n1 * n1;
-        symv(Ki, kn, m, w); /* m = Mp here */
+        simd->symv(Ki, kn, m, w); /* m = Mp here */
         for (int i = 0; i < m; i++) {
             for (int l = 0; l < m; l++) {
                 kinv[i * n1 + l] = w[i] * (w[l] / dd) + Ki[i * mp + l];
@@ -916,8 +648,8 @@ static PyObject *py_factor_inverse(PyObject *self, PyObject *args)
             X[i] = 0.0;
         for (int i = 0; i < m; i++)
             X[i * m + i] = 1.0;
-        lower_solve_rows(L, m, X, m, m, 1.0); /* X = L^-1 */
-        gram_rows(X, m, m, m, g);             /* g = X' X */
+        simd->lower_solve_rows(L, m, X, m, m, 1.0); /* X = L^-1 */
+        simd->gram_rows(X, m, m, m, g);             /* g = X' X */
         for (int i = 0; i < m; i++) {
             memcpy(kinv + (size_t)i * mp, g + (size_t)i * m, sizeof(double) * (size_t)m);
             if (refactor)
@@ -931,6 +663,42 @@ static PyObject *py_factor_inverse(PyObject *self, PyObject *args)
 }
 
 /* ------------------------------------------------------------------ module */
+
+/* The copies of the hot loops this CPU runs (widest first), and with a name, the one to use. */
+static PyObject *py_simd(PyObject *self, PyObject *args)
+{
+    const char *name = NULL;
+    if (!PyArg_ParseTuple(args, "|z", &name))
+        return NULL;
+    PyObject *names = PyList_New(0);
+    if (names == NULL)
+        return NULL;
+    const Simd *chosen = NULL;
+    for (int i = 0; i < N_SIMD; i++) {
+        if (!simd_runs(simd_tables[i]))
+            continue;
+        PyObject *u = PyUnicode_FromString(simd_tables[i]->name);
+        if (u == NULL || PyList_Append(names, u) < 0) {
+            Py_XDECREF(u);
+            Py_DECREF(names);
+            return NULL;
+        }
+        Py_DECREF(u);
+        if (name != NULL && strcmp(name, simd_tables[i]->name) == 0)
+            chosen = simd_tables[i];
+    }
+    if (name != NULL && chosen == NULL) {
+        PyErr_Format(PyExc_ValueError, "simd: %R is not one of this CPU's copies %R",
+                     PyTuple_GetItem(args, 0), names);
+        Py_DECREF(names);
+        return NULL;
+    }
+    if (chosen != NULL)
+        simd = chosen;
+    PyObject *out = Py_BuildValue("(sN)", simd->name, PyList_AsTuple(names));
+    Py_DECREF(names);
+    return out;
+}
 
 static void *capi(const char *module, const char *name)
 {
@@ -970,6 +738,10 @@ static PyMethodDef methods[] = {
      "factor_inverse(dims, k, m, refactor, koo, l_oo, koo_inv, fresh) -> int: L = "
      "chol(K_oo) of learner k into l_oo (with refactor) and K_oo^-1 into koo_inv (0), or "
      "NOT_PD (nothing changed)."},
+    {"simd", py_simd, METH_VARARGS,
+     "simd([name]) -> (in use, available): the copy of the hot loops in use ('avx512f', "
+     "'avx2' or 'base') and the ones this CPU runs, widest first; with a name, use that one "
+     "(the same arithmetic in each: it changes the speed only)."},
     {NULL, NULL, 0, NULL},
 };
 
@@ -991,5 +763,8 @@ PyMODINIT_FUNC PyInit__bank(void)
     Py_DECREF(numpy);
     if (np_exp == NULL)
         return NULL;
+    for (int i = N_SIMD - 1; i >= 0; i--)
+        if (simd_runs(simd_tables[i]))
+            simd = simd_tables[i];
     return PyModule_Create(&module);
 }

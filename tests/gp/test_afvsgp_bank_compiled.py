@@ -93,15 +93,12 @@ def test_compiled_equals_numpy_through_inducing_events(max_candidates):
         assert np.abs(resid).max() <= 10 * m * np.linalg.cond(koo) * EPS
 
 
-@needs_core
-@pytest.mark.parametrize("b, m, num_inducing", [(20, 7, 30), (5, 7, 41), (4, 3, 12), (3, 2, 5)])
-def test_compiled_equals_numpy_at_the_vector_paths_shapes(b, m, num_inducing):
-    """At the shapes that take the core's vector paths (blocks of eight outputs, the last one
-    overlapping the one before, in groups of four: the Franka's input b = 20, ubar of 8 and
-    Mp = 30; Mp = 41, a second group; Mp = 12, one overlapping block; Mp = 5, below a block;
-    ubar of 8, 4 and 3, kernels summed two at a time and the Gram products of 8 and 9
-    columns) the compiled bank makes the numpy methods' inducing-set decisions and predicts
-    their moments, to the conditioning tolerance of the test above."""
+VECTOR_PATH_SHAPES = [(20, 7, 30), (5, 7, 41), (4, 3, 12), (3, 2, 5)]
+
+
+def _vector_path_learners(b, m, num_inducing):
+    """``(streams, u, learners, window)``: three learners with input b, ubar of m + 1 and
+    num_inducing points, fitted to the first window samples of their streams."""
     k_learners, window = 3, 60
     n = window + 6 * window
     streams = [synthetic(np.random.default_rng(30 + k), n, b=b, m=m, noise_std=0.05)
@@ -114,14 +111,70 @@ def test_compiled_equals_numpy_at_the_vector_paths_shapes(b, m, num_inducing):
         learners.append(AFVSGP(ker, 0.0025 * (k + 1), num_inducing=num_inducing,
                                window=window, forgetting=0.95, add_threshold=0.05,
                                swap_margin=0.0).fit(xi[:window], u[:window], z[:window], False))
+    return streams, u, learners, window
+
+
+@needs_core
+@pytest.mark.parametrize("b, m, num_inducing", VECTOR_PATH_SHAPES)
+def test_compiled_equals_numpy_at_the_vector_paths_shapes(b, m, num_inducing):
+    """At the shapes that take the core's vector paths (blocks of VL = 8, 4 or 2 outputs, the
+    last one overlapping the one before, in groups of four: the Franka's input b = 20, ubar of
+    8 and Mp = 30; Mp = 41, a second group; Mp = 12, one overlapping block; Mp = 5, below a
+    block of eight; ubar of 8, 4 and 3, kernels summed two at a time and the Gram products of
+    8 and 9 columns) the compiled bank makes the numpy methods' inducing-set decisions and
+    predicts their moments, to the conditioning tolerance of the test above."""
+    streams, u, learners, window = _vector_path_learners(b, m, num_inducing)
     comp = AFVSGPBank.from_learners(learners, compiled=True)
     ref = AFVSGPBank.from_learners(learners, compiled=False)
-    worst, cond = _stream_side_by_side(comp, ref, streams, u, range(window, n), every=3,
+    worst, cond = _stream_side_by_side(comp, ref, streams, u, range(window, len(u)), every=3,
                                        seed=b * 100 + num_inducing)
     assert comp.n_added_.min() > 0
     assert 0.0 < worst < 1e3 * cond * EPS, (worst, cond)
     for name in ("_stats", "_wk", "_koo", "_koo_inv", "_ind_xi"):
         assert _rel(getattr(comp, name), getattr(ref, name)) < 1e3 * cond * EPS, name
+
+
+@pytest.fixture
+def restore_simd():
+    """Puts the core's own choice of hot-loop copy back after the test."""
+    in_use = afvsgp_bank._core.simd()[0]
+    yield
+    afvsgp_bank._core.simd(in_use)
+
+
+@needs_core
+@pytest.mark.parametrize("b, m, num_inducing", VECTOR_PATH_SHAPES)
+def test_every_copy_of_the_hot_loops_gives_the_same_digits(b, m, num_inducing, restore_simd):
+    """Each copy of the core's hot loops this CPU runs (AVX-512, AVX2, the baseline: vectors
+    of 8, 4 and 2 lanes, so other blocks and other overlaps) streams the same learners through
+    the same inducing-set changes to bit-identical states and predictions: the copies differ
+    in speed, never in a digit."""
+    core = afvsgp_bank._core
+    copies = core.simd()[1]
+    if len(copies) < 2:
+        pytest.skip(f"this CPU runs one copy only ({copies})")
+    streams, u, learners, window = _vector_path_learners(b, m, num_inducing)
+    xs = np.random.default_rng(5).normal(size=(3, b))
+    results = {}
+    for name in copies:
+        assert core.simd(name)[0] == name
+        bank = AFVSGPBank.from_learners(learners, compiled=True)
+        moments = []
+        for i in range(window, len(u)):
+            xi, z = _rows(streams, i)
+            bank.update(xi, u[i], z)
+            if i % 7 == 0:
+                moments.extend(bank.predict_affine(xs))
+        assert bank.n_added_.min() > 0 and bank.n_removed_.min() > 0
+        state = [getattr(bank, a) for a in ("_stats", "_wk", "_koo", "_l_oo", "_koo_inv",
+                                            "_l_d", "_cvec", "_ind_xi", "n_inducing_")]
+        results[name] = moments + state
+    first = copies[-1]
+    for name in copies[:-1]:
+        for i, (a, b_) in enumerate(zip(results[name], results[first], strict=True)):
+            np.testing.assert_array_equal(a, b_, err_msg=f"{name} vs {first}, output {i}")
+    with pytest.raises(ValueError, match="simd: 'sse9' is not one of this CPU's copies"):
+        core.simd("sse9")
 
 
 def _before_first_swap(bank, streams, u, n):
