@@ -9,8 +9,8 @@
  * the eq. 28 product by the LAPACK and BLAS that scipy ships (scipy.linalg.cython_lapack /
  * cython_blas), the prediction's triangular solves by forward substitution here (at these
  * sizes, tens of right-hand sides of order Mp, BLAS's dtrsm spends its time on packing), the
- * exponentials by numpy.exp. Every array is C-ordered float64 (int64 for
- * indices) with the bank's shapes; a return code other than 0 leaves the call to the numpy
+ * exponentials by vexp here (numpy.exp runs libm's scalar exp on a CPU without AVX-512, at
+ * 5-11 ns each). Every array is C-ordered float64 (int64 for indices) with the bank's shapes; a return code other than 0 leaves the call to the numpy
  * methods, and when it does the bank was left unchanged (update) or its posterior cache only
  * refreshed (predict).
  */
@@ -25,7 +25,6 @@ typedef void (*potrf_t)(char *, int *, double *, int *, int *);
 
 static gemm_t dgemm_;
 static potrf_t dpotrf_;
-static PyObject *np_exp; /* numpy.exp: vectorised, many times faster than libm's exp here */
 
 /* return codes */
 #define OVERFLOW -1   /* a kernel exponent is NaN: the numpy methods take over */
@@ -34,7 +33,6 @@ static PyObject *np_exp; /* numpy.exp: vectorised, many times faster than libm's
 
 #define MAXW 4096 /* columns of the whitening workspace: Mp + c + 1 */
 #define MAXB 1024 /* input dimension */
-#define EXP_FAILED -4 /* numpy.exp raised (the exception is set) */
 #define TOO_MANY_ROWS -5 /* more predicted rows than the scratch array holds */
 #define NOT_FINITE -6    /* a sample is not finite: the numpy method skips it */
 
@@ -65,7 +63,51 @@ typedef struct {
                        int, double *restrict);
     double (*window_step)(double *restrict, const double *restrict, double *restrict, double,
                           double, int, double, double, const double *restrict, int);
+    void (*vexp)(double *restrict, Py_ssize_t);
 } Simd;
+
+/* exp(x) = 2^k exp(r): k = rint(x / ln2) by adding 1.5 2^52 (its low bits then hold k), r = (x -
+ * k ln2_hi) - k ln2_lo (Cody and Waite: ln2_hi has 32 significant bits, so k ln2_hi and the
+ * first difference are exact), exp(r) = 1 + (r + r^2 P(r)) with P Taylor's 1/2! .. 1/13!
+ * (|r| <= 0.3466: truncation below 6e-18 relative) in Estrin's scheme, 2^k added to the
+ * exponent bits; outside [EXP_LO, EXP_HI] (a subnormal or infinite result) by ldexp, NaN
+ * kept. No FMA, and the same expression for scalars and vectors: every step rounds once, the
+ * same in every copy and on every machine (numpy.exp's rounding depends on the CPU). */
+#define EXP_INV_LN2 1.4426950408889634
+#define EXP_SHIFT 6755399441055744.0          /* 1.5 2^52 */
+#define EXP_LN2_HI 6.93147180369123816490e-01 /* 0x3fe62e42fee00000 */
+#define EXP_LN2_LO 1.90821492927058770002e-10
+#define EXP_LO -708.0
+#define EXP_HI 709.0
+#define EXP_PAIR(a, b, r) ((1.0 / (a)) + (1.0 / (b)) * (r))
+/* exp(r) from r, r^2, r^4 (scalars or vectors alike) */
+#define EXP_REDUCED(r, r2, r4)                                                               \
+    (1.0 + ((r) + (r2) * ((EXP_PAIR(2.0, 6.0, r) + (r2) * EXP_PAIR(24.0, 120.0, r)) +        \
+                          (r4) * ((EXP_PAIR(720.0, 5040.0, r) +                               \
+                                   (r2) * EXP_PAIR(40320.0, 362880.0, r)) +                   \
+                                  (r4) * (EXP_PAIR(3628800.0, 39916800.0, r) +                \
+                                          (r2) * EXP_PAIR(479001600.0, 6227020800.0, r))))))
+
+static double vexp_one(double x)
+{
+    if (isnan(x))
+        return x;
+    if (x < -746.0)
+        return 0.0;
+    if (x > 710.0)
+        return HUGE_VAL;
+    const double t = x * EXP_INV_LN2 + EXP_SHIFT, k = t - EXP_SHIFT;
+    const double r = (x - k * EXP_LN2_HI) - k * EXP_LN2_LO, r2 = r * r, r4 = r2 * r2;
+    double p = EXP_REDUCED(r, r2, r4);
+    if (x < EXP_LO || x > EXP_HI)
+        return ldexp(p, (int)k);
+    unsigned long long pb, tb;
+    memcpy(&pb, &p, sizeof pb);
+    memcpy(&tb, &t, sizeof tb);
+    pb += tb << 52;
+    memcpy(&p, &pb, sizeof p);
+    return p;
+}
 
 #if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__)
 #define SIMD_X86 1
@@ -131,20 +173,6 @@ static inline void prefetch(const void *p, size_t bytes, int write)
         else
             __builtin_prefetch(c + o, 0, 3);
     }
-}
-
-/* work[:n] <- exp(work[:n]) by numpy.exp (work: a float64 array) */
-static int exp_inplace(PyObject *work, Py_ssize_t n)
-{
-    PyObject *view = PySequence_GetSlice(work, 0, n);
-    if (view == NULL)
-        return EXP_FAILED;
-    PyObject *r = PyObject_CallFunctionObjArgs(np_exp, view, view, NULL);
-    Py_DECREF(view);
-    if (r == NULL)
-        return EXP_FAILED;
-    Py_DECREF(r);
-    return 0;
 }
 
 /* Elements of the scratch array "work": the exponents of every learner's kernel rows, or of
@@ -257,10 +285,10 @@ static PyObject *py_update(PyObject *self, PyObject *args)
         if (k + 1 < D.K)
             prefetch(oxi + (k + 1) * mp * b, sizeof(double) * (size_t)(mp * b), 0);
         rc = simd->exponents(&D, oxi, lvar, il2, k, xi + k * b, E + k * c * mp, sq);
+        if (rc == 0)
+            simd->vexp(E + k * c * mp, c * mp);
     }
     PyMem_Free(sq);
-    if (rc == 0)
-        rc = exp_inplace(o[WORK], K * c * mp);
     for (int k = 0; k < D.K && rc == 0; k++) {
         if (k + 1 < D.K)
             prefetch(ubt + (k + 1) * c * mp, sizeof(double) * (size_t)(c * mp), 0);
@@ -302,8 +330,6 @@ static PyObject *py_update(PyObject *self, PyObject *args)
         renorm_due |= s > 1e100;
     }
     release_all(bf, N);
-    if (rc == EXP_FAILED)
-        return NULL;
     return Py_BuildValue("iiiii", rc, n_cand, best, refresh_due, renorm_due);
 }
 
@@ -368,10 +394,11 @@ static PyObject *py_predict(PyObject *self, PyObject *args)
     double *sq = gg + c * c + (c + 1) * (c + 1);
     int m_ = (int)mp, info = 0, rc = 0;
     char L = 'L';
-    for (Py_ssize_t j = 0; j < n && rc == 0; j++)
+    for (Py_ssize_t j = 0; j < n && rc == 0; j++) {
         rc = simd->exponents(&D, oxi, lvar, il2, (int)rows[j], xi + j * b, E + j * c * mp, sq);
-    if (rc == 0 && n > 0)
-        rc = exp_inplace(o[WORK], n * c * mp);
+        if (rc == 0)
+            simd->vexp(E + j * c * mp, c * mp);
+    }
     for (Py_ssize_t j = 0; j < n && rc == 0; j++) {
         const int k = (int)rows[j];
         double *kt = E + j * c * mp;
@@ -435,8 +462,6 @@ static PyObject *py_predict(PyObject *self, PyObject *args)
     }
     PyMem_Free(work);
     release_all(bf, N);
-    if (rc == EXP_FAILED)
-        return NULL;
     return PyLong_FromLong(rc);
 }
 
@@ -522,10 +547,7 @@ static PyObject *py_candidate(PyObject *self, PyObject *args)
     double *E = bf[WORK].buf;
     for (int i = 0; i < c; i++)
         simd->window_exponents(E + (size_t)i * cnt, L2 + i * b, lv[i], x, wxt, (int)b, (int)P, cnt);
-    if (exp_inplace(o[WORK], c * cnt) != 0) {
-        code = EXP_FAILED;
-        goto done;
-    }
+    simd->vexp(E, c * cnt);
     for (int t = 0; t < cnt; t++)
         col[t] = 0.0;
     for (int i = 0; i < c; i++)
@@ -587,8 +609,6 @@ done:
     release_all(bf, N);
     if (code == NO_MEMORY)
         return PyErr_NoMemory();
-    if (code == EXP_FAILED)
-        return NULL;
     return Py_BuildValue("iiddd", code, drop, dd, sdd, rnew);
 }
 
@@ -664,6 +684,19 @@ static PyObject *py_factor_inverse(PyObject *self, PyObject *args)
 
 /* ------------------------------------------------------------------ module */
 
+/* x <- exp(x) in place by the copy in use (for the tests of vexp against high precision). */
+static PyObject *py_vexp(PyObject *self, PyObject *args)
+{
+    PyObject *o;
+    Py_buffer bf;
+    static const Spec spec = {"x", 'd', 1};
+    if (!PyArg_ParseTuple(args, "O", &o) || take(o, &bf, &spec, -1) < 0)
+        return NULL;
+    simd->vexp(bf.buf, bf.len / (Py_ssize_t)sizeof(double));
+    PyBuffer_Release(&bf);
+    Py_RETURN_NONE;
+}
+
 /* The copies of the hot loops this CPU runs (widest first), and with a name, the one to use. */
 static PyObject *py_simd(PyObject *self, PyObject *args)
 {
@@ -738,6 +771,9 @@ static PyMethodDef methods[] = {
      "factor_inverse(dims, k, m, refactor, koo, l_oo, koo_inv, fresh) -> int: L = "
      "chol(K_oo) of learner k into l_oo (with refactor) and K_oo^-1 into koo_inv (0), or "
      "NOT_PD (nothing changed)."},
+    {"vexp", py_vexp, METH_VARARGS,
+     "vexp(x) -> None: x <- exp(x) in place (a C-contiguous, writable float64 array), as the "
+     "core computes its kernels' exponentials."},
     {"simd", py_simd, METH_VARARGS,
      "simd([name]) -> (in use, available): the copy of the hot loops in use ('avx512f', "
      "'avx2' or 'base') and the ones this CPU runs, widest first; with a name, use that one "
@@ -755,13 +791,6 @@ PyMODINIT_FUNC PyInit__bank(void)
         return NULL;
     dpotrf_ = (potrf_t)capi("scipy.linalg.cython_lapack", "dpotrf");
     if (dpotrf_ == NULL)
-        return NULL;
-    PyObject *numpy = PyImport_ImportModule("numpy");
-    if (numpy == NULL)
-        return NULL;
-    np_exp = PyObject_GetAttrString(numpy, "exp");
-    Py_DECREF(numpy);
-    if (np_exp == NULL)
         return NULL;
     for (int i = N_SIMD - 1; i >= 0; i--)
         if (simd_runs(simd_tables[i]))

@@ -350,6 +350,46 @@ static double SIMD(window_step)(double *restrict st, const double *restrict kn,
     return q;
 }
 
+/* exp(v) for a vector inside [EXP_LO, EXP_HI], by the steps of vexp_one (_bank.c) */
+__attribute__((always_inline)) static inline VEC SIMD(exp_in_range)(VEC v)
+{
+    typedef long long ivec __attribute__((vector_size(8 * VL)));
+    const VEC t = v * EXP_INV_LN2 + EXP_SHIFT, k = t - EXP_SHIFT;
+    const VEC r = (v - k * EXP_LN2_HI) - k * EXP_LN2_LO, r2 = r * r, r4 = r2 * r2;
+    const VEC p = EXP_REDUCED(r, r2, r4);
+    return (VEC)((ivec)p + ((ivec)t << 52));
+}
+
+/* whether every lane of v lies in [EXP_LO, EXP_HI] (not NaN) */
+__attribute__((always_inline)) static inline int SIMD(exp_range_ok)(VEC v)
+{
+    typedef long long ivec __attribute__((vector_size(8 * VL)));
+    const ivec ok = (v >= EXP_LO) & (v <= EXP_HI);
+    long long all = -1;
+    for (int l = 0; l < VL; l++)
+        all &= ok[l];
+    return all != 0;
+}
+
+/* x <- exp(x) in place (n): the same digits as vexp_one on every element, 2 VL at a time; a
+ * vector with a lane outside [EXP_LO, EXP_HI] or NaN by vexp_one. */
+static void SIMD(vexp)(double *restrict x, Py_ssize_t n)
+{
+    Py_ssize_t i = 0;
+    for (; i + 2 * VL <= n; i += 2 * VL) {
+        const VEC a = SIMD(load)(x + i), b = SIMD(load)(x + i + VL);
+        if (SIMD(exp_range_ok)(a) && SIMD(exp_range_ok)(b)) {
+            SIMD(store)(x + i, SIMD(exp_in_range)(a));
+            SIMD(store)(x + i + VL, SIMD(exp_in_range)(b));
+        } else {
+            for (int l = 0; l < 2 * VL; l++)
+                x[i + l] = vexp_one(x[i + l]);
+        }
+    }
+    for (; i < n; i++)
+        x[i] = vexp_one(x[i]);
+}
+
 /* this copy's entry points */
 static const Simd SIMD(table) = {
     .name = SIMD_NAME,
@@ -362,6 +402,7 @@ static const Simd SIMD(table) = {
     .add_scaled_product = SIMD(add_scaled_product),
     .kernel_row = SIMD(kernel_row),
     .window_step = SIMD(window_step),
+    .vexp = SIMD(vexp),
 };
 
 #undef VEC
