@@ -23,7 +23,8 @@ learners whose prediction is needed (e.g. the barriers near an obstacle).
 The per-step arithmetic (the window step of every learner, the predictions, the eqs. 27-28
 decision on a new inducing point) runs compiled when ``afvsgp_gym.gp._bank`` is built
 (:data:`COMPILED`; the same formulas in C with scipy's BLAS and LAPACK, one call each in place
-of tens of numpy calls; the kernel's exponent from the differences to the inducing points),
+of tens of numpy calls; the kernel's exponent from the differences to the inducing points,
+its exponential by the core's own vectorised exp, within 1.5 ulp),
 else, or with ``compiled=False``, in numpy; the installation of a new inducing point and the
 rare cases (skipped samples, a failed factorisation) always run in numpy.
 """
