@@ -353,11 +353,11 @@ static double SIMD(window_step)(double *restrict st, const double *restrict kn,
 /* exp(v) for a vector inside [EXP_LO, EXP_HI], by the steps of vexp_one (_bank.c) */
 __attribute__((always_inline)) static inline VEC SIMD(exp_in_range)(VEC v)
 {
-    typedef long long ivec __attribute__((vector_size(8 * VL)));
+    typedef unsigned long long uvec __attribute__((vector_size(8 * VL)));
     const VEC t = v * EXP_INV_LN2 + EXP_SHIFT, k = t - EXP_SHIFT;
     const VEC r = (v - k * EXP_LN2_HI) - k * EXP_LN2_LO, r2 = r * r, r4 = r2 * r2;
     const VEC p = EXP_REDUCED(r, r2, r4);
-    return (VEC)((ivec)p + ((ivec)t << 52));
+    return (VEC)((uvec)p + ((uvec)t << 52)); /* p 2^k: k in t's low bits, wrapping */
 }
 
 /* whether every lane of v lies in [EXP_LO, EXP_HI] (not NaN) */
