@@ -10,9 +10,9 @@
  * cython_blas), the prediction's triangular solves by forward substitution here (at these
  * sizes, tens of right-hand sides of order Mp, BLAS's dtrsm spends its time on packing), the
  * exponentials by vexp here (numpy.exp runs libm's scalar exp on a CPU without AVX-512, at
- * 5-11 ns each). Every array is C-ordered float64 (int64 for indices) with the bank's shapes; a return code other than 0 leaves the call to the numpy
- * methods, and when it does the bank was left unchanged (update) or its posterior cache only
- * refreshed (predict).
+ * 5-11 ns each). Every array is C-ordered float64 (int64 for indices) with the bank's shapes;
+ * a return code other than 0 leaves the call to the numpy methods, and when it does the bank
+ * was left unchanged (update) or its posterior cache only refreshed (predict).
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -305,8 +305,8 @@ static PyObject *py_update(PyObject *self, PyObject *args)
         double *ko = wk + (k * P + slot) * mp;
         scale[k] = s;
         const double f = full ? -phi_p * s : 0.0, zo = full ? wz[k * P + slot] * f : 0.0;
-        const double q = simd->window_step(stats + k * mp * (mp + 1), knew + k * mp, ko, s, z[k] * s,
-                                     full, f, zo, Ki_(kinv, k, mp), (int)mp);
+        const double q = simd->window_step(stats + k * mp * (mp + 1), knew + k * mp, ko, s,
+                                           z[k] * s, full, f, zo, Ki_(kinv, k, mp), (int)mp);
         wz[k * P + slot] = z[k];
         for (int d = 0; d < b; d++)
             wxt[(k * b + d) * P + slot] = xi[k * b + d];
@@ -546,7 +546,8 @@ static PyObject *py_candidate(PyObject *self, PyObject *args)
     /* the window column k(x, (xi_t, ub_t)) from the differences: exponents (c, cnt) */
     double *E = bf[WORK].buf;
     for (int i = 0; i < c; i++)
-        simd->window_exponents(E + (size_t)i * cnt, L2 + i * b, lv[i], x, wxt, (int)b, (int)P, cnt);
+        simd->window_exponents(E + (size_t)i * cnt, L2 + i * b, lv[i], x, wxt, (int)b, (int)P,
+                               cnt);
     simd->vexp(E, c * cnt);
     for (int t = 0; t < cnt; t++)
         col[t] = 0.0;

@@ -134,14 +134,6 @@ def test_compiled_equals_numpy_at_the_vector_paths_shapes(b, m, num_inducing):
         assert _rel(getattr(comp, name), getattr(ref, name)) < 1e3 * cond * EPS, name
 
 
-@pytest.fixture
-def restore_simd():
-    """Puts the core's own choice of hot-loop copy back after the test."""
-    in_use = afvsgp_bank._core.simd()[0]
-    yield
-    afvsgp_bank._core.simd(in_use)
-
-
 @needs_core
 @pytest.mark.parametrize("b, m, num_inducing", VECTOR_PATH_SHAPES)
 def test_every_copy_of_the_hot_loops_gives_the_same_digits(b, m, num_inducing, restore_simd):

@@ -13,13 +13,6 @@ pytestmark = pytest.mark.skipif(core is None, reason="compiled core not built")
 LN2 = float(np.log(2.0))
 
 
-@pytest.fixture
-def restore_simd():
-    in_use = core.simd()[0]
-    yield
-    core.simd(in_use)
-
-
 def _points() -> np.ndarray:
     """Random points where the learners' exponents lie ([-40, 2]) and over the whole finite
     range, the reduction's boundaries (k ln2 and (k + 1/2) ln2, where k = rint(x / ln2)
