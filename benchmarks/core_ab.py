@@ -46,6 +46,33 @@ def recorded_bank(steps: int = 300):
     return ep.env.controller.bank.bank
 
 
+def by_dimension(core) -> bool:
+    """Whether ``core`` takes the inducing inputs by dimension, (K, b, Mp), as the bank stores
+    them; a core built before they were (commit 0c0e367 and earlier) takes them by point, (K,
+    Mp, b)."""
+    return getattr(core, "INDUCING_INPUTS", None) == "by dimension"
+
+
+class Shim:
+    """``core`` with its ``update`` and ``predict`` given ``by_point`` (a C-ordered (K, Mp, b)
+    copy of the bank's inducing inputs, refreshed by the caller after each control step) in
+    place of the bank's array, unless the core takes them by dimension. Both cores of a
+    lockstep run go through one, so that the wrapper's cost is the same for both."""
+
+    def __init__(self, core):
+        self.core, self.by_point = core, None
+        self.passthrough = by_dimension(core)
+
+    def update(self, dims, ind, *rest):
+        return self.core.update(dims, ind if self.passthrough else self.by_point, *rest)
+
+    def predict(self, dims, n, ind, *rest):
+        return self.core.predict(dims, n, ind if self.passthrough else self.by_point, *rest)
+
+    def __getattr__(self, name):
+        return getattr(self.core, name)
+
+
 def calls(b) -> dict:
     """name -> function(core) running that core entry on bank ``b`` and returning its outputs."""
     t = 3  # a window slot: its inputs make a realistic sample
@@ -53,12 +80,15 @@ def calls(b) -> dict:
     ub = np.concatenate([[1.0], b._wubt[0, 1:, t]])
     z = np.zeros(b.n_learners)
     k_new, kss, resid = b._step_out
+    by_point = np.ascontiguousarray(b._ind_xi)
+    ind = {True: b._ind_xit, False: by_point}
 
     def update(core):
-        core.update(b._dims, b._ind_xi, b.log_var, b.inv_ls2, b._ubt, b.var, b._koo_inv,
-                    b._stats, b._scale, b._wk, b._wz, b._wxt, b._wubt, xi, ub, z, k_new, kss,
-                    resid, b._work, b._head, b._count, b.n_seen_, b._fresh, b._since_refresh,
-                    b.noise_variance, b._inv_phi, b._phi_p, b._add_floor, 10**12)
+        core.update(b._dims, ind[by_dimension(core)], b.log_var, b.inv_ls2, b._ubt, b.var,
+                    b._koo_inv, b._stats, b._scale, b._wk, b._wz, b._wxt, b._wubt, xi, ub, z,
+                    k_new, kss, resid, b._work, b._head, b._count, b.n_seen_, b._fresh,
+                    b._since_refresh, b.noise_variance, b._inv_phi, b._phi_p, b._add_floor,
+                    10**12)
         return k_new.copy(), resid.copy()
 
     rows = np.array([3, 7, 12, 15, 20], dtype=np.int64)
@@ -67,9 +97,9 @@ def calls(b) -> dict:
 
     def predict(core):
         b._fresh[:] = False  # the factor L_D rebuilt, as every step
-        rc = core.predict(b._dims, len(rows), b._ind_xi, b.log_var, b.inv_ls2, b._ubt, b.var,
-                          b._l_oo, b._stats, b._scale, b.noise_variance, b._l_d, b._cvec,
-                          b._fresh, rows, pxi, bvec, sig, b._work)
+        rc = core.predict(b._dims, len(rows), ind[by_dimension(core)], b.log_var, b.inv_ls2,
+                          b._ubt, b.var, b._l_oo, b._stats, b._scale, b.noise_variance,
+                          b._l_d, b._cvec, b._fresh, rows, pxi, bvec, sig, b._work)
         return rc, bvec.copy(), sig.copy()
 
     k = 5
@@ -112,12 +142,16 @@ def interleaved(fn, cores: dict, n: int, thrash: bool = False) -> dict[str, floa
 def lockstep(cores: dict, seed: int, steps: int = 1500) -> dict[str, dict[str, float]]:
     """Two 21-barrier episodes of ``seed`` advanced one step each in turn, one per core."""
     eps = {name: TimedEpisode(CONFIGS[ARM], steps=steps, seed=seed) for name in cores}
+    shims = {name: Shim(core) for name, core in cores.items()}
     installed, order = bank_module._core, list(cores)
     try:
         while any(ep.remaining > 0 for ep in eps.values()):
             for name in order:
-                bank_module._core = cores[name]
+                bank_module._core = shims[name]
                 eps[name].step()
+                bank = getattr(eps[name].env.controller.bank, "bank", None)
+                if bank is not None and not shims[name].passthrough:  # between steps
+                    shims[name].by_point = np.ascontiguousarray(bank._ind_xi)
             order.reverse()
     finally:
         bank_module._core = installed

@@ -222,7 +222,7 @@ static PyObject *py_update(PyObject *self, PyObject *args)
     enum { INDXI, LOGVAR, IL2, UBT, VAR, KOOINV, STATS, SCALE, WK, WZ, WXT, WUBT, XI, UB, Z,
            KNEW, KSS, RESID, WORK, HEAD, COUNT, SEEN, FRESH, SINCE, NOISE, N };
     static const Spec spec[N] = {
-        {"ind_xi", 'd', 0}, {"log_var", 'd', 0}, {"inv_ls2", 'd', 0}, {"ubt", 'd', 0},
+        {"ind_xit", 'd', 0}, {"log_var", 'd', 0}, {"inv_ls2", 'd', 0}, {"ubt", 'd', 0},
         {"var", 'd', 0},   {"koo_inv", 'd', 0}, {"stats", 'd', 1}, {"scale", 'd', 1},   {"wk", 'd', 1},
         {"wz", 'd', 1},    {"wxt", 'd', 1},     {"wubt", 'd', 1},    {"xi", 'd', 0},
         {"ub", 'd', 0},    {"z", 'd', 0},       {"k_new", 'd', 1},   {"kss", 'd', 1},
@@ -250,7 +250,7 @@ static PyObject *py_update(PyObject *self, PyObject *args)
                                 work_size(&D), K, K, K, K, K, K};
     if (take_all(o, bf, spec, size, N) < 0)
         return NULL;
-    const double *oxi = bf[INDXI].buf, *lvar = bf[LOGVAR].buf, *il2 = bf[IL2].buf;
+    const double *oxt = bf[INDXI].buf, *lvar = bf[LOGVAR].buf, *il2 = bf[IL2].buf;
     const double *ubt = bf[UBT].buf, *var = bf[VAR].buf, *kinv = bf[KOOINV].buf;
     const double *xi = bf[XI].buf;
     const double *ub = bf[UB].buf, *z = bf[Z].buf;
@@ -283,8 +283,8 @@ static PyObject *py_update(PyObject *self, PyObject *args)
     }
     for (int k = 0; k < D.K && rc == 0; k++) {
         if (k + 1 < D.K)
-            prefetch(oxi + (k + 1) * mp * b, sizeof(double) * (size_t)(mp * b), 0);
-        rc = simd->exponents(&D, oxi, lvar, il2, k, xi + k * b, E + k * c * mp, sq);
+            prefetch(oxt + (k + 1) * mp * b, sizeof(double) * (size_t)(mp * b), 0);
+        rc = simd->exponents(&D, oxt, lvar, il2, k, xi + k * b, E + k * c * mp, sq);
         if (rc == 0)
             simd->vexp(E + k * c * mp, c * mp);
     }
@@ -344,7 +344,7 @@ static PyObject *py_predict(PyObject *self, PyObject *args)
     enum { INDXI, LOGVAR, IL2, UBT, VAR, LOO, STATS, SCALE, NOISE, LD, CVEC, FRESH, ROWS, XI,
            BOUT, SOUT, WORK, N };
     static const Spec spec[N] = {
-        {"ind_xi", 'd', 0}, {"log_var", 'd', 0}, {"inv_ls2", 'd', 0}, {"ubt", 'd', 0},
+        {"ind_xit", 'd', 0}, {"log_var", 'd', 0}, {"inv_ls2", 'd', 0}, {"ubt", 'd', 0},
         {"var", 'd', 0},   {"l_oo", 'd', 0},  {"stats", 'd', 0},   {"scale", 'd', 0}, {"noise_variance", 'd', 0},
         {"l_d", 'd', 1},   {"cvec", 'd', 1},    {"fresh", '?', 1}, {"rows", 'q', 0},
         {"xi", 'd', 0},    {"b_out", 'd', 1},   {"sigma_out", 'd', 1}, {"work", 'd', 1}};
@@ -369,7 +369,7 @@ static PyObject *py_predict(PyObject *self, PyObject *args)
         return PyLong_FromLong(TOO_MANY_ROWS);
     if (take_all(o, bf, spec, size, N) < 0)
         return NULL;
-    const double *oxi = bf[INDXI].buf, *lvar = bf[LOGVAR].buf, *il2 = bf[IL2].buf;
+    const double *oxt = bf[INDXI].buf, *lvar = bf[LOGVAR].buf, *il2 = bf[IL2].buf;
     const double *ubt = bf[UBT].buf, *var = bf[VAR].buf, *loo = bf[LOO].buf;
     const double *stats = bf[STATS].buf;
     const double *scale = bf[SCALE].buf, *noise = bf[NOISE].buf, *xi = bf[XI].buf;
@@ -395,7 +395,7 @@ static PyObject *py_predict(PyObject *self, PyObject *args)
     int m_ = (int)mp, info = 0, rc = 0;
     char L = 'L';
     for (Py_ssize_t j = 0; j < n && rc == 0; j++) {
-        rc = simd->exponents(&D, oxi, lvar, il2, (int)rows[j], xi + j * b, E + j * c * mp, sq);
+        rc = simd->exponents(&D, oxt, lvar, il2, (int)rows[j], xi + j * b, E + j * c * mp, sq);
         if (rc == 0)
             simd->vexp(E + j * c * mp, c * mp);
     }
@@ -755,13 +755,13 @@ static void *capi(const char *module, const char *name)
 
 static PyMethodDef methods[] = {
     {"update", py_update, METH_VARARGS,
-     "update(dims, ind_xi, log_var, inv_ls2, ubt, var, koo_inv, stats, scale, wk, wz, wxt, wubt, xi, ub, "
+     "update(dims, ind_xit, log_var, inv_ls2, ubt, var, koo_inv, stats, scale, wk, wz, wxt, wubt, xi, ub, "
      "z, k_new, kss, resid, work, head, count, n_seen, fresh, since, noise_variance, inv_phi, "
      "phi_p, add_floor, refresh_every) -> (code, candidates, best candidate, refresh due, "
      "renormalisation due): the window step of every learner at their shared ring position (code 0), or a "
      "negative code (nothing changed)."},
     {"predict", py_predict, METH_VARARGS,
-     "predict(dims, n, ind_xi, log_var, inv_ls2, ubt, var, l_oo, stats, scale, noise_variance, l_d, "
+     "predict(dims, n, ind_xit, log_var, inv_ls2, ubt, var, l_oo, stats, scale, noise_variance, l_d, "
      "cvec, fresh, rows, xi, b_out, sigma_out) -> int: eq. 20 for learners rows (0), or a "
      "negative code (the numpy method takes over)."},
     {"candidate", py_candidate, METH_VARARGS,
@@ -796,5 +796,11 @@ PyMODINIT_FUNC PyInit__bank(void)
     for (int i = N_SIMD - 1; i >= 0; i--)
         if (simd_runs(simd_tables[i]))
             simd = simd_tables[i];
-    return PyModule_Create(&module);
+    PyObject *m = PyModule_Create(&module);
+    /* how update and predict take the inducing inputs: (K, b, Mp), by dimension */
+    if (m != NULL && PyModule_AddStringConstant(m, "INDUCING_INPUTS", "by dimension") < 0) {
+        Py_DECREF(m);
+        return NULL;
+    }
+    return m;
 }

@@ -251,20 +251,21 @@ static void SIMD(lower_solve_rows)(const double *restrict L, int n, double *rest
 }
 
 /* The exponents of Kt (c, Mp) of learner k at x (b) (eq. 21) into e, from the differences:
- * log s_i - 1/2 sum_d (x_d - o_jd)^2 / l_id^2 (ind_xi (K, Mp, b), log_var (K, c), il2 (K, c,
- * b)), the squares sq (b, Mp) as scratch; OVERFLOW when one is NaN. */
-static int SIMD(exponents)(const Dims *D, const double *ind_xi, const double *log_var,
+ * log s_i - 1/2 sum_d (x_d - o_jd)^2 / l_id^2 (ind_xit (K, b, Mp) the inducing inputs by
+ * dimension, log_var (K, c), il2 (K, c, b)), the squares sq (b, Mp) as scratch; OVERFLOW when
+ * one is NaN. */
+static int SIMD(exponents)(const Dims *D, const double *ind_xit, const double *log_var,
                            const double *il2, int k, const double *x, double *restrict e,
                            double *restrict sq)
 {
     const size_t b = (size_t)D->b, c = (size_t)D->c, mp = (size_t)D->mp;
-    const double *O = ind_xi + (size_t)k * mp * b, *L2 = il2 + (size_t)k * c * b;
+    const double *O = ind_xit + (size_t)k * b * mp, *L2 = il2 + (size_t)k * c * b;
     const double *lv = log_var + (size_t)k * c;
-    for (size_t d = 0; d < b; d++) { /* stored by rows of d: strided reads, packed writes */
-        const double xd = x[d], *od = O + d;
-        double *row = sq + d * mp;
+    for (size_t d = 0; d < b * mp; d += mp) {
+        const double xd = x[d / mp], *od = O + d;
+        double *row = sq + d;
         for (size_t j = 0; j < mp; j++) {
-            const double t = xd - od[j * b];
+            const double t = xd - od[j];
             row[j] = t * t;
         }
     }

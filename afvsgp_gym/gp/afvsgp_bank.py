@@ -98,7 +98,7 @@ class _Candidate(NamedTuple):
 
 #: Per-learner arrays (leading axis K), concatenated by :meth:`AFVSGPBank.stack`.
 _STACKED = ("inv_ls2", "var", "_var_diag", "log_var", "noise_variance", "jitter", "n_inducing_",
-            "_ind_xi", "_ind_ub", "_amat", "_ubt", "_koo", "_l_oo", "_koo_inv", "_stats",
+            "_ind_xit", "_ind_ub", "_amat", "_ubt", "_koo", "_l_oo", "_koo_inv", "_stats",
             "_scale", "_wz", "_wk", "_wxt", "_wubt", "_head", "_count", "_l_d", "_cvec",
             "_fresh", "n_seen_", "n_added_", "n_removed_")
 
@@ -152,7 +152,7 @@ class AFVSGPBank:
         self.kernels = [st.kernel.clone() for st in states]
         # inducing sets (padded)
         self.n_inducing_ = np.zeros(K, dtype=int)
-        self._ind_xi = np.zeros((K, mp, b))
+        self._ind_xit = np.zeros((K, b, mp))  # inducing inputs by dimension (see _ind_xi)
         self._ind_ub = np.zeros((K, mp, c))
         self._amat = np.zeros((K, c * mp, b + 1))  # exponent rows, see _set_inducing
         self._ubt = np.zeros((K, c, mp))
@@ -236,6 +236,12 @@ class AFVSGPBank:
                               "(install the package where a C compiler is available)")
         self._compiled = COMPILED if value is None else bool(value)
 
+    @property
+    def _ind_xi(self) -> np.ndarray:
+        """The inducing inputs (K, Mp, b): a view of their storage by dimension, (K, b, Mp),
+        from which the compiled core reads each dimension's values contiguously."""
+        return self._ind_xit.transpose(0, 2, 1)
+
     def _new_step_out(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The core's per-step outputs: k_new (K, Mp), k_ss (K,), the eq. 27 residuals (K,)
         (read within the step)."""
@@ -245,6 +251,8 @@ class AFVSGPBank:
     def __setstate__(self, state: dict) -> None:
         """Unpickle; a bank pickled where the core was built runs numpy where it is not."""
         self.__dict__.update(state)
+        if "_ind_xi" in state:  # pickled when the inducing inputs were stored by point
+            self._ind_xit = np.ascontiguousarray(self.__dict__.pop("_ind_xi").transpose(0, 2, 1))
         if "_step_out" not in state:  # pickled before the per-step outputs were kept
             self._step_out = self._new_step_out()
         if _core is None:
@@ -451,7 +459,7 @@ class AFVSGPBank:
         n = len(idx)
         if self._compiled:
             bvec, sig = np.empty((n, c)), np.empty((n, c, c))
-            rc = _core.predict(self._dims, n, self._ind_xi, self.log_var, self.inv_ls2,
+            rc = _core.predict(self._dims, n, self._ind_xit, self.log_var, self.inv_ls2,
                                self._ubt, self.var,
                                self._l_oo, self._stats, self._scale, self.noise_variance,
                                self._l_d, self._cvec, self._fresh, np.ascontiguousarray(idx),
@@ -568,7 +576,7 @@ class AFVSGPBank:
         xi, z = np.ascontiguousarray(xi), np.ascontiguousarray(z)
         k_new, kss, resid = self._step_out
         rc, n_cand, best, refresh, renormalise = _core.update(
-            self._dims, self._ind_xi, self.log_var, self.inv_ls2, self._ubt, self.var,
+            self._dims, self._ind_xit, self.log_var, self.inv_ls2, self._ubt, self.var,
             self._koo_inv,
             self._stats, self._scale, self._wk, self._wz, self._wxt, self._wubt, xi, ub, z,
             k_new, kss, resid, self._work, self._head, self._count, self.n_seen_, self._fresh,

@@ -265,7 +265,7 @@ def test_compiled_entry_points_refuse_bad_input():
     bank = AFVSGPBank.from_learners(_learners(streams, u), compiled=True)
     core = afvsgp_bank._core
     n, c = 2, bank._c
-    args = [bank._dims, n, bank._ind_xi, bank.log_var, bank.inv_ls2, bank._ubt, bank.var,
+    args = [bank._dims, n, bank._ind_xit, bank.log_var, bank.inv_ls2, bank._ubt, bank.var,
             bank._l_oo, bank._stats, bank._scale, bank.noise_variance, bank._l_d, bank._cvec,
             bank._fresh, np.array([0, 1]), np.zeros((n, 3)), np.empty((n, c)),
             np.empty((n, c, c)), bank._work]
@@ -285,6 +285,10 @@ def test_compiled_entry_points_refuse_bad_input():
     bad = list(args)
     bad[16] = np.empty((n, c))[:, ::-1]
     with pytest.raises(ValueError, match="b_out must be a C-contiguous"):
+        core.predict(*bad)
+    bad = list(args)
+    bad[2] = bank._ind_xi  # the (K, Mp, b) view of the storage by dimension
+    with pytest.raises(ValueError, match="ind_xit must be a C-contiguous"):
         core.predict(*bad)
     with pytest.raises(ValueError, match="k and m"):
         core.factor_inverse(bank._dims, K, 3, True, bank._koo, bank._l_oo, bank._koo_inv,
@@ -363,3 +367,29 @@ def test_posterior_cache_is_shared_by_both_paths(monkeypatch):
     blob = pickle.dumps(bank)
     monkeypatch.setattr(afvsgp_bank, "_core", None)
     assert pickle.loads(blob).compiled is False
+
+
+@needs_core
+def test_a_bank_pickled_with_inducing_inputs_by_point_loads():
+    """A bank pickled when the inducing inputs were stored by point, (K, Mp, b), loads with
+    them by dimension and predicts and updates the same digits as the bank it was."""
+    streams = _streams(P + 30)
+    u = streams[0][1]
+    bank = AFVSGPBank.from_learners(_learners(streams, u), compiled=True)
+    for i in range(P, P + 20):
+        xi, z = _rows(streams, i)
+        bank.update(xi, u[i], z)
+    state = dict(bank.__dict__)
+    state["_ind_xi"] = np.ascontiguousarray(state.pop("_ind_xit").transpose(0, 2, 1))
+    old = AFVSGPBank.__new__(AFVSGPBank)
+    old.__setstate__(state)
+    assert "_ind_xi" not in old.__dict__ and old._ind_xit.flags.c_contiguous
+    np.testing.assert_array_equal(old._ind_xi, bank._ind_xi)
+    twin = pickle.loads(pickle.dumps(bank))
+    for i in range(P + 20, P + 30):
+        xi, z = _rows(streams, i)
+        for b in (old, twin):
+            b.update(xi, u[i], z)
+    xs = np.random.default_rng(3).normal(size=(K, 3))
+    for got, want in zip(old.predict_affine(xs), twin.predict_affine(xs), strict=True):
+        np.testing.assert_array_equal(got, want)
