@@ -43,7 +43,7 @@ except ImportError:  # built without a C compiler: the numpy versions
     _step = None
 from afvsgp_gym.cbf.hocbf import HOCBF
 from afvsgp_gym.cbf.learners import REGISTRY, check_learner_name, make_bank
-from afvsgp_gym.cbf.measurement import measure_all
+from afvsgp_gym.cbf.measurement import measure_samples
 from afvsgp_gym.cbf.residuals import ResidualObserver
 from afvsgp_gym.cbf.socp import SOCPFilter
 from afvsgp_gym.types import BarrierSet
@@ -277,6 +277,43 @@ class SafetyController:
         inside = near < self.config.activation_distance
         return np.flatnonzero(inside if ok is None else inside | ~ok)
 
+    def _finite_active_rows(self, c0: np.ndarray, c: np.ndarray,
+                            bset: BarrierSet) -> np.ndarray | None:
+        """:meth:`_active_rows` in the compiled core when every term is finite; None when one
+        is not, or the core is not built or does not take these arrays (float64, C-ordered)."""
+        if _step is None:
+            return None
+        d, xi = bset.derivatives, bset.xi
+        K, r = d.shape
+        rows = np.empty(K, dtype=np.int64)
+        gain = float(self.hocbf.gains[0]) if r > 1 else 1.0
+        try:
+            n = _step.active_rows(K, c.shape[1], r, xi.shape[1], c0, c, d, xi, gain,
+                                  float(self.config.activation_distance), rows)
+        except ValueError:
+            return None
+        return rows[:n] if n >= 0 else None
+
+    def _learned_terms(self, a0: np.ndarray, a: np.ndarray, bvec: np.ndarray,
+                       rows: np.ndarray, sig: np.ndarray) -> tuple[bool, np.ndarray | None]:
+        """The learned mean and residual bias added to every constraint of the program in
+        place (``a0 += bvec[:, 0] + bias[rows]``, ``a += bvec[:, 1:]``, eq. 05) and the cone
+        matrices :func:`cone_matrices` (``beta > 0``, else None), in the compiled core:
+        ``(True, G)``, or ``(False, None)`` with nothing changed without it."""
+        if _step is None:
+            return False, None
+        beta = float(self.config.beta)
+        n, c = sig.shape[:2]
+        G = np.empty((n, c, c)) if beta > 0 else None
+        try:
+            rc = _step.learned_terms(n, c - 1, self.n_barriers, a0, a, bvec,
+                                     self.residuals.bias, rows, sig, beta, G)
+        except (ValueError, TypeError):
+            return False, None
+        if rc != 0:  # a covariance not numerically positive definite: the eigen-factor
+            G = cone_matrices(sig, beta)
+        return True, G
+
     def filter(self, u_nom, terms, true_terms=None, u_backup=None) -> FilterResult:
         """Project ``u_nom`` onto the (chance-)constrained safe set (eq. 05).
 
@@ -304,13 +341,15 @@ class SafetyController:
         c0, c = self.hocbf.constraints(bset)
         if self.config.barrier_margin:
             c0 = c0 - self.config.barrier_margin * self._margin_gain
-        # a finite sum means every term is finite: one reduction per array in the usual case
         ok = None
-        if not math.isfinite(float(c0.sum()) + float(c.sum()) + float(bset.derivatives.sum())
-                             + float(bset.xi.sum())):
-            ok = np.isfinite(c0 + c.sum(axis=1) + bset.derivatives.sum(axis=1)
-                             + bset.xi.sum(axis=1))
-        rows = self._active_rows(bset.derivatives, ok)
+        rows = self._finite_active_rows(c0, c, bset)
+        if rows is None:
+            # a finite sum means every term is finite: one reduction per array
+            if not math.isfinite(float(c0.sum()) + float(c.sum())
+                                 + float(bset.derivatives.sum()) + float(bset.xi.sum())):
+                ok = np.isfinite(c0 + c.sum(axis=1) + bset.derivatives.sum(axis=1)
+                                 + bset.xi.sum(axis=1))
+            rows = self._active_rows(bset.derivatives, ok)
         a0, a = c0[rows], c[rows]  # copies (integer indices)
         if ok is not None:  # any non-finite term makes its constraint invalid (flagged fallback)
             a0 = np.where(ok[rows], a0, np.nan)
@@ -323,13 +362,18 @@ class SafetyController:
         if len(pred_rows):
             try:
                 bvec, sig = self.bank.predict_affine(bset.xi[pred_rows], pred_rows)
-                where = slice(None) if ok is None else np.searchsorted(rows, pred_rows)
-                a0[where] += bvec[:, 0] + self.residuals.bias[pred_rows]
-                a[where] += bvec[:, 1:]
-                u_nom = self._excite(u_nom, pred_rows, sig, a0[where], a[where])
-                if self.config.beta > 0:
-                    G = np.zeros((len(rows), m + 1, m + 1))
-                    G[where] = cone_matrices(sig, self.config.beta)
+                done, G = (self._learned_terms(a0, a, bvec, pred_rows, sig) if ok is None
+                           else (False, None))
+                if done:  # every barrier of the program predicted
+                    u_nom = self._excite(u_nom, pred_rows, sig, a0, a)
+                else:
+                    where = slice(None) if ok is None else np.searchsorted(rows, pred_rows)
+                    a0[where] += bvec[:, 0] + self.residuals.bias[pred_rows]
+                    a[where] += bvec[:, 1:]
+                    u_nom = self._excite(u_nom, pred_rows, sig, a0[where], a[where])
+                    if self.config.beta > 0:
+                        G = np.zeros((len(rows), m + 1, m + 1))
+                        G[where] = cone_matrices(sig, self.config.beta)
             except Exception as exc:  # a learner failure must not stop the loop
                 self.last_error = f"{type(exc).__name__}: {exc}"
                 a0 = np.full(len(rows), np.nan)
@@ -404,13 +448,13 @@ class SafetyController:
         before = self._terms(terms_before, "terms_before")
         after = self._terms(terms_after, "terms_after")
         u = np.asarray(u_applied, dtype=np.float64).ravel()
-        if not (np.isfinite(dt) and dt > 0):
+        if not (math.isfinite(dt) and dt > 0):
             raise ValueError(f"dt must be finite and positive. Got: {dt!r}")
         if u.shape != (self.action_dim,):
             raise ValueError(f"u_applied must have shape ({self.action_dim},). Got: {u.shape}")
         with np.errstate(invalid="ignore", over="ignore"):
-            xi, z = measure_all(before, u, after, dt)
-        if not math.isfinite(float(z.sum()) + float(xi.sum())):  # some sample is not finite
+            xi, z, n_bad = measure_samples(before, u, after, dt)
+        if n_bad:  # some sample is not finite
             bad = ~(np.isfinite(z) & np.all(np.isfinite(xi), axis=1))
             self.n_skipped_samples += int(bad.sum())
             z = np.where(bad, np.nan, z)
@@ -451,7 +495,7 @@ class SafetyController:
             self.residuals.reset()
             return
         ubar = np.concatenate([[1.0], u])
-        self.residuals.update(pred.rows, pred.mean @ ubar, z[pred.rows])
+        self.residuals.update(pred.rows, pred.mean @ ubar, z=z)
 
     # ------------------------------------------------------------------ diagnostics
     @property

@@ -85,8 +85,11 @@ def exploration_scale(sigma: np.ndarray, a0: np.ndarray, a: np.ndarray, u_nom: n
     -1.0 when none is gated. ``compiled``: the compiled core (None: when it is built)."""
     n, m = np.shape(a)
     if (compiled is None or compiled) and _step is not None and n and m + 1 <= 17:
-        arrays = [np.ascontiguousarray(x, dtype=np.float64)
-                  for x in (sigma, a0, a, u_nom, low, high, noise_std, half_range)]
+        arrays = (sigma, a0, a, u_nom, low, high, noise_std, half_range)
+        try:  # as they are when C-ordered float64 (the controller's), else converted
+            return _step.exploration_scale(n, m, *arrays, float(threshold), float(reach))
+        except ValueError:
+            arrays = [np.ascontiguousarray(x, dtype=np.float64) for x in arrays]
         return _step.exploration_scale(n, m, *arrays, float(threshold), float(reach))
     u = clip(u_nom, low, high)
     ubar = np.concatenate([[1.0], u])

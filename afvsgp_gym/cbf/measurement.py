@@ -14,9 +14,16 @@ feature of the sample is the midpoint ``xi_j = (xi(t) + xi(t + dt)) / 2``.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from afvsgp_gym.types import BarrierSet, BarrierTerms
+
+try:
+    from afvsgp_gym.cbf import _step
+except ImportError:  # built without a C compiler: numpy
+    _step = None
 
 
 def nominal_highest_derivative(terms: BarrierTerms, u: np.ndarray) -> float:
@@ -31,7 +38,7 @@ def measure(
 
     Returns NaN in ``z`` when any input is not finite (the caller skips such samples).
     """
-    if not (np.isfinite(dt) and dt > 0):
+    if not (math.isfinite(dt) and dt > 0):
         raise ValueError(f"dt must be finite and positive. Got: {dt!r}")
     u = np.asarray(u, dtype=np.float64)
     r = terms_before.relative_degree
@@ -50,10 +57,34 @@ def measure_all(
 
     NaN in ``z`` for barriers whose inputs are not finite (the learners skip them).
     """
-    if not (np.isfinite(dt) and dt > 0):
+    xi, z, _ = measure_samples(before, u, after, dt)
+    return xi, z
+
+
+def measure_samples(
+    before: BarrierSet, u: np.ndarray, after: BarrierSet, dt: float
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """:func:`measure_all` and the number of samples whose ``z`` or ``xi`` is not finite (the
+    elementwise part in the compiled core when it is built: the same digits)."""
+    if not (math.isfinite(dt) and dt > 0):
         raise ValueError(f"dt must be finite and positive. Got: {dt!r}")
     u = np.asarray(u, dtype=np.float64)
     r = before.relative_degree
+    lgu_before, lgu_after = before.lg @ u, after.lg @ u
+    if _step is not None:
+        K, nb = before.xi.shape
+        xi, z = np.empty((K, nb)), np.empty(K)
+        try:
+            bad = _step.measure(K, r, nb, float(dt), before.lf, lgu_before, before.derivatives,
+                                before.xi, after.lf, lgu_after, after.derivatives, after.xi,
+                                xi, z)
+        except ValueError:  # arrays the core does not take (not float64, C-ordered, equal)
+            pass
+        else:
+            return xi, z, bad
     fd = (after.derivatives[:, r - 1] - before.derivatives[:, r - 1]) / dt
-    nominal = 0.5 * ((before.lf + before.lg @ u) + (after.lf + after.lg @ u))
-    return 0.5 * (before.xi + after.xi), fd - nominal
+    nominal = 0.5 * ((before.lf + lgu_before) + (after.lf + lgu_after))
+    xi, z = 0.5 * (before.xi + after.xi), fd - nominal
+    if math.isfinite(float(z.sum()) + float(xi.sum())):  # a finite sum: every value is
+        return xi, z, 0
+    return xi, z, int((~(np.isfinite(z) & np.all(np.isfinite(xi), axis=1))).sum())

@@ -12,6 +12,11 @@ from __future__ import annotations
 
 import numpy as np
 
+try:
+    from afvsgp_gym.cbf import _step
+except ImportError:  # built without a C compiler: numpy
+    _step = None
+
 __all__ = ["ResidualObserver"]
 
 
@@ -26,9 +31,21 @@ class ResidualObserver:
         """Forget the bias (e.g. at an episode reset: the state jumps)."""
         self.bias[:] = 0.0
 
-    def update(self, rows: np.ndarray, predicted: np.ndarray, measured: np.ndarray) -> None:
-        """``predicted`` and ``measured`` (len(rows),) for the barriers ``rows`` of the step
-        just taken; every other barrier's bias returns to 0. NaN measurements leave the bias."""
+    def update(self, rows: np.ndarray, predicted: np.ndarray,
+               measured: np.ndarray | None = None, *, z: np.ndarray | None = None) -> None:
+        """``predicted`` and ``measured`` (len(rows),) for the (distinct) barriers ``rows`` of
+        the step just taken, or ``z`` (K,) the measurements of every barrier in place of
+        ``measured = z[rows]``; every other barrier's bias returns to 0. NaN measurements leave
+        the bias."""
+        if z is not None:
+            if _step is not None:
+                try:
+                    _step.residual_update(len(self.bias), len(rows), self.bias, rows,
+                                          predicted, z, self.weight)
+                    return
+                except ValueError:  # arrays the core does not take: numpy
+                    pass
+            measured = z[rows]
         keep = np.zeros(self.bias.shape, dtype=bool)
         if self.weight > 0 and len(rows):
             e = measured - predicted
