@@ -1,7 +1,7 @@
 """Build of the optional compiled cores (the rest of the metadata is in pyproject.toml).
 
 ``afvsgp_gym.cbf._cones`` (the certified several-cones fast path of the filter's cone program),
-``afvsgp_gym.cbf._step`` (the controller's cone matrices and exploration gate) and
+``afvsgp_gym.cbf._step`` (the controller's cone matrices, exploration gate, step glue) and
 ``afvsgp_gym.gp._bank`` (the per-step arithmetic of the AFVSGP learners; it calls the BLAS and
 LAPACK that scipy ships, found at import) are optional: without a C compiler the build goes
 on and the package uses its numpy paths. All take their arguments through afvsgp_gym/_cbuf.h."""

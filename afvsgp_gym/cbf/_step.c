@@ -4,8 +4,10 @@
  * afvsgp_gym.cbf.exploration.exploration_scale (their docstrings state the formulas): for
  * each barrier predicted, the cone matrix G = beta U of paper eq. 05 from the eq. 51
  * covariance (U'U = (Sigma + Sigma')/2, Cholesky), and the online exploration's gate and
- * scale. Small and dense (m + 1 <= MAXC), row-major float64; the numpy versions are the
- * reference and take over when a factorisation fails.
+ * scale; and the step's glue: the barriers in the cone program, the learned terms added to
+ * the constraints, the eq. 48 samples, the residual observer (the same digits as their numpy
+ * versions). Small and dense (m + 1 <= MAXC), row-major float64; the numpy versions are the
+ * reference and take over when a factorisation fails or a term is not finite.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
