@@ -41,6 +41,15 @@ MAX_ACTIONS, MAX_CONES, MAX_PROGRAM_CONES = 16, 8, 64
 NEGATIVE_MULTIPLIER = -8
 
 
+def _call(fn, arrays, *rest):
+    """``fn(*arrays, *rest)``, the arrays passed as they are (the filter's are C-ordered
+    float64) and converted to that when the core refuses them."""
+    try:
+        return fn(*arrays, *rest)
+    except ValueError:
+        return fn(*[np.ascontiguousarray(x, dtype=np.float64) for x in arrays], *rest)
+
+
 def project_cones_box(u_nom, a0, a, G, low, high, u, lam, fixed):
     """``(u, lam)``: the projection of ``u_nom`` onto the cones ``a0_i + a_i u >= ||G_i ubar||``
     (``G`` of shape (k, m+1, m+1)) and the box, every cone binding (module docstring), from
@@ -55,8 +64,8 @@ def project_cones_box(u_nom, a0, a, G, low, high, u, lam, fixed):
     u = np.array(u, dtype=np.float64)
     lam = np.array(lam, dtype=np.float64)
     fixed = np.array(fixed, dtype=bool)
-    arrays = [np.ascontiguousarray(x, dtype=np.float64) for x in (u_nom, a0, a, G, low, high)]
-    if _cones.project(*arrays, u, lam, fixed) not in (0, NEGATIVE_MULTIPLIER):
+    if _call(_cones.project, (u_nom, a0, a, G, low, high), u, lam, fixed) not in (
+            0, NEGATIVE_MULTIPLIER):
         return None
     return u, lam
 
@@ -76,9 +85,8 @@ def solve_binding_set(u_nom, a0, a, G, low, high, tol, u, lam, binding, max_bind
     u = np.array(u, dtype=np.float64)
     lam = np.array(lam, dtype=np.float64)
     binding = np.array(binding, dtype=bool)
-    arrays = [np.ascontiguousarray(x, dtype=np.float64)
-              for x in (u_nom, a0, a, G, low, high, tol)]
-    if _cones.solve(*arrays, u, lam, binding, int(max_binding)) != 0:
+    if _call(_cones.solve, (u_nom, a0, a, G, low, high, tol), u, lam, binding,
+             int(max_binding)) != 0:
         return None
     return u, lam, binding
 
@@ -92,10 +100,8 @@ def certify_set(u_nom, a0, a, G, low, high, tol, u, lam, binding, dist_tol: floa
     if _cones is None or m > MAX_ACTIONS or K < 1:
         return None
     margins = np.empty(K)
-    arrays = [np.ascontiguousarray(x, dtype=np.float64)
-              for x in (u_nom, a0, a, G, low, high, tol, u, lam)]
-    ok = _cones.certify(*arrays, np.ascontiguousarray(binding, dtype=bool), margins,
-                        float(dist_tol))
+    ok = _call(_cones.certify, (u_nom, a0, a, G, low, high, tol, u, lam),
+               np.ascontiguousarray(binding, dtype=bool), margins, float(dist_tol))
     return ok, margins
 
 
@@ -106,5 +112,5 @@ def cone_margins(u, a0, a, G) -> np.ndarray | None:
     if _cones is None or m > MAX_ACTIONS or K < 1:
         return None
     out = np.empty(K)
-    _cones.margins(*[np.ascontiguousarray(x, dtype=np.float64) for x in (u, a0, a, G)], out)
+    _call(_cones.margins, (u, a0, a, G), out)
     return out
