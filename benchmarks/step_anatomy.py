@@ -8,8 +8,10 @@ it. Prints, per number of barriers in the program, the share of steps and the st
 times, a least-squares line ``filter = a + b n``, per solver outcome (inactive, a certified
 fast path, clarabel) the share, the time of ``solve`` and the clarabel part of it, and per band
 of step time (below the median, median-p90, p90-p99, the slowest 1 %) the mean of each part of
-the step: the learners' update and predictions, ``solve`` and clarabel inside it, the rest, the
-share of steps with an inducing-set change and the solver outcomes.
+the step: the learners' update and predictions, ``solve`` and clarabel inside it, the
+one-cone projection in numpy inside it (``fastpath.project_cone_box``: programs with one
+cone, and the several-cones path's fallback) with the share of steps that ran it, the rest,
+the share of steps with an inducing-set change and the solver outcomes.
 
     OPENBLAS_NUM_THREADS=1 taskset -c 0 python benchmarks/step_anatomy.py --seeds 0 1 2
 """
@@ -48,6 +50,10 @@ def _timed_solver(socp, record: dict) -> None:
         return res
 
     socp.programs.solve, socp.solve = timed_programs, timed_solve
+    # the one-cone projection in numpy (fastpath.project_cone_box): programs with one cone,
+    # and the several-cones path's fallback when the compiled search does not settle
+    for name in ("_one_cone", "_project_one"):
+        _timed(socp, name, record, "python_projection")
 
 
 def _timed(obj, name: str, clock: dict, key: str) -> None:
@@ -75,6 +81,7 @@ def _parts(ep: TimedEpisode, record: dict, parts: dict) -> None:
             wrapped = True
         changes = int(bank.n_added_.sum()) if bank is not None else 0
         clock.update(update=0.0, predict=0.0)
+        record["python_projection"] = 0.0
         n_calls, n_timed = len(record["calls"]), len(ep.out["step"])
         ep.step()
         if len(ep.out["step"]) == n_timed:
@@ -84,6 +91,7 @@ def _parts(ep: TimedEpisode, record: dict, parts: dict) -> None:
         parts["predict"].append(clock["predict"])
         parts["solve"].append(sum(c[1] for c in calls))
         parts["clarabel"].append(sum(c[3] for c in calls))
+        parts["python_projection"].append(record["python_projection"])
         parts["inducing"].append(int(bank.n_added_.sum()) > changes)
         parts["outcome"].append(calls[-1][0] if calls else "none")
 
@@ -91,14 +99,15 @@ def _parts(ep: TimedEpisode, record: dict, parts: dict) -> None:
 def _print_bands(step: np.ndarray, parts: dict) -> None:
     """Mean of each part of the step per band of step time (us)."""
     p = {k: np.asarray(v) for k, v in parts.items()}
-    print("step band    steps   step  update  predict  solve  (clarabel)  rest   "
-          "inducing change   outcomes")
+    print("step band    steps   step  update  predict  solve  (clarabel)  (numpy cone: share)  "
+          "rest   inducing change   outcomes")
     edges = np.percentile(step, [0, 50, 90, 99, 100])
     for name, lo, hi in zip(("<p50", "p50-p90", "p90-p99", ">p99"), edges[:-1], edges[1:],
                             strict=True):
         m = (step >= lo) & (step <= hi)
         upd, pred = p["update"][m] * 1e6, p["predict"][m] * 1e6
         sol, clar = p["solve"][m] * 1e6, p["clarabel"][m] * 1e6
+        proj = p["python_projection"][m] * 1e6
         rest = step[m] - upd - pred - sol
         kinds = defaultdict(int)
         for k in p["outcome"][m]:
@@ -107,6 +116,7 @@ def _print_bands(step: np.ndarray, parts: dict) -> None:
                         sorted(kinds.items(), key=lambda kv: -kv[1])[:3])
         print(f"  {name:9s} {m.sum():6d}  {step[m].mean():5.0f}  {upd.mean():6.0f}  "
               f"{pred.mean():7.0f}  {sol.mean():5.0f}  ({clar.mean():5.0f})    "
+              f"({proj.mean():5.0f}: {(proj > 0).mean():.2f})       "
               f"{rest.mean():5.0f}  {p['inducing'][m].mean():.2f}              {top}")
 
 
@@ -114,7 +124,7 @@ def run(seeds, steps: int, spheres: str | None) -> None:
     spec = {} if spheres is None else {"safety_spheres": spheres}
     per_step = defaultdict(list)
     parts: dict = defaultdict(list)
-    record: dict = {"calls": []}
+    record: dict = {"calls": [], "python_projection": 0.0}
     for seed in seeds:
         ep = TimedEpisode(spec, steps=steps, seed=seed)
         _timed_solver(ep.env.controller.socp, record)
