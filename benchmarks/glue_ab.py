@@ -5,10 +5,13 @@
 The glue is the elementwise arithmetic of the step between the learners, the solver and the
 products by matrices: the barriers in the program, the learned terms added to the
 constraints with the cone matrices, the eq. 48 samples, the residual observer
-(``afvsgp_gym.cbf._step``). Two 21-barrier episodes per seed (those of
+(``afvsgp_gym.cbf._step``), and the copies that install a new inducing point
+(``afvsgp_gym.gp._bank.install``). Two 21-barrier episodes per seed (those of
 ``afvsgp_gym.benchmarks.arm``) advance in lockstep, one control step each in turn: one with
-the compiled glue, one with the numpy versions (the controller's two compiled steps
-overridden on its instance, the other modules' ``_step`` set to None). Their observations
+the compiled glue, one with the numpy versions (the controller's two compiled steps and the
+bank's install overridden on their instances, the other modules' ``_step`` set to None;
+the install then makes its copies in numpy and calls the core's ``factor_inverse``, as
+before the compiled install). Their observations
 are compared bit for bit (the same digits by construction); prints the step and filter
 medians / p99 of both and their ratios, measured on the same seconds. Pin to one core
 (``taskset -c 0``) with ``OPENBLAS_NUM_THREADS=1``.
@@ -23,9 +26,30 @@ import numpy as np
 from afvsgp_gym.benchmarks._machine import calibration_line, machine
 from afvsgp_gym.benchmarks.arm import CONFIGS, TimedEpisode
 from afvsgp_gym.cbf import controller, measurement, residuals
+from afvsgp_gym.gp import afvsgp_bank
 
 ARM = "21 (arm)"
 MODULES = (measurement, residuals)
+
+
+def numpy_install(bank):
+    """``bank._install`` with the copies in numpy and K_oo^-1 by the core's factor_inverse."""
+    core = afvsgp_bank._core
+
+    def install(k, xi, ub, kss, k_new, cand):
+        m = int(bank.n_inducing_[k])
+        pos, mm = (m, m + 1) if cand.drop is None else (cand.drop, m)
+        sx = bank.inv_ls2[k] * xi
+        a = bank._amat[k].reshape(bank._c, bank._mp, -1)
+        a[:, pos, :-1] = sx
+        a[:, pos, -1] = bank.log_var[k] - 0.5 * (sx @ xi)
+        bank._install_copies(k, m, pos, mm, xi, ub, kss + bank.jitter[k], k_new, cand)
+        if core.factor_inverse(bank._dims, k, mm, cand.drop is not None, bank._koo,
+                               bank._l_oo, bank._koo_inv, bank._fresh) != 0:
+            raise RuntimeError("K_oo not positive definite: not timed here")
+        bank.n_inducing_[k] = mm
+
+    return install
 
 
 def lockstep(seed: int, steps: int) -> tuple[dict[str, dict[str, np.ndarray]], bool]:
@@ -47,6 +71,9 @@ def lockstep(seed: int, steps: int) -> tuple[dict[str, dict[str, np.ndarray]], b
                 for mod in MODULES:
                     mod._step = glue[name]
                 eps[name].step()
+            bank = getattr(ctrl.bank, "bank", None)  # the numpy side's, after the warm-up
+            if bank is not None and "_install" not in vars(bank):
+                bank._install = numpy_install(bank)
             order.reverse()
             same &= bool(np.array_equal(eps["compiled"].obs, eps["numpy"].obs))
     finally:

@@ -619,34 +619,17 @@ done:
  * chol(K_oo[:m, :m]) (LAPACK) into l_oo first (else l_oo holds it already, e.g. the bordered
  * factor); then K_oo^-1 = L^-T L^-1 into koo_inv[:m, :m] (L^-1 by forward substitution) and
  * fresh[k] cleared. NOT_PD (nothing changed) when the factorisation fails. */
-static PyObject *py_factor_inverse(PyObject *self, PyObject *args)
+/* factor_inverse on learner k's blocks of the stacked koo, l_oo, koo_inv (mp x mp each);
+ * 0, NOT_PD (nothing changed) or NO_MEMORY */
+static int factor_inverse_k(Py_ssize_t mp, int k, int m, int refactor, const double *koo_all,
+                            double *lo_all, double *kinv_all, char *fresh)
 {
-    enum { KOO, LOO, KINV, FRESH, N };
-    static const Spec spec[N] = {{"koo", 'd', 0}, {"l_oo", 'd', 1}, {"koo_inv", 'd', 1},
-                                 {"fresh", '?', 1}};
-    PyObject *o[N];
-    Py_buffer bf[N];
-    Dims D;
-    int k, m, refactor;
-    if (!PyArg_ParseTuple(args, "(iiiii)iipOOOO", &D.K, &D.b, &D.c, &D.mp, &D.P, &k, &m,
-                          &refactor, &o[0], &o[1], &o[2], &o[3]))
-        return NULL;
-    if (D.K < 1 || D.mp < 1 || D.mp > MAXW || k < 0 || k >= D.K || m < 1 || m > D.mp) {
-        PyErr_SetString(PyExc_ValueError, "k and m must index the bank");
-        return NULL;
-    }
-    const Py_ssize_t mp = D.mp, K = D.K;
-    const Py_ssize_t size[N] = {K * mp * mp, K * mp * mp, K * mp * mp, K};
-    if (take_all(o, bf, spec, size, N) < 0)
-        return NULL;
-    const double *koo = (const double *)bf[KOO].buf + (size_t)k * mp * mp;
-    double *lo = (double *)bf[LOO].buf + (size_t)k * mp * mp;
-    double *kinv = (double *)bf[KINV].buf + (size_t)k * mp * mp;
+    const double *koo = koo_all + (size_t)k * mp * mp;
+    double *lo = lo_all + (size_t)k * mp * mp;
+    double *kinv = kinv_all + (size_t)k * mp * mp;
     double *L = PyMem_Malloc(sizeof(double) * 3 * (size_t)m * m);
-    if (L == NULL) {
-        release_all(bf, N);
-        return PyErr_NoMemory();
-    }
+    if (L == NULL)
+        return NO_MEMORY;
     double *X = L + (size_t)m * m, *g = X + (size_t)m * m;
     int rc = 0;
     for (int i = 0; i < m; i++)
@@ -676,10 +659,121 @@ static PyObject *py_factor_inverse(PyObject *self, PyObject *args)
             if (refactor)
                 memcpy(lo + (size_t)i * mp, L + (size_t)i * m, sizeof(double) * (size_t)m);
         }
-        ((char *)bf[FRESH].buf)[k] = 0;
+        fresh[k] = 0;
     }
     PyMem_Free(L);
+    return rc;
+}
+
+static PyObject *py_factor_inverse(PyObject *self, PyObject *args)
+{
+    enum { KOO, LOO, KINV, FRESH, N };
+    static const Spec spec[N] = {{"koo", 'd', 0}, {"l_oo", 'd', 1}, {"koo_inv", 'd', 1},
+                                 {"fresh", '?', 1}};
+    PyObject *o[N];
+    Py_buffer bf[N];
+    Dims D;
+    int k, m, refactor;
+    if (!PyArg_ParseTuple(args, "(iiiii)iipOOOO", &D.K, &D.b, &D.c, &D.mp, &D.P, &k, &m,
+                          &refactor, &o[0], &o[1], &o[2], &o[3]))
+        return NULL;
+    if (D.K < 1 || D.mp < 1 || D.mp > MAXW || k < 0 || k >= D.K || m < 1 || m > D.mp) {
+        PyErr_SetString(PyExc_ValueError, "k and m must index the bank");
+        return NULL;
+    }
+    const Py_ssize_t mp = D.mp, K = D.K;
+    const Py_ssize_t size[N] = {K * mp * mp, K * mp * mp, K * mp * mp, K};
+    if (take_all(o, bf, spec, size, N) < 0)
+        return NULL;
+    const int rc = factor_inverse_k(mp, k, m, refactor, bf[KOO].buf, bf[LOO].buf,
+                                    bf[KINV].buf, bf[FRESH].buf);
     release_all(bf, N);
+    if (rc == NO_MEMORY)
+        return PyErr_NoMemory();
+    return PyLong_FromLong(rc);
+}
+
+/* Learner k's newest sample installed as inducing point pos (eqs. 29-30;
+ * AFVSGPBank._install, whose numpy statements these are, copies only): with m points before
+ * and mm after (append: pos = m, mm = m + 1; replace: pos < m, mm = m), krow = k_new[:m] with
+ * kss_jit at pos, srow[:m] with s_dd at pos; ind_xit[k, :, pos] = xi, ind_ub[k, pos] = ub,
+ * ubt[k, :, pos] = ub, K_oo's row and column pos <- krow, [r, S]'s row pos <- [r_new, srow]
+ * and column pos + 1 <- srow, wk[k, :count, pos] = col, with append the bordered factor's row
+ * pos <- [lvec, sqrt(dd)]; n_added[k] (and with replace n_removed[k]) + 1; then
+ * factor_inverse (refactor with replace). Returns 0, or NOT_PD (the copies made, the factor
+ * and inverse unchanged: the caller refactors with jitter). */
+static PyObject *py_install(PyObject *self, PyObject *args)
+{
+    enum { XI, UB, KNEW, SROW, COL, LVEC, INDXT, INDUB, UBT, KOO, STATS, WK, LOO, KINV, FRESH,
+           NADD, NREM, N };
+    static const Spec spec[N] = {
+        {"xi", 'd', 0},      {"ub", 'd', 0},       {"k_new", 'd', 0},   {"srow", 'd', 0},
+        {"col", 'd', 0},     {"lvec", 'd', 0},     {"ind_xit", 'd', 1}, {"ind_ub", 'd', 1},
+        {"ubt", 'd', 1},     {"koo", 'd', 1},      {"stats", 'd', 1},   {"wk", 'd', 1},
+        {"l_oo", 'd', 1},    {"koo_inv", 'd', 1},  {"fresh", '?', 1},   {"n_added", 'q', 1},
+        {"n_removed", 'q', 1}};
+    PyObject *o[N];
+    Py_buffer bf[N];
+    Dims D;
+    int k, m, pos, replace, cnt;
+    double kss_jit, sdd, rnew, dd;
+    if (!PyArg_ParseTuple(args, "(iiiii)iiipiddddOOOOOOOOOOOOOOOOO", &D.K, &D.b, &D.c, &D.mp,
+                          &D.P, &k, &m, &pos, &replace, &cnt, &kss_jit, &sdd, &rnew, &dd,
+                          &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6], &o[7], &o[8],
+                          &o[9], &o[10], &o[11], &o[12], &o[13], &o[14], &o[15], &o[16]))
+        return NULL;
+    const Py_ssize_t K = D.K, b = D.b, c = D.c, mp = D.mp, P = D.P;
+    if (K < 1 || b < 1 || c < 1 || mp < 1 || mp > MAXW || P < 1 || k < 0 || k >= K || m < 0 ||
+        m > mp || cnt < 1 || cnt > P || (replace ? pos < 0 || pos >= m : pos != m || m >= mp)) {
+        PyErr_SetString(PyExc_ValueError, "dims, k, m, pos or count out of range");
+        return NULL;
+    }
+    const int mm = replace ? m : m + 1;
+    const Py_ssize_t size[N] = {b,           c,           mp,     m,           cnt,
+                                m,           K * b * mp,  K * mp * c, K * c * mp, K * mp * mp,
+                                K * mp * (mp + 1), K * P * mp, K * mp * mp, K * mp * mp, K,
+                                K,           K};
+    if (take_all(o, bf, spec, size, N) < 0)
+        return NULL;
+    const double *xi = bf[XI].buf, *ub = bf[UB].buf, *kn = bf[KNEW].buf, *srow = bf[SROW].buf;
+    const double *col = bf[COL].buf, *lvec = bf[LVEC].buf;
+    double *xt = (double *)bf[INDXT].buf + (size_t)k * b * mp;
+    double *iu = (double *)bf[INDUB].buf + (size_t)k * mp * c;
+    double *U = (double *)bf[UBT].buf + (size_t)k * c * mp;
+    double *koo = (double *)bf[KOO].buf + (size_t)k * mp * mp;
+    double *st = (double *)bf[STATS].buf + (size_t)k * mp * (mp + 1);
+    double *wk = (double *)bf[WK].buf + (size_t)k * P * mp;
+    double *lo = (double *)bf[LOO].buf + (size_t)k * mp * mp;
+    long long *nadd = bf[NADD].buf, *nrem = bf[NREM].buf;
+    nadd[k] += 1;
+    if (replace)
+        nrem[k] += 1;
+    for (Py_ssize_t d = 0; d < b; d++)
+        xt[d * mp + pos] = xi[d];
+    for (Py_ssize_t i = 0; i < c; i++) {
+        iu[(size_t)pos * c + i] = ub[i];
+        U[i * mp + pos] = ub[i];
+    }
+    for (int q = 0; q < mm; q++) {
+        const double kq = q == pos ? kss_jit : kn[q], sq = q == pos ? sdd : srow[q];
+        koo[(size_t)pos * mp + q] = kq;
+        koo[(size_t)q * mp + pos] = kq;
+        st[(size_t)pos * (mp + 1) + 1 + q] = sq;
+        st[(size_t)q * (mp + 1) + pos + 1] = sq;
+    }
+    st[(size_t)pos * (mp + 1)] = rnew;
+    for (int t = 0; t < cnt; t++)
+        wk[(size_t)t * mp + pos] = col[t];
+    if (!replace) {
+        for (int q = 0; q < pos; q++)
+            lo[(size_t)pos * mp + q] = lvec[q];
+        lo[(size_t)pos * mp + pos] = sqrt(dd);
+    }
+    const int rc = factor_inverse_k(mp, k, mm, replace, koo - (size_t)k * mp * mp,
+                                    bf[LOO].buf, bf[KINV].buf, bf[FRESH].buf);
+    release_all(bf, N);
+    if (rc == NO_MEMORY)
+        return PyErr_NoMemory();
     return PyLong_FromLong(rc);
 }
 
@@ -772,6 +866,11 @@ static PyMethodDef methods[] = {
      "factor_inverse(dims, k, m, refactor, koo, l_oo, koo_inv, fresh) -> int: L = "
      "chol(K_oo) of learner k into l_oo (with refactor) and K_oo^-1 into koo_inv (0), or "
      "NOT_PD (nothing changed)."},
+    {"install", py_install, METH_VARARGS,
+     "install(dims, k, m, pos, replace, count, kss_jit, s_dd, r_new, dd, xi, ub, k_new, srow, "
+     "col, lvec, ind_xit, ind_ub, ubt, koo, stats, wk, l_oo, koo_inv, fresh, n_added, "
+     "n_removed) -> int: learner k's new inducing point in slot pos and K_oo^-1 (0), or "
+     "NOT_PD (the copies made, the factor and inverse unchanged)."},
     {"vexp", py_vexp, METH_VARARGS,
      "vexp(x) -> None: x <- exp(x) in place (a C-contiguous, writable float64 array), as the "
      "core computes its kernels' exponentials."},

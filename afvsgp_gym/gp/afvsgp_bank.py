@@ -768,48 +768,30 @@ class AFVSGPBank:
                  cand: _Candidate) -> None:
         """Install learner ``k``'s newest sample as inducing point (eqs. 29-30): last, or in
         the slot of the point ``cand.drop``; ``K_oo``, its factor and inverse, ``[r, S]``,
-        the kernel rows and the window's kernel column follow."""
+        the kernel rows and the window's kernel column follow (the copies and the inverse in
+        the compiled core when the bank runs there)."""
         m = int(self.n_inducing_[k])
-        kn = k_new[:m]
-        cnt = self._count[k]
-        jit = self.jitter[k]
-        drop, srow, sdiag = cand.drop, cand.srow, cand.sdiag
-        self.n_added_[k] += 1
-        if drop is None:  # the new point goes last
-            pos, mm = m, m + 1
-            krow, srow = np.append(kn, kss + jit), np.append(srow, sdiag)
-        else:  # the new point takes the dropped point's slot
-            pos, mm = drop, m
-            self.n_removed_[k] += 1
-            krow = kn.copy()
-            krow[pos] = kss + jit
-            srow = srow.copy()
-            srow[pos] = sdiag
-        # the new point in slot pos (eqs. 29-30)
-        self._ind_xi[k, pos] = xi
-        self._ind_ub[k, pos] = ub
-        il2 = self.inv_ls2[k]
-        sx = il2 * xi  # (c, b)
+        drop = cand.drop
+        pos, mm = (m, m + 1) if drop is None else (drop, m)
+        # the numpy path's exponent rows of the new point (see _set_inducing)
+        sx = self.inv_ls2[k] * xi  # (c, b)
         b = self.input_dim
         a = self._amat[k].reshape(self._c, self._mp, -1)
         a[:, pos, :b] = sx
         a[:, pos, b] = self.log_var[k] - 0.5 * (sx @ xi)
-        self._ubt[k, :, pos] = ub
-        koo = self._koo[k]
-        koo[pos, :mm] = koo[:mm, pos] = krow
-        st = self._stats[k]
-        st[pos, 0] = cand.r_new
-        st[pos, 1 : mm + 1] = st[:mm, pos + 1] = srow
-        self._wk[k, :cnt, pos] = cand.col
-        lo = self._l_oo[k]
-        if drop is None:  # the bordered factor
-            lo[pos, :pos] = cand.lvec
-            lo[pos, pos] = math.sqrt(cand.dd)
-        if self._compiled and _core.factor_inverse(self._dims, k, mm, drop is not None,
-                                                   self._koo, self._l_oo, self._koo_inv,
-                                                   self._fresh) == 0:
-            self.n_inducing_[k] = mm
-            return
+        kss_jit = kss + self.jitter[k]
+        if self._compiled:
+            if _core.install(self._dims, k, m, pos, drop is not None, int(self._count[k]),
+                             float(kss_jit), float(cand.sdiag), float(cand.r_new),
+                             float(cand.dd), xi, ub, k_new, cand.srow, cand.col, cand.lvec,
+                             self._ind_xit, self._ind_ub, self._ubt, self._koo, self._stats,
+                             self._wk, self._l_oo, self._koo_inv, self._fresh, self.n_added_,
+                             self.n_removed_) == 0:
+                self.n_inducing_[k] = mm
+                return
+        else:
+            self._install_copies(k, m, pos, mm, xi, ub, kss_jit, k_new, cand)
+        koo, lo = self._koo[k], self._l_oo[k]
         if drop is not None:
             low_n, info = dpotrf(koo[:mm, :mm], lower=1, clean=1)  # O(M^3 / 3)
             if info != 0:
@@ -817,3 +799,33 @@ class AFVSGPBank:
             lo[:mm, :mm] = low_n
         self.n_inducing_[k] = mm
         self._set_koo_inv(k)
+
+    def _install_copies(self, k: int, m: int, pos: int, mm: int, xi: np.ndarray,
+                        ub: np.ndarray, kss_jit: float, k_new: np.ndarray,
+                        cand: _Candidate) -> None:
+        """:meth:`_install`'s copies in numpy (the compiled core's ``install`` makes the same):
+        the new point's inputs, its rows and columns of ``K_oo`` and ``[r, S]``, its kernel
+        column over the window, with append the bordered factor's row."""
+        kn, srow = k_new[:m], cand.srow
+        self.n_added_[k] += 1
+        if cand.drop is None:  # the new point goes last
+            krow, srow = np.append(kn, kss_jit), np.append(srow, cand.sdiag)
+        else:  # the new point takes the dropped point's slot
+            self.n_removed_[k] += 1
+            krow = kn.copy()
+            krow[pos] = kss_jit
+            srow = srow.copy()
+            srow[pos] = cand.sdiag
+        self._ind_xi[k, pos] = xi
+        self._ind_ub[k, pos] = ub
+        self._ubt[k, :, pos] = ub
+        koo = self._koo[k]
+        koo[pos, :mm] = koo[:mm, pos] = krow
+        st = self._stats[k]
+        st[pos, 0] = cand.r_new
+        st[pos, 1 : mm + 1] = st[:mm, pos + 1] = srow
+        self._wk[k, : self._count[k], pos] = cand.col
+        if cand.drop is None:  # the bordered factor
+            lo = self._l_oo[k]
+            lo[pos, :pos] = cand.lvec
+            lo[pos, pos] = math.sqrt(cand.dd)

@@ -393,3 +393,66 @@ def test_a_bank_pickled_with_inducing_inputs_by_point_loads():
     xs = np.random.default_rng(3).normal(size=(K, 3))
     for got, want in zip(old.predict_affine(xs), twin.predict_affine(xs), strict=True):
         np.testing.assert_array_equal(got, want)
+
+
+@needs_core
+def test_compiled_install_writes_the_numpy_copies(monkeypatch):
+    """The compiled install of a new inducing point (append and replace) leaves every array
+    of the bank as the numpy copies followed by the compiled factor_inverse do, digit for
+    digit (the flow it replaces)."""
+    streams = _streams(P + 150)
+    u = streams[0][1]
+    opts = dict(num_inducing=12, window=P, forgetting=0.95, add_threshold=0.05, swap_margin=0.0)
+    learners = [AFVSGP(ADPKernel(np.full((3, 3), 1.0 + 0.2 * k), np.array([1.0, 0.6, 0.4])),
+                       0.0025 * (k + 1), **opts).fit(xi[:6], u[:6], z[:6], False)
+                for k, (xi, _, z, _) in enumerate(streams)]  # 6 of 12 slots: appends first
+    bank = AFVSGPBank.from_learners(learners, compiled=True)
+    calls = []
+    install = AFVSGPBank._install
+
+    def spy(self, k, xi, ub, kss, k_new, cand):
+        before = pickle.loads(pickle.dumps(self))
+        install(self, k, xi, ub, kss, k_new, cand)
+        calls.append((before, (k, xi.copy(), ub.copy(), kss, k_new.copy(), cand),
+                      pickle.loads(pickle.dumps(self))))
+
+    monkeypatch.setattr(AFVSGPBank, "_install", spy)
+    for i in range(6, 80):
+        xi, z = _rows(streams, i)
+        bank.update(xi, u[i], z)
+    kinds = {cand.drop is None for _, (_, _, _, _, _, cand), _ in calls}
+    assert kinds == {True, False}  # both an append and a replace
+    for before, (k, xi, ub, kss, k_new, cand), after in calls:
+        m = int(before.n_inducing_[k])
+        pos, mm = (m, m + 1) if cand.drop is None else (cand.drop, m)
+        sx = before.inv_ls2[k] * xi
+        a = before._amat[k].reshape(before._c, before._mp, -1)
+        a[:, pos, :-1] = sx
+        a[:, pos, -1] = before.log_var[k] - 0.5 * (sx @ xi)
+        before._install_copies(k, m, pos, mm, xi, ub, kss + before.jitter[k], k_new, cand)
+        assert afvsgp_bank._core.factor_inverse(before._dims, k, mm, cand.drop is not None,
+                                                before._koo, before._l_oo, before._koo_inv,
+                                                before._fresh) == 0
+        before.n_inducing_[k] = mm
+        for name in afvsgp_bank._STACKED:
+            np.testing.assert_array_equal(getattr(after, name), getattr(before, name),
+                                          err_msg=name)
+
+
+@needs_core
+def test_compiled_install_refuses_a_slot_out_of_range():
+    streams = _streams(P + 5)
+    bank = AFVSGPBank.from_learners(_learners(streams, streams[0][1]), compiled=True)
+    m = int(bank.n_inducing_[0])
+    snap = pickle.dumps(bank)
+    args = (0, m, m, True, 1, 1.0, 1.0, 0.0, 1.0, np.zeros(3), np.ones(bank._c),
+            np.zeros(bank._mp), np.zeros(m), np.zeros(1), np.zeros(m), bank._ind_xit,
+            bank._ind_ub, bank._ubt, bank._koo, bank._stats, bank._wk, bank._l_oo,
+            bank._koo_inv, bank._fresh, bank.n_added_, bank.n_removed_)
+    with pytest.raises(ValueError, match="pos"):
+        afvsgp_bank._core.install(bank._dims, *args)
+    bad = list(args)
+    bad[2], bad[12] = 0, np.zeros(m + 1)  # a replace with srow too long
+    with pytest.raises(ValueError, match="srow must hold"):
+        afvsgp_bank._core.install(bank._dims, *bad)
+    assert pickle.dumps(bank) == snap  # nothing changed
