@@ -39,10 +39,7 @@ def numpy_install(bank):
     def install(k, xi, ub, kss, k_new, cand):
         m = int(bank.n_inducing_[k])
         pos, mm = (m, m + 1) if cand.drop is None else (cand.drop, m)
-        sx = bank.inv_ls2[k] * xi
-        a = bank._amat[k].reshape(bank._c, bank._mp, -1)
-        a[:, pos, :-1] = sx
-        a[:, pos, -1] = bank.log_var[k] - 0.5 * (sx @ xi)
+        bank._set_exponent_rows(k, pos, xi)
         bank._install_copies(k, m, pos, mm, xi, ub, kss + bank.jitter[k], k_new, cand)
         if core.factor_inverse(bank._dims, k, mm, cand.drop is not None, bank._koo,
                                bank._l_oo, bank._koo_inv, bank._fresh) != 0:

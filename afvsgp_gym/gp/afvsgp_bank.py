@@ -773,12 +773,7 @@ class AFVSGPBank:
         m = int(self.n_inducing_[k])
         drop = cand.drop
         pos, mm = (m, m + 1) if drop is None else (drop, m)
-        # the numpy path's exponent rows of the new point (see _set_inducing)
-        sx = self.inv_ls2[k] * xi  # (c, b)
-        b = self.input_dim
-        a = self._amat[k].reshape(self._c, self._mp, -1)
-        a[:, pos, :b] = sx
-        a[:, pos, b] = self.log_var[k] - 0.5 * (sx @ xi)
+        self._set_exponent_rows(k, pos, xi)
         kss_jit = kss + self.jitter[k]
         if self._compiled:
             if _core.install(self._dims, k, m, pos, drop is not None, int(self._count[k]),
@@ -799,6 +794,14 @@ class AFVSGPBank:
             lo[:mm, :mm] = low_n
         self.n_inducing_[k] = mm
         self._set_koo_inv(k)
+
+    def _set_exponent_rows(self, k: int, pos: int, xi: np.ndarray) -> None:
+        """The numpy path's exponent rows of learner ``k``'s inducing point ``pos`` at ``xi``
+        (see :meth:`_set_inducing`): ``[xi / l_i^2, log s_i - |xi / l_i|^2 / 2]``."""
+        sx = self.inv_ls2[k] * xi  # (c, b)
+        a = self._amat[k].reshape(self._c, self._mp, -1)
+        a[:, pos, :-1] = sx
+        a[:, pos, -1] = self.log_var[k] - 0.5 * (sx @ xi)
 
     def _install_copies(self, k: int, m: int, pos: int, mm: int, xi: np.ndarray,
                         ub: np.ndarray, kss_jit: float, k_new: np.ndarray,

@@ -425,10 +425,7 @@ def test_compiled_install_writes_the_numpy_copies(monkeypatch):
     for before, (k, xi, ub, kss, k_new, cand), after in calls:
         m = int(before.n_inducing_[k])
         pos, mm = (m, m + 1) if cand.drop is None else (cand.drop, m)
-        sx = before.inv_ls2[k] * xi
-        a = before._amat[k].reshape(before._c, before._mp, -1)
-        a[:, pos, :-1] = sx
-        a[:, pos, -1] = before.log_var[k] - 0.5 * (sx @ xi)
+        before._set_exponent_rows(k, pos, xi)
         before._install_copies(k, m, pos, mm, xi, ub, kss + before.jitter[k], k_new, cand)
         assert afvsgp_bank._core.factor_inverse(before._dims, k, mm, cand.drop is not None,
                                                 before._koo, before._l_oo, before._koo_inv,
