@@ -53,20 +53,31 @@ def by_dimension(core) -> bool:
     return getattr(core, "INDUCING_INPUTS", None) == "by dimension"
 
 
+def whitened(core) -> bool:
+    """Whether ``core``'s update and predict keep the whitened statistics (their last
+    arguments ``l_oo, lsl, white`` and ``lsl, white``); a core built before they did (commit
+    befa8d3 and earlier) takes neither."""
+    return getattr(core, "WHITENED_STATISTICS", 0) == 1
+
+
 class Shim:
     """``core`` with its ``update`` and ``predict`` given ``by_point`` (a C-ordered (K, Mp, b)
     copy of the bank's inducing inputs, refreshed by the caller after each control step) in
-    place of the bank's array, unless the core takes them by dimension. Both cores of a
-    lockstep run go through one, so that the wrapper's cost is the same for both."""
+    place of the bank's array, unless the core takes them by dimension, and without the
+    whitened statistics' arguments, unless it keeps them. Both cores of a lockstep run go
+    through one, so that the wrapper's cost is the same for both."""
 
     def __init__(self, core):
         self.core, self.by_point = core, None
         self.passthrough = by_dimension(core)
+        self.whitened = whitened(core)
 
     def update(self, dims, ind, *rest):
+        rest = rest if self.whitened else rest[:-3]
         return self.core.update(dims, ind if self.passthrough else self.by_point, *rest)
 
     def predict(self, dims, n, ind, *rest):
+        rest = rest if self.whitened else rest[:-2]
         return self.core.predict(dims, n, ind if self.passthrough else self.by_point, *rest)
 
     def __getattr__(self, name):
@@ -88,7 +99,7 @@ def calls(b) -> dict:
                     b._koo_inv, b._stats, b._scale, b._wk, b._wz, b._wxt, b._wubt, xi, ub, z,
                     k_new, kss, resid, b._work, b._head, b._count, b.n_seen_, b._fresh,
                     b._since_refresh, b.noise_variance, b._inv_phi, b._phi_p, b._add_floor,
-                    10**12)
+                    10**12, *((b._l_oo, b._lsl, b._white) if whitened(core) else ()))
         return k_new.copy(), resid.copy()
 
     rows = np.array([3, 7, 12, 15, 20], dtype=np.int64)
@@ -97,9 +108,11 @@ def calls(b) -> dict:
 
     def predict(core):
         b._fresh[:] = False  # the factor L_D rebuilt, as every step
+        b._white[:] = False  # and the whitened statistics solved afresh: the older cores' work
         rc = core.predict(b._dims, len(rows), ind[by_dimension(core)], b.log_var, b.inv_ls2,
                           b._ubt, b.var, b._l_oo, b._stats, b._scale, b.noise_variance,
-                          b._l_d, b._cvec, b._fresh, rows, pxi, bvec, sig, b._work)
+                          b._l_d, b._cvec, b._fresh, rows, pxi, bvec, sig, b._work,
+                          *((b._lsl, b._white) if whitened(core) else ()))
         return rc, bvec.copy(), sig.copy()
 
     k = 5

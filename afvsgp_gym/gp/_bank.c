@@ -63,6 +63,8 @@ typedef struct {
                        int, double *restrict);
     double (*window_step)(double *restrict, const double *restrict, double *restrict, double,
                           double, int, double, double, const double *restrict, int);
+    void (*whitened_step)(double *restrict, const double *restrict, const double *restrict,
+                          double, int, double, int);
     void (*vexp)(double *restrict, Py_ssize_t);
 } Simd;
 
@@ -190,6 +192,25 @@ static const double *Ki_(const double *kinv, int k, Py_ssize_t mp)
 
 /* ------------------------------------------------------------------ update */
 
+/* x <- L^-1 x and, with two, y <- L^-1 y, by forward substitution (L (n, n) lower triangular,
+ * row-major): x_p <- (x_p - sum_{q<p} L_pq x_q) / L_pp, the arithmetic of lower_solve_rows
+ * with one right-hand side, the two solves interleaved (two independent chains) */
+static void lower_solve_two(const double *restrict L, int n, double *restrict x,
+                            double *restrict y, int two)
+{
+    for (int p = 0; p < n; p++) {
+        const double *lp = L + (size_t)p * n;
+        double ax = x[p], ay = two ? y[p] : 0.0;
+        for (int q = 0; q < p; q++) {
+            ax -= lp[q] * x[q];
+            ay -= lp[q] * y[q];
+        }
+        x[p] = ax / lp[p];
+        if (two)
+            y[p] = ay / lp[p];
+    }
+}
+
 /* Prefetch what the window step of learner k reads and writes (its K_oo^-1, [r, S], the
  * slot's kernel row and its column of the window's inputs): the 21 learners' state, ~0.5 MB,
  * is out of the caches between control steps, and the hardware prefetchers do not run ahead
@@ -212,7 +233,10 @@ static inline void prefetch_learner(const Dims *D, int k, int slot, const double
  * samples: with kt of the new sample, k_new = ubar' Kt, k_ss = s . ubar^2; scale <- scale /
  * phi; [r, S] += scale (k_new [z, k_new'] - phi^P k_old [z_old, k_old']) (k_old, z_old the
  * slot's sample when the window is full); the slot <- the new sample; head, count, n_seen,
- * since advance, fresh is cleared; resid = k_ss - k_new' K_oo^-1 k_new (eq. 27). Returns
+ * since advance; the whitened statistics A = L^-1 S L^-T (lsl) of a learner predicted since
+ * its last update (white and fresh) follow, A += scale (l l' - phi^P l_old l_old') with l =
+ * L^-1 k_new, l_old = L^-1 k_old, and white is cleared for the others; fresh is cleared;
+ * resid = k_ss - k_new' K_oo^-1 k_new (eq. 27). Returns
  * (code, candidates, best, refresh due, renormalisation due): the number of learners whose
  * resid exceeds max(add_floor k_ss, s2), the one of them with the largest resid / k_ss (the
  * first if tied; -1 for none), whether some since reached refresh_every, some scale 1e100.
@@ -220,24 +244,25 @@ static inline void prefetch_learner(const Dims *D, int k, int slot, const double
 static PyObject *py_update(PyObject *self, PyObject *args)
 {
     enum { INDXI, LOGVAR, IL2, UBT, VAR, KOOINV, STATS, SCALE, WK, WZ, WXT, WUBT, XI, UB, Z,
-           KNEW, KSS, RESID, WORK, HEAD, COUNT, SEEN, FRESH, SINCE, NOISE, N };
+           KNEW, KSS, RESID, WORK, HEAD, COUNT, SEEN, FRESH, SINCE, NOISE, LOO, LSL, WHITE, N };
     static const Spec spec[N] = {
         {"ind_xit", 'd', 0}, {"log_var", 'd', 0}, {"inv_ls2", 'd', 0}, {"ubt", 'd', 0},
         {"var", 'd', 0},   {"koo_inv", 'd', 0}, {"stats", 'd', 1}, {"scale", 'd', 1},   {"wk", 'd', 1},
         {"wz", 'd', 1},    {"wxt", 'd', 1},     {"wubt", 'd', 1},    {"xi", 'd', 0},
         {"ub", 'd', 0},    {"z", 'd', 0},       {"k_new", 'd', 1},   {"kss", 'd', 1},
         {"resid", 'd', 1},  {"work", 'd', 1},      {"head", 'q', 1},   {"count", 'q', 1},
-        {"n_seen", 'q', 1}, {"fresh", '?', 1},     {"since", 'q', 1},  {"noise_variance", 'd', 0}};
+        {"n_seen", 'q', 1}, {"fresh", '?', 1},     {"since", 'q', 1},  {"noise_variance", 'd', 0},
+        {"l_oo", 'd', 0},   {"lsl", 'd', 1},       {"white", '?', 1}};
     PyObject *o[N];
     Py_buffer bf[N];
     Dims D;
     double inv_phi, phi_p, add_floor;
     long long refresh_every;
-    if (!PyArg_ParseTuple(args, "(iiiii)OOOOOOOOOOOOOOOOOOOOOOOOOdddL", &D.K, &D.b, &D.c,
+    if (!PyArg_ParseTuple(args, "(iiiii)OOOOOOOOOOOOOOOOOOOOOOOOOdddLOOO", &D.K, &D.b, &D.c,
                           &D.mp, &D.P, &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6], &o[7],
                           &o[8], &o[9], &o[10], &o[11], &o[12], &o[13], &o[14], &o[15], &o[16],
                           &o[17], &o[18], &o[19], &o[20], &o[21], &o[22], &o[23], &o[24],
-                          &inv_phi, &phi_p, &add_floor, &refresh_every))
+                          &inv_phi, &phi_p, &add_floor, &refresh_every, &o[25], &o[26], &o[27]))
         return NULL;
     const Py_ssize_t K = D.K, b = D.b, c = D.c, mp = D.mp, P = D.P;
     if (K < 1 || b < 1 || b > MAXB || c < 1 || mp < 1 || mp > MAXW || P < 1) {
@@ -247,11 +272,14 @@ static PyObject *py_update(PyObject *self, PyObject *args)
     const Py_ssize_t size[N] = {K * mp * b, K * c, K * c * b, K * c * mp, K * c,
                                 K * mp * mp, K * mp * (mp + 1), K, K * P * mp, K * P,
                                 K * b * P, K * c * P, K * b, c, K, K * mp, K, K,
-                                work_size(&D), K, K, K, K, K, K};
+                                work_size(&D), K, K, K, K, K, K, K * mp * mp, K * mp * mp, K};
     if (take_all(o, bf, spec, size, N) < 0)
         return NULL;
     const double *oxt = bf[INDXI].buf, *lvar = bf[LOGVAR].buf, *il2 = bf[IL2].buf;
     const double *ubt = bf[UBT].buf, *var = bf[VAR].buf, *kinv = bf[KOOINV].buf;
+    const double *loo = bf[LOO].buf;
+    double *lsl = bf[LSL].buf;
+    char *white = bf[WHITE].buf;
     const double *xi = bf[XI].buf;
     const double *ub = bf[UB].buf, *z = bf[Z].buf;
     double *stats = bf[STATS].buf, *scale = bf[SCALE].buf, *wk = bf[WK].buf, *wz = bf[WZ].buf;
@@ -305,8 +333,22 @@ static PyObject *py_update(PyObject *self, PyObject *args)
         double *ko = wk + (k * P + slot) * mp;
         scale[k] = s;
         const double f = full ? -phi_p * s : 0.0, zo = full ? wz[k * P + slot] * f : 0.0;
+        double lk[MAXW], lo[MAXW]; /* L^-1 k_new, L^-1 k_old: the whitened step's vectors */
+        const int whiten = white[k] && fresh[k];
+        white[k] = (char)whiten;
+        if (whiten) {
+            const double *Lk = loo + (size_t)k * mp * mp;
+            memcpy(lk, knew + k * mp, sizeof(double) * (size_t)mp);
+            if (full)
+                memcpy(lo, ko, sizeof(double) * (size_t)mp);
+            else
+                memset(lo, 0, sizeof(double) * (size_t)mp);
+            lower_solve_two(Lk, (int)mp, lk, lo, full);
+        }
         const double q = simd->window_step(stats + k * mp * (mp + 1), knew + k * mp, ko, s,
                                            z[k] * s, full, f, zo, Ki_(kinv, k, mp), (int)mp);
+        if (whiten)
+            simd->whitened_step(lsl + (size_t)k * mp * mp, lk, lo, s, full, f, (int)mp);
         wz[k * P + slot] = z[k];
         for (int d = 0; d < b; d++)
             wxt[(k * b + d) * P + slot] = xi[k * b + d];
@@ -337,24 +379,28 @@ static PyObject *py_update(PyObject *self, PyObject *args)
 
 /* b (n, c) and Sigma (n, c, c) of learners rows at xi (n, b) (eq. 20, whitened): with L =
  * chol(K_oo) (l_oo, lower), G = L^-1 Kt', w = L^-1 r / s2' (s2' = s2 scale); unless fresh,
- * L_D = chol(I + L^-1 S L^-T / s2') is stored (l_d, lower) and fresh set; H = L_D^-1 G,
- * cv = L_D^-1 w (stored in cvec); b = H' cv, Sigma = diag(s) - G'G + H'H. */
+ * L_D = chol(I + A / s2') is stored (l_d, lower) and fresh set, A = L^-1 S L^-T the whitened
+ * statistics (lsl) as update kept them (white), else computed here (two triangular solves of
+ * order Mp with Mp right-hand sides), stored and white set; H = L_D^-1 G, cv = L_D^-1 w
+ * (stored in cvec); b = H' cv, Sigma = diag(s) - G'G + H'H. */
 static PyObject *py_predict(PyObject *self, PyObject *args)
 {
     enum { INDXI, LOGVAR, IL2, UBT, VAR, LOO, STATS, SCALE, NOISE, LD, CVEC, FRESH, ROWS, XI,
-           BOUT, SOUT, WORK, N };
+           BOUT, SOUT, WORK, LSL, WHITE, N };
     static const Spec spec[N] = {
         {"ind_xit", 'd', 0}, {"log_var", 'd', 0}, {"inv_ls2", 'd', 0}, {"ubt", 'd', 0},
         {"var", 'd', 0},   {"l_oo", 'd', 0},  {"stats", 'd', 0},   {"scale", 'd', 0}, {"noise_variance", 'd', 0},
         {"l_d", 'd', 1},   {"cvec", 'd', 1},    {"fresh", '?', 1}, {"rows", 'q', 0},
-        {"xi", 'd', 0},    {"b_out", 'd', 1},   {"sigma_out", 'd', 1}, {"work", 'd', 1}};
+        {"xi", 'd', 0},    {"b_out", 'd', 1},   {"sigma_out", 'd', 1}, {"work", 'd', 1},
+        {"lsl", 'd', 1},   {"white", '?', 1}};
     PyObject *o[N];
     Py_buffer bf[N];
     Dims D;
     Py_ssize_t n;
-    if (!PyArg_ParseTuple(args, "(iiiii)nOOOOOOOOOOOOOOOOO", &D.K, &D.b, &D.c, &D.mp, &D.P,
+    if (!PyArg_ParseTuple(args, "(iiiii)nOOOOOOOOOOOOOOOOOOO", &D.K, &D.b, &D.c, &D.mp, &D.P,
                           &n, &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6], &o[7], &o[8],
-                          &o[9], &o[10], &o[11], &o[12], &o[13], &o[14], &o[15], &o[16]))
+                          &o[9], &o[10], &o[11], &o[12], &o[13], &o[14], &o[15], &o[16],
+                          &o[17], &o[18]))
         return NULL;
     const Py_ssize_t K = D.K, b = D.b, c = D.c, mp = D.mp;
     if (K < 1 || b < 1 || b > MAXB || c < 1 || mp < 1 || D.P < 1 || n < 0 ||
@@ -364,7 +410,7 @@ static PyObject *py_predict(PyObject *self, PyObject *args)
     }
     const Py_ssize_t size[N] = {K * mp * b, K * c, K * c * b, K * c * mp, K * c,
                                 K * mp * mp, K * mp * (mp + 1), K, K, K * mp * mp, K * mp, K,
-                                n, n * b, n * c, n * c * c, work_size(&D)};
+                                n, n * b, n * c, n * c * c, work_size(&D), K * mp * mp, K};
     if (n * c * mp > work_size(&D))
         return PyLong_FromLong(TOO_MANY_ROWS);
     if (take_all(o, bf, spec, size, N) < 0)
@@ -375,7 +421,8 @@ static PyObject *py_predict(PyObject *self, PyObject *args)
     const double *scale = bf[SCALE].buf, *noise = bf[NOISE].buf, *xi = bf[XI].buf;
     const long long *rows = bf[ROWS].buf;
     double *ld = bf[LD].buf, *cvec = bf[CVEC].buf, *bout = bf[BOUT].buf, *sout = bf[SOUT].buf;
-    char *fresh = bf[FRESH].buf;
+    char *fresh = bf[FRESH].buf, *white = bf[WHITE].buf;
+    double *lsl = bf[LSL].buf;
     for (Py_ssize_t j = 0; j < n; j++) {
         if (rows[j] < 0 || rows[j] >= K) {
             release_all(bf, N);
@@ -408,13 +455,13 @@ static PyObject *py_predict(PyObject *self, PyObject *args)
         const double *st = stats + (size_t)k * mp * (mp + 1);
         double *Lk = (double *)loo + (size_t)k * mp * mp, *LDk = ld + (size_t)k * mp * mp;
         double inv = 1.0 / (noise[k] * scale[k]);
-        const int refresh = !fresh[k];
-        /* work (mp, ldb), row-major: row p = [S_p, Kt'_p, r_p / s2'], S only to refresh L_D */
-        const int off = refresh ? (int)mp : 0, ldb = off + (int)c + 1;
+        const int refresh = !fresh[k], whiten = refresh && !white[k];
+        /* work (mp, ldb), row-major: row p = [S_p, Kt'_p, r_p / s2'], S only to compute A */
+        const int off = whiten ? (int)mp : 0, ldb = off + (int)c + 1;
         double *Bm = work, *X = work + off;
         for (int p = 0; p < mp; p++) {
             double *row = Bm + (size_t)p * ldb;
-            if (refresh)
+            if (whiten)
                 memcpy(row, st + p * (mp + 1) + 1, sizeof(double) * (size_t)mp);
             for (int i = 0; i < c; i++)
                 row[off + i] = kt[i * mp + p];
@@ -423,13 +470,19 @@ static PyObject *py_predict(PyObject *self, PyObject *args)
         /* L^-1 [S, Kt', r / s2'] (Lk: the row-major lower factor of K_oo) */
         simd->lower_solve_rows(Lk, m_, Bm, ldb, ldb, 1.0);
         if (refresh) {
-            /* A = inv L^-1 S L^-T + I (the transpose of (L^-1 S)' solved again), its Cholesky
-             * factor (LAPACK, column-major lower: A's buffer read as A') */
-            double *A = work + mp * ncol;
-            for (int p = 0; p < mp; p++)
-                for (int q = 0; q < mp; q++)
-                    A[q * mp + p] = Bm[(size_t)p * ldb + q];
-            simd->lower_solve_rows(Lk, m_, A, m_, m_, inv);
+            /* A = L^-1 S L^-T (the transpose of (L^-1 S)' solved again) unless kept; the
+             * Cholesky factor of inv A + I (LAPACK, column-major lower: the buffer read as
+             * its transpose) */
+            double *Ak = lsl + (size_t)k * mp * mp, *A = work + mp * ncol;
+            if (whiten) {
+                for (int p = 0; p < mp; p++)
+                    for (int q = 0; q < mp; q++)
+                        Ak[q * mp + p] = Bm[(size_t)p * ldb + q];
+                simd->lower_solve_rows(Lk, m_, Ak, m_, m_, 1.0);
+                white[k] = 1;
+            }
+            for (int p = 0; p < mp * mp; p++)
+                A[p] = Ak[p] * inv;
             for (int p = 0; p < mp; p++)
                 A[p + p * mp] += 1.0;
             dpotrf_(&L, &m_, A, &m_, &info);
@@ -851,12 +904,12 @@ static PyMethodDef methods[] = {
     {"update", py_update, METH_VARARGS,
      "update(dims, ind_xit, log_var, inv_ls2, ubt, var, koo_inv, stats, scale, wk, wz, wxt, wubt, xi, ub, "
      "z, k_new, kss, resid, work, head, count, n_seen, fresh, since, noise_variance, inv_phi, "
-     "phi_p, add_floor, refresh_every) -> (code, candidates, best candidate, refresh due, "
+     "phi_p, add_floor, refresh_every, l_oo, lsl, white) -> (code, candidates, best candidate, refresh due, "
      "renormalisation due): the window step of every learner at their shared ring position (code 0), or a "
      "negative code (nothing changed)."},
     {"predict", py_predict, METH_VARARGS,
      "predict(dims, n, ind_xit, log_var, inv_ls2, ubt, var, l_oo, stats, scale, noise_variance, l_d, "
-     "cvec, fresh, rows, xi, b_out, sigma_out) -> int: eq. 20 for learners rows (0), or a "
+     "cvec, fresh, rows, xi, b_out, sigma_out, work, lsl, white) -> int: eq. 20 for learners rows (0), or a "
      "negative code (the numpy method takes over)."},
     {"candidate", py_candidate, METH_VARARGS,
      "candidate(dims, k, m, head, count, kss, jitter, swap_margin, l_oo, koo_inv, stats, scale, "
@@ -898,6 +951,11 @@ PyMODINIT_FUNC PyInit__bank(void)
     PyObject *m = PyModule_Create(&module);
     /* how update and predict take the inducing inputs: (K, b, Mp), by dimension */
     if (m != NULL && PyModule_AddStringConstant(m, "INDUCING_INPUTS", "by dimension") < 0) {
+        Py_DECREF(m);
+        return NULL;
+    }
+    /* update and predict keep the whitened statistics (their last arguments lsl, white) */
+    if (m != NULL && PyModule_AddIntConstant(m, "WHITENED_STATISTICS", 1) < 0) {
         Py_DECREF(m);
         return NULL;
     }

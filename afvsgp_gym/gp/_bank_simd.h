@@ -351,6 +351,19 @@ static double SIMD(window_step)(double *restrict st, const double *restrict kn,
     return q;
 }
 
+/* The window step on the whitened statistics A (mp, mp) = L^-1 S L^-T: A += s l l' and,
+ * when full, + f lo lo' (l = L^-1 kn, lo = L^-1 ko), as window_step on S. */
+static void SIMD(whitened_step)(double *restrict A, const double *restrict l,
+                                const double *restrict lo, double s, int full, double f, int mp)
+{
+    for (int p = 0; p < mp; p++) {
+        if (full)
+            SIMD(axpby)(A + (size_t)p * mp, l[p] * s, l, lo[p] * f, lo, mp);
+        else
+            SIMD(axpy)(A + (size_t)p * mp, l[p] * s, l, mp);
+    }
+}
+
 /* exp(v) for a vector inside [EXP_LO, EXP_HI], by the steps of vexp_one (_bank.c) */
 __attribute__((always_inline)) static inline VEC SIMD(exp_in_range)(VEC v)
 {
@@ -403,6 +416,7 @@ static const Simd SIMD(table) = {
     .add_scaled_product = SIMD(add_scaled_product),
     .kernel_row = SIMD(kernel_row),
     .window_step = SIMD(window_step),
+    .whitened_step = SIMD(whitened_step),
     .vexp = SIMD(vexp),
 };
 

@@ -100,7 +100,7 @@ class _Candidate(NamedTuple):
 _STACKED = ("inv_ls2", "var", "_var_diag", "log_var", "noise_variance", "jitter", "n_inducing_",
             "_ind_xit", "_ind_ub", "_amat", "_ubt", "_koo", "_l_oo", "_koo_inv", "_stats",
             "_scale", "_wz", "_wk", "_wxt", "_wubt", "_head", "_count", "_l_d", "_cvec",
-            "_fresh", "n_seen_", "n_added_", "n_removed_")
+            "_fresh", "_lsl", "_white", "n_seen_", "n_added_", "n_removed_")
 
 
 class AFVSGPBank:
@@ -172,6 +172,8 @@ class AFVSGPBank:
         self._l_d = np.zeros((K, mp, mp))
         self._cvec = np.zeros((K, mp))
         self._fresh = np.zeros(K, dtype=bool)
+        # compiled core: A = L^-1 S L^-T of the learners predicted since their last update
+        self._lsl, self._white = self._new_whitened(K)
         self.n_seen_ = np.zeros(K, dtype=int)
         self.n_added_ = np.zeros(K, dtype=int)
         self.n_removed_ = np.zeros(K, dtype=int)
@@ -248,6 +250,11 @@ class AFVSGPBank:
         K = self.n_learners
         return np.empty((K, self._mp)), np.empty(K), np.empty(K)
 
+    def _new_whitened(self, K: int) -> tuple[np.ndarray, np.ndarray]:
+        """The compiled core's whitened statistics ``A = L^-1 S L^-T`` (K, Mp, Mp) and the
+        (K,) flags of the learners whose ``A`` is current (none)."""
+        return np.zeros((K, self._mp, self._mp)), np.zeros(K, dtype=bool)
+
     def __setstate__(self, state: dict) -> None:
         """Unpickle; a bank pickled where the core was built runs numpy where it is not."""
         self.__dict__.update(state)
@@ -255,6 +262,8 @@ class AFVSGPBank:
             self._ind_xit = np.ascontiguousarray(self.__dict__.pop("_ind_xi").transpose(0, 2, 1))
         if "_step_out" not in state:  # pickled before the per-step outputs were kept
             self._step_out = self._new_step_out()
+        if "_lsl" not in state:  # pickled before the whitened statistics were kept
+            self._lsl, self._white = self._new_whitened(self.n_learners)
         if _core is None:
             self._compiled = False
 
@@ -335,7 +344,7 @@ class AFVSGPBank:
         if info != 0:
             linv = np.linalg.inv(low)
         self._koo_inv[k, :m, :m] = linv.T @ linv
-        self._fresh[k] = False
+        self._fresh[k] = self._white[k] = False
 
     def _weights(self, k: int) -> np.ndarray:
         """``phi**age`` of window slots ``[0, count)`` of learner ``k``."""
@@ -352,12 +361,13 @@ class AFVSGPBank:
         self._stats[k, :, 0] = wk.T @ self._wz[k, :cnt]
         self._stats[k, :, 1:] = wk.T @ rows
         self._scale[k] = 1.0
-        self._fresh[k] = False
+        self._fresh[k] = self._white[k] = False
 
     def _renormalise(self, k: int) -> None:
         if self._scale[k] != 1.0:
             self._stats[k] *= 1.0 / self._scale[k]
             self._scale[k] = 1.0
+            self._white[k] = False
 
     def conditioning(self) -> tuple[np.ndarray, np.ndarray]:
         """(K,) 2-norm condition numbers of ``K_oo`` and ``K_oo + S/s2`` of every learner."""
@@ -463,7 +473,8 @@ class AFVSGPBank:
                                self._ubt, self.var,
                                self._l_oo, self._stats, self._scale, self.noise_variance,
                                self._l_d, self._cvec, self._fresh, np.ascontiguousarray(idx),
-                               np.ascontiguousarray(xi), bvec, sig, self._work)
+                               np.ascontiguousarray(xi), bvec, sig, self._work, self._lsl,
+                               self._white)
             if rc == 0:
                 return bvec, sig
         kt = self._kt(rows, xi)
@@ -546,7 +557,7 @@ class AFVSGPBank:
             self._synced = False  # a learner skipped a sample: the rings may differ from here
             self._slide(np.arange(K) if idx is None else idx, rows, sel, xi, ub, z, k_new, scale)
         self.n_seen_[sel] += 1
-        self._fresh[sel] = False
+        self._fresh[sel] = self._white[sel] = False
         since = self._since_refresh[sel]  # a view when every learner is updated
         since += 1
         if rows is not None:
@@ -581,7 +592,7 @@ class AFVSGPBank:
             self._stats, self._scale, self._wk, self._wz, self._wxt, self._wubt, xi, ub, z,
             k_new, kss, resid, self._work, self._head, self._count, self.n_seen_, self._fresh,
             self._since_refresh, self.noise_variance, self._inv_phi, self._phi_p,
-            self._add_floor, self._refresh_every)
+            self._add_floor, self._refresh_every, self._l_oo, self._lsl, self._white)
         if rc != 0:
             return None
         if refresh:
@@ -701,6 +712,7 @@ class AFVSGPBank:
         inducing set changed. The new point goes last, or into the dropped point's slot."""
         find = self._candidate_compiled if self._compiled else self._candidate
         cand = find(k, xi, ub, kss, k_new)
+        self._white[k] = False  # the decision may have renormalised [r, S]
         if cand is None:
             return False
         self._install(k, xi, ub, kss, k_new, cand)
@@ -773,6 +785,7 @@ class AFVSGPBank:
         m = int(self.n_inducing_[k])
         drop = cand.drop
         pos, mm = (m, m + 1) if drop is None else (drop, m)
+        self._white[k] = False
         self._set_exponent_rows(k, pos, xi)
         kss_jit = kss + self.jitter[k]
         if self._compiled:

@@ -10,6 +10,7 @@ import sysconfig
 import numpy as np
 import pytest
 from gp_batch_formulas import synthetic
+from scipy.linalg import solve_triangular
 from test_afvsgp_bank import K, P, _assert_equals_batch_posterior, _learners, _rows, _streams
 
 from afvsgp_gym.gp import AFVSGP, ADPKernel, afvsgp_bank
@@ -155,11 +156,13 @@ def test_every_copy_of_the_hot_loops_gives_the_same_digits(b, m, num_inducing, r
         for i in range(window, len(u)):
             xi, z = _rows(streams, i)
             bank.update(xi, u[i], z)
+            # learner 0 at every step (its whitened statistics carried), all now and then
+            moments.extend(bank.predict_affine(xs[:1], [0]))
             if i % 7 == 0:
                 moments.extend(bank.predict_affine(xs))
         assert bank.n_added_.min() > 0 and bank.n_removed_.min() > 0
         state = [getattr(bank, a) for a in ("_stats", "_wk", "_koo", "_l_oo", "_koo_inv",
-                                            "_l_d", "_cvec", "_ind_xi", "n_inducing_")]
+                                            "_l_d", "_cvec", "_lsl", "_ind_xi", "n_inducing_")]
         results[name] = moments + state
     first = copies[-1]
     for name in copies[:-1]:
@@ -268,7 +271,7 @@ def test_compiled_entry_points_refuse_bad_input():
     args = [bank._dims, n, bank._ind_xit, bank.log_var, bank.inv_ls2, bank._ubt, bank.var,
             bank._l_oo, bank._stats, bank._scale, bank.noise_variance, bank._l_d, bank._cvec,
             bank._fresh, np.array([0, 1]), np.zeros((n, 3)), np.empty((n, c)),
-            np.empty((n, c, c)), bank._work]
+            np.empty((n, c, c)), bank._work, bank._lsl, bank._white]
     assert core.predict(*args) == 0
     bad = list(args)
     bad[14] = np.array([0, K])
@@ -371,8 +374,9 @@ def test_posterior_cache_is_shared_by_both_paths(monkeypatch):
 
 @needs_core
 def test_a_bank_pickled_with_inducing_inputs_by_point_loads():
-    """A bank pickled when the inducing inputs were stored by point, (K, Mp, b), loads with
-    them by dimension and predicts and updates the same digits as the bank it was."""
+    """A bank pickled when the inducing inputs were stored by point, (K, Mp, b), and without
+    the whitened statistics loads with them by dimension and none kept, and predicts and
+    updates the same digits as the bank it was."""
     streams = _streams(P + 30)
     u = streams[0][1]
     bank = AFVSGPBank.from_learners(_learners(streams, u), compiled=True)
@@ -381,9 +385,11 @@ def test_a_bank_pickled_with_inducing_inputs_by_point_loads():
         bank.update(xi, u[i], z)
     state = dict(bank.__dict__)
     state["_ind_xi"] = np.ascontiguousarray(state.pop("_ind_xit").transpose(0, 2, 1))
+    del state["_lsl"], state["_white"]  # nor were the whitened statistics kept
     old = AFVSGPBank.__new__(AFVSGPBank)
     old.__setstate__(state)
     assert "_ind_xi" not in old.__dict__ and old._ind_xit.flags.c_contiguous
+    assert old._lsl.shape == bank._lsl.shape and not old._white.any()
     np.testing.assert_array_equal(old._ind_xi, bank._ind_xi)
     twin = pickle.loads(pickle.dumps(bank))
     for i in range(P + 20, P + 30):
@@ -453,3 +459,50 @@ def test_compiled_install_refuses_a_slot_out_of_range():
     with pytest.raises(ValueError, match="srow must hold"):
         afvsgp_bank._core.install(bank._dims, *bad)
     assert pickle.dumps(bank) == snap  # nothing changed
+
+
+@needs_core
+def test_whitened_statistics_carried_by_the_update_equal_their_definition():
+    """A learner predicted at every step has its whitened statistics A = L^-1 S L^-T carried
+    by the update (A += scale (l l' - phi^P l_old l_old'), l = L^-1 k_new) through window
+    wrapping and inducing-set changes: A equals L^-1 S L^-T solved afresh from the bank's S
+    and factor, and the moments equal the numpy bank's, to the conditioning tolerance of the
+    tests above; a learner not predicted since its last update, or whose inducing set or
+    statistics were rebuilt, has its A recomputed at its next prediction."""
+    n = P + 12 * P
+    streams = _streams(n)
+    u = streams[0][1]
+    comp, ref = _pair(streams, u, add_threshold=0.9, window=2 * P)  # fills, then wraps
+    rng = np.random.default_rng(12)
+    worst_a = worst_m = 0.0
+    carried = longest = 0
+    run = np.zeros(2, dtype=int)
+    for i in range(P, n):
+        xi, z = _rows(streams, i)
+        was = comp._white.copy()
+        added = comp.n_added_.copy()
+        comp.update(xi, u[i], z)
+        ref.update(xi, u[i], z)
+        assert not comp._white[~was].any()  # only a kept A is carried
+        assert not comp._white[comp.n_added_ != added].any()  # a new inducing point drops A
+        # learners 0 and 1 at every step, the others now and then
+        rows = np.flatnonzero(np.r_[True, True, rng.random(K - 2) < 0.3])
+        kept = comp._white[:2].copy()
+        run = np.where(kept, run + 1, 0)
+        longest = max(longest, int(run.min()))
+        carried += int(kept.sum())
+        xs = rng.normal(size=(len(rows), comp.input_dim))
+        bc, sc = comp.predict_affine(xs, rows)
+        br, sr = ref.predict_affine(xs, rows)
+        cond = float(ref.conditioning()[1].max())
+        worst_m = max(worst_m, _rel(bc, br) / cond, _rel(sc, sr) / cond)
+        assert comp._white[rows].all()
+        for k in rows:
+            low, s = comp._l_oo[k], comp._stats[k, :, 1:]
+            fresh = solve_triangular(low, solve_triangular(low, s, lower=True).T, lower=True)
+            ck = np.linalg.cond(comp._koo[k])
+            worst_a = max(worst_a, _rel(comp._lsl[k], fresh) / ck)
+    assert comp.n_added_[:2].min() > 10 and comp.n_removed_[:2].min() > 0
+    assert carried > 10 * P and longest >= 10  # A carried over runs of steps, not re-solved
+    assert 0.0 < worst_a < 1e3 * EPS, worst_a
+    assert 0.0 < worst_m < 1e3 * EPS, worst_m
