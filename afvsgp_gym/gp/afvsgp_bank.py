@@ -24,7 +24,10 @@ The per-step arithmetic (the window step of every learner, the predictions, the 
 decision on a new inducing point) runs compiled when ``afvsgp_gym.gp._bank`` is built
 (:data:`COMPILED`; the same formulas in C with scipy's BLAS and LAPACK, one call each in place
 of tens of numpy calls; the kernel's exponent from the differences to the inducing points,
-its exponential by the core's own vectorised exp, within 1.5 ulp),
+its exponential by the core's own vectorised exp, within 1.5 ulp; for a learner predicted at
+consecutive steps the update carries its whitened statistics ``A = L^-1 S L^-T``, ``A +=
+scale (l l' - phi^P l_old l_old')`` with ``l = L^-1 k_new``, so that its prediction factors
+``I + A / s2`` without solving ``A`` afresh),
 else, or with ``compiled=False``, in numpy; the installation of a new inducing point and the
 rare cases (skipped samples, a failed factorisation) always run in numpy.
 """
