@@ -67,6 +67,12 @@ def learner(rec: dict) -> str:
     return rec["config"]["learner"]
 
 
+def whole_arm(rec: dict) -> bool:
+    """An AFVSGP episode of a Franka env with the default whole-arm spheres."""
+    return (learner(rec) == "afvsgp" and "Franka" in rec["config"]["env_id"]
+            and rec["config"]["env_kwargs"].get("safety_spheres", "arm") == "arm")
+
+
 def select(recs: Iterable[dict], block: str, **where) -> list[dict]:
     """The records of ``block`` (the oracle's: of learner "oracle", in whichever block; the
     whole-arm blocks': of the other learners), optionally of one scenario and prior."""
@@ -88,11 +94,13 @@ def main() -> None:
     versions = sorted({r["code_version"] for r in recs})
     print(f"{len(recs)} records, code {', '.join(versions)}\n")
 
-    arm = [r for r in recs if r["block"] in ("priors", "plants", "fast_obstacle")
-           and learner(r) == "afvsgp"]
+    arm = [r for r in recs if whole_arm(r)]
+    arm_blocks = list(dict.fromkeys(r["block"] for r in arm))  # in the order of the records
     zero = [r for r in arm if prior(r) == "zero"]
     print("| filter | episodes | with cost | 95 % bound | min h [m] |\n|---|---|---|---|---|")
-    for name, group in (("AFVSGP, whole arm", arm), ("of which prior zero", zero),
+    by_block = [(f"of which block {b}", [r for r in arm if r["block"] == b])
+                for b in arm_blocks] if len(arm_blocks) > 1 else []
+    for name, group in (("AFVSGP, whole arm", arm), *by_block, ("of which prior zero", zero),
                         ("oracle", select(recs, "oracle")),
                         ("nominal only", select(recs, "nominal_only")),
                         ("AFVSGP, end-effector sphere only", select(recs, "paper_ee")),
@@ -102,6 +110,45 @@ def main() -> None:
             print(f"| {name} | {s['n']} | {s['cost']} (h<0: {s['h_eps']}, contact: "
                   f"{s['contact_eps']}) | {s['bound']:.4f} | {s['min_h']:.4f} |")
 
+    if select(recs, "priors"):
+        priors_tables(recs)
+    other = [b for b in arm_blocks if b != "priors"]
+    if not other and not any(r.get("block") in ("paper_ee", "pointmass") for r in recs):
+        return  # a sweep of the priors grid only (e.g. benchmarks/configs/recheck.toml)
+    print("\n| block | prior | episodes | with cost | min h [m] | tracking [m] | backup / episode "
+          "| kept |\n|---|---|---|---|---|---|---|---|")
+    for block in other:
+        for pr in PRIORS:
+            if not select(recs, block, prior=pr):
+                continue
+            s = summary(select(recs, block, prior=pr))
+            print(f"| {block} | {pr} | {s['n']} | {s['cost']} | {s['min_h']:.4f} | "
+                  f"{s['track']:.4f} | {s['backup']:.1f} | {s['kept']:.4f} |")
+    plants = select(recs, "plants")
+    factors = (("friction", (0.0, 0.5)), ("payload_mass", (0.5, 2.0))) if plants else ()
+    for key, values in factors:
+        parts = []
+        for v in values:
+            s = summary([r for r in plants if r["config"]["env_kwargs"].get(key) == v])
+            parts.append(f"{key} {v}: {s['n']} episodes, {s['cost']} with cost, tracking "
+                         f"{s['track']:.3f} m")
+        print("; ".join(parts))
+
+    rows = [(f"end-effector, {sc}", select(recs, "paper_ee", scenario=sc))
+            for sc in ("static", "dynamic")] + [("point mass", select(recs, "pointmass"))]
+    rows = [(name, sel) for name, sel in rows if sel]  # blocks the sweep did not run: no row
+    if rows:
+        print("\n| filter | episodes | with h < 0 | min h [m] | tracking [m] | with an arm "
+              "contact |\n|---|---|---|---|---|---|")
+    for name, sel in rows:
+        s = summary(sel)
+        print(f"| {name} | {s['n']} | {s['h_eps']} | {s['min_h']:.4f} | {s['track']:.4f} | "
+              f"{s['contact_eps']} |")
+
+
+def priors_tables(recs: list[dict]) -> None:
+    """Per scenario and prior of the priors grid, against the oracle behind the same tracker;
+    then per prior over the three scenarios."""
     print("\n| scenario | prior | episodes | with cost | 95 % bound | min h [m] | tracking [m] "
           "(s.e.) | oracle tracking [m] | ratio | backup / episode | kept |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
@@ -133,39 +180,6 @@ def main() -> None:
         ratio = f"{s['track'] / summary(ora)['track']:.2f}" if ora else "-"
         print(f"| {pr} | {s['n']} | {s['cost']} | {s['track']:.4f} ({s['track_se']:.4f}) | "
               f"{ratio} | {s['backup']:.1f} | {s['kept']:.4f} |")
-
-    if not any(r.get("block") in ("plants", "fast_obstacle", "paper_ee", "pointmass")
-               for r in recs):
-        return  # a sweep of the priors grid only (e.g. benchmarks/configs/recheck.toml)
-    print("\n| block | prior | episodes | with cost | min h [m] | tracking [m] | backup / episode "
-          "| kept |\n|---|---|---|---|---|---|---|---|")
-    for block in ("plants", "fast_obstacle"):
-        for pr in PRIORS:
-            if not select(recs, block, prior=pr):
-                continue
-            s = summary(select(recs, block, prior=pr))
-            print(f"| {block} | {pr} | {s['n']} | {s['cost']} | {s['min_h']:.4f} | "
-                  f"{s['track']:.4f} | {s['backup']:.1f} | {s['kept']:.4f} |")
-    plants = select(recs, "plants")
-    factors = (("friction", (0.0, 0.5)), ("payload_mass", (0.5, 2.0))) if plants else ()
-    for key, values in factors:
-        parts = []
-        for v in values:
-            s = summary([r for r in plants if r["config"]["env_kwargs"].get(key) == v])
-            parts.append(f"{key} {v}: {s['n']} episodes, {s['cost']} with cost, tracking "
-                         f"{s['track']:.3f} m")
-        print("; ".join(parts))
-
-    rows = [(f"end-effector, {sc}", select(recs, "paper_ee", scenario=sc))
-            for sc in ("static", "dynamic")] + [("point mass", select(recs, "pointmass"))]
-    rows = [(name, sel) for name, sel in rows if sel]  # blocks the sweep did not run: no row
-    if rows:
-        print("\n| filter | episodes | with h < 0 | min h [m] | tracking [m] | with an arm "
-              "contact |\n|---|---|---|---|---|---|")
-    for name, sel in rows:
-        s = summary(sel)
-        print(f"| {name} | {s['n']} | {s['h_eps']} | {s['min_h']:.4f} | {s['track']:.4f} | "
-              f"{s['contact_eps']} |")
 
 
 if __name__ == "__main__":
