@@ -69,6 +69,8 @@ class RLBenchConfig:
     kept_filter_warmup: int = 10
     env_kwargs: dict = field(default_factory=dict)
     algo_kwargs: dict = field(default_factory=dict)
+    #: SafetyFilter options of the filtered training envs (the evaluation runs the defaults)
+    filter_kwargs: dict = field(default_factory=dict)
 
     @classmethod
     def quick(cls) -> RLBenchConfig:
@@ -362,6 +364,7 @@ def run(cfg: RLBenchConfig, out_dir: str | os.PathLike, *, figure: str | os.Path
             res = train(cfg.algo, ENV_ID, learner=CONDITIONS[cond], timesteps=cfg.timesteps,
                         path=out_dir / f"{name}.zip", seed=seed, n_envs=cfg.n_envs,
                         env_kwargs=env_kwargs, algo_kwargs=dict(cfg.algo_kwargs),
+                        filter_kwargs=dict(cfg.filter_kwargs) if CONDITIONS[cond] else None,
                         log_dir=out_dir / name)
             tsum = _training_summary(res.episodes)
             log(f"[rl]   {res.wall_time_s:.0f} s, {tsum['episodes']} episodes, cost steps "
@@ -420,6 +423,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--timesteps", type=int, default=None, help="agent steps per run")
     p.add_argument("--seeds", default=None, metavar="0,1,2")
     p.add_argument("--conditions", default=None, metavar="afvsgp,oracle,unfiltered")
+    p.add_argument("--filter-kwargs", default=None, metavar="JSON",
+                   help="SafetyFilter options of the filtered training envs, e.g. "
+                   "'{\"online_exploration\": 0.05}' (the evaluation runs the defaults)")
+    p.add_argument("--figure", default=None, metavar="PNG",
+                   help="training curves (default docs/rl_training.png; with --quick, in --out)")
     p.add_argument("--no-ship", action="store_true", help="do not copy the best agent to docs/")
     args = p.parse_args(argv)
     cfg = RLBenchConfig.quick() if args.quick else RLBenchConfig()
@@ -429,9 +437,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         cfg = replace(cfg, seeds=tuple(int(s) for s in args.seeds.split(",")))
     if args.conditions:
         cfg = replace(cfg, conditions=tuple(s.strip() for s in args.conditions.split(",")))
+    if args.filter_kwargs:
+        kwargs = json.loads(args.filter_kwargs)
+        if not isinstance(kwargs, dict):
+            p.error(f"--filter-kwargs must be a JSON object. Got: {args.filter_kwargs!r}")
+        cfg = replace(cfg, filter_kwargs=kwargs)
     out = Path(args.out or ("rl_quick" if args.quick else "benchmarks/rl_runs"))
     full = not args.quick
-    run(cfg, out, figure=Path("docs/rl_training.png") if full else None,
+    figure = args.figure or (Path("docs/rl_training.png") if full else None)
+    run(cfg, out, figure=figure,
         ship=SHIPPED_AGENT if full and not args.no_ship else None,
         log=lambda m: print(m, file=sys.stderr, flush=True))
     return 0

@@ -36,7 +36,12 @@ def test_curves_bin_by_agent_steps():
 @pytest.mark.slow
 def test_quick_benchmark_pipeline(tmp_path):
     pytest.importorskip("stable_baselines3", reason="needs the rl extra")
-    cfg = rl.RLBenchConfig.quick()
+    from dataclasses import replace
+
+    from afvsgp_gym.agents.sb3 import load_policy
+
+    # the filtered conditions train behind a non-default filter; the evaluation runs the default
+    cfg = replace(rl.RLBenchConfig.quick(), filter_kwargs={"online_exploration": 0.05})
     res = rl.run(cfg, tmp_path, log=lambda m: None)
     data = json.loads((tmp_path / "rl_results.json").read_text())
     assert len(data["runs"]) == len(cfg.conditions) * len(cfg.seeds)
@@ -47,6 +52,9 @@ def test_quick_benchmark_pipeline(tmp_path):
         assert np.all(np.diff(cum) >= 0) and cum[-1] == r["training"]["cost_steps"]
         assert r["eval_own"]["episodes"] == cfg.eval_episodes
         assert r["eval_afvsgp_kept"]["episodes"] == cfg.eval_episodes
+        trained_behind = load_policy(r["zip"]).meta["filter_kwargs"]
+        assert trained_behind == ({} if r["condition"] == "unfiltered"
+                                  else {"online_exploration": 0.05})
         if r["condition"] == "afvsgp":
             # the learner's warm-up happened in training, once per worker
             assert r["training"]["warmup_steps"] == cfg.n_envs * 75
@@ -57,3 +65,10 @@ def test_quick_benchmark_pipeline(tmp_path):
         assert f"| {cond} |" in table
     assert (tmp_path / "rl_training.png").stat().st_size > 10_000
     assert res["total_wall_s"] > 0
+
+
+def test_filter_kwargs_must_be_a_json_object(capsys):
+    with pytest.raises(SystemExit) as exc:
+        rl.main(["--quick", "--filter-kwargs", "[0.05]"])
+    assert exc.value.code == 2
+    assert "--filter-kwargs must be a JSON object" in capsys.readouterr().err

@@ -189,3 +189,21 @@ def test_shipped_acceptance_config_is_valid_and_large_enough():
     for kwarg in ("plant_seed", "payload_mass", "friction", "obstacle_speed"):
         assert len({s.env_kwargs.get(kwarg) for s in afvsgp}) >= 2, kwarg
     assert {s.learner for s in episodes} == {"afvsgp", "oracle", "none"}
+
+
+def _shipped_configs() -> list:
+    from pathlib import Path
+
+    import afvsgp_gym
+
+    root = Path(afvsgp_gym.__file__).resolve().parent.parent / "benchmarks" / "configs"
+    return sorted(root.glob("*.toml"))
+
+
+@pytest.mark.parametrize("path", _shipped_configs(), ids=lambda p: p.name)
+def test_every_shipped_benchmark_config_is_valid(path):
+    """The configs that benchmarks/*.md tell users to run load, validate against the envs,
+    learners and filter, and have at least one episode."""
+    sweep = load_config(path)
+    validate(sweep)
+    assert sum(1 for _ in sweep.episodes()) > 0
