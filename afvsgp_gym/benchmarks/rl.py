@@ -438,9 +438,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.conditions:
         cfg = replace(cfg, conditions=tuple(s.strip() for s in args.conditions.split(",")))
     if args.filter_kwargs:
-        kwargs = json.loads(args.filter_kwargs)
+        from afvsgp_gym.sweep.validate import filter_kwarg_names
+
+        try:
+            kwargs = json.loads(args.filter_kwargs)
+        except ValueError as exc:
+            p.error(f"--filter-kwargs is not valid JSON ({exc}). Got: {args.filter_kwargs!r}")
         if not isinstance(kwargs, dict):
             p.error(f"--filter-kwargs must be a JSON object. Got: {args.filter_kwargs!r}")
+        unknown = sorted(set(kwargs) - set(filter_kwarg_names()))
+        if unknown:
+            p.error(f"--filter-kwargs: unknown SafetyFilter option(s) {unknown}")
         cfg = replace(cfg, filter_kwargs=kwargs)
     out = Path(args.out or ("rl_quick" if args.quick else "benchmarks/rl_runs"))
     full = not args.quick

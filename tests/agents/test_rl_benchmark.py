@@ -67,8 +67,13 @@ def test_quick_benchmark_pipeline(tmp_path):
     assert res["total_wall_s"] > 0
 
 
-def test_filter_kwargs_must_be_a_json_object(capsys):
+@pytest.mark.parametrize("value, message", [
+    ("[0.05]", "--filter-kwargs must be a JSON object"),
+    ("{online_exploration: 0.05}", "--filter-kwargs is not valid JSON"),
+    ('{"online_exploraton": 0.05}', "unknown SafetyFilter option(s) ['online_exploraton']"),
+])
+def test_bad_filter_kwargs_are_refused_before_anything_runs(capsys, value, message):
     with pytest.raises(SystemExit) as exc:
-        rl.main(["--quick", "--filter-kwargs", "[0.05]"])
+        rl.main(["--quick", "--filter-kwargs", value])
     assert exc.value.code == 2
-    assert "--filter-kwargs must be a JSON object" in capsys.readouterr().err
+    assert message in capsys.readouterr().err
