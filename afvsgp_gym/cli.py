@@ -117,7 +117,8 @@ def _check_out(parser: argparse.ArgumentParser, path: str | None, opt: str,
     raise AssertionError  # unreachable
 
 
-def _json_arg(parser: argparse.ArgumentParser, text: str | None, opt: str) -> dict:
+def json_object_arg(parser: argparse.ArgumentParser, text: str | None, opt: str) -> dict:
+    """The JSON object given to option ``opt`` ({} when absent), or ``parser.error`` naming it."""
     if not text:
         return {}
     try:
@@ -175,9 +176,9 @@ def _cmd_evaluate(args: argparse.Namespace, parser: argparse.ArgumentParser) -> 
     _check_agent(parser, args.agent)
     json_path = _check_out(parser, args.json, "--json")
     csv_path = _check_out(parser, args.csv, "--csv")
-    env_kwargs = _json_arg(parser, args.env_kwargs, "--env-kwargs")
+    env_kwargs = json_object_arg(parser, args.env_kwargs, "--env-kwargs")
     _check_agent_fits(parser, args.agent, args.env, env_kwargs)
-    filter_kwargs = _json_arg(parser, args.filter_kwargs, "--filter-kwargs")
+    filter_kwargs = json_object_arg(parser, args.filter_kwargs, "--filter-kwargs")
     with _executor(parser, args.workers, args.ray, inline_single=True) as executor:
         result = evaluate(args.env, agent=args.agent, learners=learners,
                           episodes=args.episodes, seed=args.seed, max_steps=args.max_steps,
@@ -329,7 +330,7 @@ def _cmd_video(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int
     os.environ.setdefault("MUJOCO_GL", "egl")
     res = record_video(args.env, out, agent=args.agent, learner=args.learner, seed=args.seed,
                        max_steps=args.max_steps, every=args.every,
-                       env_kwargs=_json_arg(parser, args.env_kwargs, "--env-kwargs"))
+                       env_kwargs=json_object_arg(parser, args.env_kwargs, "--env-kwargs"))
     print(f"wrote {res['path']}: {res['frames']} frames of {res['steps']} steps, "
           f"min h = {res['min_h']:.4f}, {res['violation_steps']} steps with h < 0")
     return 0
@@ -350,9 +351,9 @@ def _cmd_train(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int
     res = train(args.algo, args.env, learner=learner, timesteps=args.timesteps,
                 path=out_path, seed=args.seed, n_envs=args.n_envs,
                 action_repeat=args.action_repeat,
-                env_kwargs=_json_arg(parser, args.env_kwargs, "--env-kwargs"),
-                filter_kwargs=_json_arg(parser, args.filter_kwargs, "--filter-kwargs"),
-                algo_kwargs=_json_arg(parser, args.algo_kwargs, "--algo-kwargs"),
+                env_kwargs=json_object_arg(parser, args.env_kwargs, "--env-kwargs"),
+                filter_kwargs=json_object_arg(parser, args.filter_kwargs, "--filter-kwargs"),
+                algo_kwargs=json_object_arg(parser, args.algo_kwargs, "--algo-kwargs"),
                 log_dir=log_dir, verbose=args.verbose)
     behind = "no filter" if learner is None else f"SafetyFilter(learner={learner!r})"
     print(f"trained {args.algo.upper()} for {res.timesteps} agent steps ({res.env_steps} env "

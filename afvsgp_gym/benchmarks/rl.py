@@ -438,14 +438,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.conditions:
         cfg = replace(cfg, conditions=tuple(s.strip() for s in args.conditions.split(",")))
     if args.filter_kwargs:
+        from afvsgp_gym.cli import json_object_arg
         from afvsgp_gym.sweep.validate import filter_kwarg_names
 
-        try:
-            kwargs = json.loads(args.filter_kwargs)
-        except ValueError as exc:
-            p.error(f"--filter-kwargs is not valid JSON ({exc}). Got: {args.filter_kwargs!r}")
-        if not isinstance(kwargs, dict):
-            p.error(f"--filter-kwargs must be a JSON object. Got: {args.filter_kwargs!r}")
+        kwargs = json_object_arg(p, args.filter_kwargs, "--filter-kwargs")
         unknown = sorted(set(kwargs) - set(filter_kwarg_names()))
         if unknown:
             p.error(f"--filter-kwargs: unknown SafetyFilter option(s) {unknown}")

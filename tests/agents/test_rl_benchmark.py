@@ -69,7 +69,7 @@ def test_quick_benchmark_pipeline(tmp_path):
 
 @pytest.mark.parametrize("value, message", [
     ("[0.05]", "--filter-kwargs must be a JSON object"),
-    ("{online_exploration: 0.05}", "--filter-kwargs is not valid JSON"),
+    ("{online_exploration: 0.05}", "--filter-kwargs must be a JSON object"),
     ('{"online_exploraton": 0.05}', "unknown SafetyFilter option(s) ['online_exploraton']"),
 ])
 def test_bad_filter_kwargs_are_refused_before_anything_runs(capsys, value, message):

@@ -169,14 +169,17 @@ def test_dry_run_counts(tmp_path, capsys):
     assert not (tmp_path / "r.jsonl").exists()
 
 
-def test_shipped_acceptance_config_is_valid_and_large_enough():
+def _configs_dir():
+    """benchmarks/configs of the source tree."""
     from pathlib import Path
 
     import afvsgp_gym
 
-    path = Path(afvsgp_gym.__file__).resolve().parent.parent / "benchmarks" / "configs" / \
-        "acceptance.toml"
-    sweep = load_config(path)
+    return Path(afvsgp_gym.__file__).resolve().parent.parent / "benchmarks" / "configs"
+
+
+def test_shipped_acceptance_config_is_valid_and_large_enough():
+    sweep = load_config(_configs_dir() / "acceptance.toml")
     validate(sweep)
     episodes = [s for _, s in sweep.episodes()]
     afvsgp = [s for s in episodes if s.learner == "afvsgp"
@@ -191,16 +194,7 @@ def test_shipped_acceptance_config_is_valid_and_large_enough():
     assert {s.learner for s in episodes} == {"afvsgp", "oracle", "none"}
 
 
-def _shipped_configs() -> list:
-    from pathlib import Path
-
-    import afvsgp_gym
-
-    root = Path(afvsgp_gym.__file__).resolve().parent.parent / "benchmarks" / "configs"
-    return sorted(root.glob("*.toml"))
-
-
-@pytest.mark.parametrize("path", _shipped_configs(), ids=lambda p: p.name)
+@pytest.mark.parametrize("path", sorted(_configs_dir().glob("*.toml")), ids=lambda p: p.name)
 def test_every_shipped_benchmark_config_is_valid(path):
     """The configs that benchmarks/*.md tell users to run load, validate against the envs,
     learners and filter, and have at least one episode."""
