@@ -1,7 +1,9 @@
-"""The tables of benchmarks/acceptance.md from the records of the acceptance sweep.
+"""Safety tables of a sweep's records (the acceptance configurations of benchmarks/configs).
 
     afvsgp-gym sweep benchmarks/configs/acceptance.toml --out acceptance.jsonl
     python benchmarks/acceptance_tables.py acceptance.jsonl
+
+``benchmarks/page_safety.py`` builds the documentation's safety page from these functions.
 
 Episodes with cost, the exact Clopper-Pearson 95 % upper bound on the per-episode cost rate,
 min h, mean tracking error with its standard error over episodes, the ratio to the oracle's on
@@ -15,12 +17,10 @@ prior.
 from __future__ import annotations
 
 import argparse
+import statistics
 from collections.abc import Iterable
 
-import numpy as np
-from scipy.stats import beta
-
-from afvsgp_gym.sweep.results import read_records
+from docgen import cp_upper, mean_se, read_jsonl
 
 SCENARIOS = ("static", "dynamic", "random")
 PRIORS = ("zero", "kinematic", "perturbed")
@@ -41,22 +41,17 @@ def same_tracker(pr: str) -> str:
     return "perturbed" if pr in ("perturbed", "exact") else "zero"
 
 
-def cp_upper(k: int, n: int, level: float = 0.95) -> float:
-    """Exact one-sided Clopper-Pearson upper bound on a binomial rate."""
-    return 1.0 if k >= n else float(beta.ppf(level, k + 1, n - k))
-
-
 def summary(recs: list[dict]) -> dict:
-    track = np.array([r["tracking_error_mean"] for r in recs], dtype=float)
+    track, track_se = mean_se([float(r["tracking_error_mean"]) for r in recs])
     safe = sum(r["safe_proposals"] for r in recs)
     return {
         "n": len(recs),
         "cost": sum(r["cost_steps"] > 0 for r in recs),
         "bound": cp_upper(sum(r["cost_steps"] > 0 for r in recs), len(recs)),
         "min_h": min(r["min_h"] for r in recs),
-        "track": float(np.mean(track)),
-        "track_se": float(np.std(track, ddof=1) / np.sqrt(len(track))) if len(track) > 1 else 0.0,
-        "backup": float(np.mean([r["infeasible_steps"] for r in recs])),
+        "track": track,
+        "track_se": track_se,
+        "backup": statistics.fmean(r["infeasible_steps"] for r in recs),
         "kept": sum(r["safe_proposals_kept"] for r in recs) / safe if safe else 1.0,
         "contact_eps": sum(r["contact_steps"] > 0 for r in recs),
         "h_eps": sum(r["violation_steps"] > 0 for r in recs),
@@ -90,7 +85,7 @@ def select(recs: Iterable[dict], block: str, **where) -> list[dict]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("results")
-    recs = read_records(parser.parse_args().results)
+    recs = read_jsonl(parser.parse_args().results)
     versions = sorted({r["code_version"] for r in recs})
     print(f"{len(recs)} records, code {', '.join(versions)}\n")
 

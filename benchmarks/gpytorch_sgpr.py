@@ -12,7 +12,7 @@ It builds the ADP kernel (paper eq. 19) as a GPyTorch kernel on inputs ``[xi, u]
    autograd gradient with ``weighted_bound_and_grad``;
 2. the predictive mean and variance with ``sgpr_diagonal_correction`` off and on against VSGP.
 
-Printed results are recorded in benchmarks/gp.md ("Conventions: GPyTorch and GPflow").
+What the comparison shows: docs/learners.md ("Conventions against GPyTorch and GPflow").
 """
 
 from __future__ import annotations
@@ -132,7 +132,7 @@ def compare(params: np.ndarray, label: str) -> None:
 
 if __name__ == "__main__":
     compare(np.array([0.79, 0.55, 8.71, 3.74, 8.65, 3.86, 0.05, 4.14, -3.6]),
-            "ill-conditioned (issue 10 point)")
+            "ill-conditioned (reproducer point)")
     xi, u, z = reproducer()
     fitted = VSGP(num_inducing=20).fit(xi, u, z)
     compare(np.r_[fitted.kernel_.theta, np.log(fitted.noise_variance_)],

@@ -1,0 +1,218 @@
+"""Helpers shared by the scripts that write the measurement pages of the documentation.
+
+Each ``benchmarks/page_*.py`` reads one results file kept in the tree and writes one page under
+``docs/``; ``--check`` compares instead of writing (exit status 1 when the page is not what the
+script generates), which is how CI keeps the pages and their results files together. Only the
+standard library is used, so the check runs in the docs build's environment without the
+package or numpy installed.
+
+The statistics are exact: the Clopper-Pearson bound by bisection on the binomial distribution,
+the Wilson interval in closed form, Welch's t-test through the regularised incomplete beta
+function (a continued fraction, Numerical Recipes 6.4).
+"""
+
+from __future__ import annotations
+
+import argparse
+import difflib
+import gzip
+import json
+import math
+import re
+import statistics
+import sys
+from collections.abc import Callable, Iterable, Sequence
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+RESULTS = ROOT / "benchmarks" / "results"
+DOCS = ROOT / "docs"
+
+#: z of a two-sided 95 % normal interval
+Z95 = 1.959963984540054
+
+
+# --------------------------------------------------------------------------- statistics
+def _log_binom_pmf(i: int, n: int, p: float) -> float:
+    return (math.lgamma(n + 1) - math.lgamma(i + 1) - math.lgamma(n - i + 1)
+            + i * math.log(p) + (n - i) * math.log1p(-p))
+
+
+def binom_cdf(k: int, n: int, p: float) -> float:
+    """P(X <= k) for X ~ Binomial(n, p)."""
+    if p <= 0.0:
+        return 1.0
+    if p >= 1.0:
+        return 1.0 if k >= n else 0.0
+    return min(1.0, sum(math.exp(_log_binom_pmf(i, n, p)) for i in range(k + 1)))
+
+
+def cp_upper(k: int, n: int, level: float = 0.95) -> float:
+    """Exact one-sided Clopper-Pearson upper bound on a binomial rate (k events in n): the p
+    at which P(X <= k) = 1 - level."""
+    if n <= 0 or k >= n:
+        return 1.0
+    if k == 0:
+        return 1.0 - (1.0 - level) ** (1.0 / n)
+    lo, hi = 0.0, 1.0
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        if binom_cdf(k, n, mid) > 1.0 - level:
+            lo = mid
+        else:
+            hi = mid
+    return 0.5 * (lo + hi)
+
+
+def wilson(k: int, n: int, z: float = Z95) -> tuple[float, float]:
+    """Wilson score interval of a binomial rate (two-sided, 95 % by default)."""
+    if n <= 0:
+        return 0.0, 1.0
+    p = k / n
+    den = 1.0 + z * z / n
+    centre = (p + z * z / (2 * n)) / den
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / den
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def _betacf(a: float, b: float, x: float) -> float:
+    tiny = 1e-300
+    c, d = 1.0, 1.0 - (a + b) * x / (a + 1.0)
+    d = 1.0 / (d if abs(d) > tiny else tiny)
+    h = d
+    for m in range(1, 1000):
+        m2 = 2 * m
+        for num in (m * (b - m) * x / ((a + m2 - 1) * (a + m2)),
+                    -(a + m) * (a + b + m) * x / ((a + m2) * (a + m2 + 1))):
+            d = 1.0 + num * d
+            d = 1.0 / (d if abs(d) > tiny else tiny)
+            c = 1.0 + num / c
+            c = c if abs(c) > tiny else tiny
+            h *= d * c
+        if abs(d * c - 1.0) < 1e-15:
+            break
+    return h
+
+
+def betainc(a: float, b: float, x: float) -> float:
+    """Regularised incomplete beta function I_x(a, b)."""
+    if x <= 0.0:
+        return 0.0
+    if x >= 1.0:
+        return 1.0
+    front = math.exp(math.lgamma(a + b) - math.lgamma(a) - math.lgamma(b)
+                     + a * math.log(x) + b * math.log1p(-x))
+    if x < (a + 1.0) / (a + b + 2.0):
+        return front * _betacf(a, b, x) / a
+    return 1.0 - front * _betacf(b, a, 1.0 - x) / b
+
+
+def welch_p(x: Sequence[float], y: Sequence[float]) -> float:
+    """Two-sided p-value of Welch's t-test (unequal variances) of the means of x and y."""
+    vx, vy = statistics.variance(x) / len(x), statistics.variance(y) / len(y)
+    if vx + vy == 0.0:
+        return 1.0 if statistics.fmean(x) == statistics.fmean(y) else 0.0
+    t = (statistics.fmean(x) - statistics.fmean(y)) / math.sqrt(vx + vy)
+    df = (vx + vy) ** 2 / (vx * vx / (len(x) - 1) + vy * vy / (len(y) - 1))
+    return betainc(df / 2.0, 0.5, df / (df + t * t))
+
+
+def mean_se(values: Sequence[float]) -> tuple[float, float]:
+    """Mean and standard error of the mean (sample standard deviation / sqrt(n))."""
+    m = statistics.fmean(values)
+    se = statistics.stdev(values) / math.sqrt(len(values)) if len(values) > 1 else 0.0
+    return m, se
+
+
+# --------------------------------------------------------------------------- files
+def read_json(path: Path) -> dict:
+    with open(path, encoding="utf-8") as fh:
+        return json.load(fh)
+
+
+def read_jsonl(path: Path) -> list[dict]:
+    """Records of a JSON-lines file, plain or gzip-compressed (a sweep's results file); a torn
+    last line (a sweep killed while writing it) is left out, as ``afvsgp-gym report`` does."""
+    data = Path(path).read_bytes()
+    if data[:2] == b"\x1f\x8b":
+        data = gzip.decompress(data)
+    lines = [line for line in data.decode().splitlines() if line.strip()]
+    records = [json.loads(line) for line in lines[:-1]]
+    try:
+        records += [json.loads(line) for line in lines[-1:]]
+    except ValueError:
+        pass
+    return records
+
+
+def parse_output(text: str) -> dict[str, float]:
+    """``name  value [us]`` lines of a benchmark's printed output as {name: value}; values in
+    microseconds are returned in microseconds, lines that are not of that form are skipped."""
+    out = {}
+    for line in text.splitlines():
+        m = re.match(r"^(.*?)\s+(-?[0-9.]+(?:e[-+]?[0-9]+)?)(?: us)?$", line.strip())
+        if m and not line.startswith(("machine", "calibration")):
+            out[m.group(1).strip()] = float(m.group(2))
+    return out
+
+
+# --------------------------------------------------------------------------- markdown
+def table(header: Sequence[str], rows: Iterable[Sequence[object]]) -> str:
+    """A markdown table."""
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def provenance(script: str, sources: Sequence[str]) -> str:
+    """The comment every generated page starts with."""
+    return (f"<!-- Generated by `python {script}` from {', '.join(sources)}. "
+            "Do not edit: change the script or the results file and run it again. -->")
+
+
+def measured(meta: dict) -> str:
+    """One line with the machine, the date and the code version of a results file."""
+    parts = [f"**Machine:** {meta.get('machine') or 'not recorded'}",
+             f"**date:** {meta.get('date') or 'not recorded'}"]
+    if meta.get("code"):
+        parts.append(f"**code:** `{meta['code']}`")
+    return "; ".join(parts) + "."
+
+
+def replace_block(text: str, name: str, block: str) -> str:
+    """``text`` with the lines between ``<!-- NAME:start -->`` and ``<!-- NAME:end -->``
+    replaced by ``block``."""
+    pattern = re.compile(rf"(<!-- {name}:start[^>]*-->\n).*?(<!-- {name}:end -->)", re.S)
+    if not pattern.search(text):
+        raise SystemExit(f"no <!-- {name}:start --> ... <!-- {name}:end --> block found")
+    return pattern.sub(lambda m: m.group(1) + block.rstrip("\n") + "\n" + m.group(2), text)
+
+
+def emit(outputs: dict[Path, str], check: bool) -> int:
+    """Write every ``path: text`` (or, with ``check``, compare and report the differences)."""
+    stale = []
+    for path, text in outputs.items():
+        old = path.read_text(encoding="utf-8") if path.exists() else ""
+        if old == text:
+            continue
+        if check:
+            stale.append(path)
+            diff = difflib.unified_diff(old.splitlines(), text.splitlines(), str(path),
+                                        "generated", lineterm="", n=1)
+            print("\n".join(list(diff)[:40]), file=sys.stderr)
+        else:
+            path.write_text(text, encoding="utf-8")
+            print(f"wrote {path.relative_to(ROOT)}")
+    if stale:
+        names = ", ".join(str(p.relative_to(ROOT)) for p in stale)
+        print(f"not what the script generates: {names}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def main(doc: str, build: Callable[[], dict[Path, str]]) -> int:
+    """The command line of a page script: write its outputs, or ``--check`` them."""
+    parser = argparse.ArgumentParser(description=doc.split("\n\n")[0])
+    parser.add_argument("--check", action="store_true",
+                        help="compare with the files in the tree instead of writing them")
+    return emit(build(), parser.parse_args().check)

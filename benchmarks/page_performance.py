@@ -1,0 +1,154 @@
+"""Write docs/performance.md from the filter's timing runs.
+
+    python benchmarks/page_performance.py            # writes docs/performance.md
+    python benchmarks/page_performance.py --check    # exit 1 if it is not what this writes
+
+Reads ``benchmarks/results/arm.json`` (the whole-arm step: the printed output of several runs
+of ``python -m afvsgp_gym.benchmarks.arm`` in one sitting on one machine, each with its mode)
+and ``benchmarks/results/solver.json`` (one run of ``python -m afvsgp_gym.benchmarks.solver``);
+each file gives its ``machine``, ``date``, ``code`` and the command. To refresh one, run the
+command as the file says, put each printed output in ``runs`` (or ``output``) with the date
+and the code version, and run this script.
+"""
+
+from __future__ import annotations
+
+import re
+
+from docgen import DOCS, RESULTS, main, measured, parse_output, provenance, read_json, table
+
+ARM = RESULTS / "arm.json"
+SOLVER = RESULTS / "solver.json"
+PAGE = DOCS / "performance.md"
+
+CONFIGS = {
+    "1 (ee)": "1: the end-effector sphere (the method's M = 40, P = 1000)",
+    "1 (ee), arm settings": "1: the end-effector sphere at the whole-arm settings",
+    "7 (hand)": "7: the hand's spheres",
+    "21 (arm)": "**21: the whole arm (default)**",
+    "21 (arm), method settings": "21, at the method's M = 40, P = 1000",
+    "21 (arm), clarabel only": "21, every cone program to clarabel (no fast path)",
+    "21 (arm), numpy solver": "21, cone program without its compiled path",
+    "21 (arm), numpy learners": "21, learners without their compiled core",
+    "21 (arm), numpy only": "21, no compiled code (as installed without a C compiler)",
+    "42 (arm, 2 obstacles)": "42: the whole arm, two obstacles",
+}
+
+
+def span(values: list[float], fmt: str = "{:.0f}") -> str:
+    lo, hi = fmt.format(min(values)), fmt.format(max(values))
+    return lo if lo == hi else f"{lo}-{hi}"
+
+
+def arm_section() -> list[str]:
+    data = read_json(ARM)
+    runs = [(r["mode"], parse_output(r["output"])) for r in data["runs"]]
+    modes = list(dict.fromkeys(mode for mode, _ in runs))
+    calib = sorted({m.group(0) for r in data["runs"]
+                    for m in [re.search(r"^calibration: .*$", r["output"], re.M)] if m})
+    out = ["## The filtered step", "",
+           "Time per control step after the warm-up of the filter's own work "
+           "(`SafetyController.filter` + `observe`: the barrier constraints, the learners' "
+           "predictions for the barriers in the cone program, the cone program, the eq. 48 "
+           "measurement and every learner's update) on the static Franka scenario, nominal "
+           "model \"zero\", AFVSGP, seeds 0-2 pooled, one core, one BLAS thread. `learners`: "
+           "the part spent in the learners (predictions and updates); `barriers in program`: "
+           "the mean number of barriers near enough to the obstacle to enter the cone program.",
+           "",
+           measured(data),
+           "",
+           f"```bash\nOPENBLAS_NUM_THREADS=1 taskset -c 0 {data['benchmark']}\n```", ""]
+    for mode in modes:
+        vals = [v for m, v in runs if m == mode]
+        rows = []
+        for key, name in CONFIGS.items():
+            if f"{key}: step median_s" not in vals[0]:
+                continue
+
+            def get(field: str, key: str = key, vals: list = vals) -> list[float]:
+                return [v[f"{key}: {field}"] for v in vals]
+
+            rows.append((name, span(get("step median_s")), span(get("step p99_s")),
+                         span(get("learners median_s")), span(get("update median_s")),
+                         span(get("prediction per barrier_s"), "{:.1f}"),
+                         span(get("barriers in program (mean)"), "{:.2f}")))
+        how = ("configurations one after another, as a robot loop runs one filter"
+               if mode == "sequential" else
+               "configurations advancing one step each in turn, so that their ratios are "
+               "measured on the same seconds")
+        out += [f"**{mode.capitalize()}** ({len(vals)} runs; {how}), microseconds, the range "
+                "over the runs:", "",
+                table(("barriers", "step median", "step p99", "learners median",
+                       "update median", "prediction per barrier", "barriers in program"),
+                      rows), ""]
+    ratio_keys = [k for k in runs[0][1] if "/" in k]
+    rows = [(k.replace(", K=21 / K=1", ", 21 learners / 1").replace(", K=21:", " at 21 barriers:"),
+             *(span([v[k] for m, v in runs if m == mode], "{:.2f}") + "x" for mode in modes))
+            for k in ratio_keys]
+    out += ["Ratios within each run (range over the runs):", "",
+            table(("ratio", *modes), rows), ""]
+    if calib:
+        parts = [dict(re.findall(r"([a-z0-9 /]+?) ([0-9.]+)(?:,|$)", c.removeprefix(
+            "calibration: "))) for c in calib]
+        cells = [f"{name.strip()} {span([float(p[name]) for p in parts], '{:.1f}')}"
+                 for name in parts[0]]
+        out += ["Calibration of the machine (the three costs a step is made of, to set "
+                "machines side by side; range over the runs): " + ", ".join(cells) + ".", ""]
+    return out
+
+
+def solver_section() -> list[str]:
+    data = read_json(SOLVER)
+    v = parse_output(data["output"])
+    ks = sorted({int(m.group(1)) for k in v if (m := re.match(r"K(\d+)_", k))})
+    rows = []
+    for k in ks:
+        def cell(key: str, k: int = k) -> str:
+            x = v.get(f"K{k}_{key}")
+            return "-" if x is None else f"{x:.1f}"
+
+        over = v.get(f"K{k}_socp_overhead_filter")
+        rows.append((k, cell("qp_ours_with_backup_median_s"), cell("qp_ours_median_s"),
+                     cell("qp_cbfpy_elastiqp_soft_median_s"),
+                     "-" if over is None else f"{over:.2f}x"))
+    return ["## The cone program alone", "",
+            "`SOCPFilter.solve` on the same states as cbfpy's best configuration (elastiqp, "
+            "soft constraints) for a known model (a QP), median microseconds per call over all "
+            "calls; and the learned filter's cone program (SOCP) against clarabel's own solve "
+            "time of the whole program on the feasible active calls. \"with backup\" is how "
+            "the wrapper runs it: an infeasible program returns the backup action right after "
+            "its infeasibility certificate; without one the certified max-worst-margin action "
+            "is computed, which cbfpy does not do.", "",
+            measured(data), "",
+            f"```bash\nOPENBLAS_NUM_THREADS=1 taskset -c 0 {data['benchmark']}\n```", "",
+            table(("barriers", "ours, QP, with backup", "ours, QP, no backup",
+                   "cbfpy elastiqp", "SOCP: ours / clarabel's own solve"), rows), ""]
+
+
+def build() -> dict:
+    out = [provenance("benchmarks/page_performance.py",
+                      ["benchmarks/results/arm.json", "benchmarks/results/solver.json"]), "",
+           "# Performance", "",
+           "What one filtered control step costs, and the cone program against another CBF "
+           "library. Absolute times are the machine's; the ratios within one run carry over "
+           "better. Run control loops with one BLAS thread (`OPENBLAS_NUM_THREADS=1`): with a "
+           "thread pool and the other core busy the step's tail grows by an order of "
+           "magnitude.", ""]
+    out += arm_section()
+    out += solver_section()
+    out += ["## Other benchmarks", "",
+            "`afvsgp-gym bench [--quick] [--only gp,envs,filter,sweep]` prints the speed figures "
+            "of the learners (one AFVSGP step at the paper's size against VSGP and SOGP), the "
+            "environments (steps per second with the barrier terms, against Gymnasium's "
+            "Ant-v5 in the same rounds), the filter and the sweep executors (episodes per "
+            "minute with one and two worker processes, and Ray's overhead with the `cluster` "
+            "extra), all measured in one run.", "",
+            "`python benchmarks/step_anatomy.py` splits the whole-arm step by the number of "
+            "barriers in the cone program and by the solver's path; "
+            "`python benchmarks/bit_identity.py` hashes four filtered episodes, to check that "
+            "a change keeps the arithmetic bit for bit on one machine.", ""]
+    return {PAGE: "\n".join(out)}
+
+
+if __name__ == "__main__":
+    raise SystemExit(main(__doc__, build))
