@@ -103,3 +103,99 @@ class BarrierSet(Sequence):
     def h(self) -> np.ndarray:
         """``(K,)`` barrier values."""
         return self.derivatives[:, 0]
+
+
+@dataclass(frozen=True)
+class BarrierLayout:
+    """What a filter needs to know about K barriers besides their terms: each one's relative
+    degree, and which barriers share one model error.
+
+    Barriers of relative degree ``r_k`` below the set's largest ``r`` keep their measured
+    derivatives ``[h, ..., h^(r_k - 1)]`` in the first ``r_k`` columns of
+    ``BarrierSet.derivatives`` (the rest is 0), and ``lf + lg u`` is their ``h^(r_k)``.
+
+    ``learner[k]`` numbers the model error of barrier ``k``: barriers with the same number have
+    ``Delta B_k = sign[k] Delta B`` of one quantity (e.g. the lower and upper range and speed
+    barriers of one joint all see ``+-`` that joint's acceleration error), so one learner
+    serves them all (whatever their relative degrees: a joint's range barrier, of degree 2,
+    and its speed barrier, of degree 1, both learn ``h^(r)`` = +- the joint's acceleration).
+    Learners are numbered in order of first appearance, and the first barrier
+    of each learner (its representative) has sign +1. ``group[l]`` labels learner ``l``'s
+    hyperparameter-sharing group (learners of different physical quantities do not share).
+
+    Attributes
+    ----------
+    relative_degree : ndarray of int, shape (K,)
+    learner : ndarray of int, shape (K,)
+    sign : ndarray of float, shape (K,)
+        +1 or -1.
+    group : ndarray of int, shape (L,)
+        ``L`` = number of learners.
+    """
+
+    relative_degree: np.ndarray
+    learner: np.ndarray
+    sign: np.ndarray
+    group: np.ndarray
+
+    def __post_init__(self) -> None:
+        deg = np.asarray(self.relative_degree)
+        K = deg.shape[0] if deg.ndim == 1 else 0
+        if K == 0 or not np.issubdtype(deg.dtype, np.integer) or np.any(deg < 1):
+            raise ValueError(f"relative_degree must be K >= 1 integers >= 1, got {deg!r}")
+        lrn = np.asarray(self.learner)
+        sign = np.asarray(self.sign, dtype=np.float64)
+        if lrn.shape != (K,) or not np.issubdtype(lrn.dtype, np.integer):
+            raise ValueError(f"learner must hold {K} integers, got {lrn!r}")
+        if sign.shape != (K,) or not np.all(np.abs(sign) == 1.0):
+            raise ValueError(f"sign must hold {K} values +1 or -1, got {sign!r}")
+        _, first = np.unique(lrn, return_index=True)
+        L = len(first)
+        if not np.array_equal(np.sort(first), first) or not np.array_equal(
+                lrn[np.sort(first)], np.arange(L)):
+            raise ValueError("learner must number the learners 0, 1, ... in order of first "
+                             f"appearance, got {lrn.tolist()}")
+        if np.any(sign[first] != 1.0):
+            raise ValueError("the first barrier of every learner must have sign +1")
+        grp = np.asarray(self.group)
+        if grp.shape != (L,) or not np.issubdtype(grp.dtype, np.integer):
+            raise ValueError(f"group must hold one integer per learner ({L}), got {grp!r}")
+        for name, arr in (("relative_degree", deg.astype(np.int64)), ("learner",
+                          lrn.astype(np.int64)), ("sign", sign), ("group", grp.astype(np.int64))):
+            arr = arr.copy()
+            arr.flags.writeable = False
+            object.__setattr__(self, name, arr)
+
+    @classmethod
+    def uniform(cls, n_barriers: int, relative_degree: int) -> BarrierLayout:
+        """``n_barriers`` barriers of one relative degree, one learner each, one group."""
+        k = int(n_barriers)
+        return cls(np.full(k, int(relative_degree)), np.arange(k), np.ones(k),
+                   np.zeros(k, dtype=np.int64))
+
+    def __len__(self) -> int:
+        return int(self.relative_degree.shape[0])
+
+    @property
+    def n_learners(self) -> int:
+        return int(self.group.shape[0])
+
+    @property
+    def max_degree(self) -> int:
+        return int(self.relative_degree.max())
+
+    @property
+    def representatives(self) -> np.ndarray:
+        """(L,) the first barrier of every learner."""
+        return np.unique(self.learner, return_index=True)[1]
+
+    @property
+    def is_uniform(self) -> bool:
+        """One relative degree and one learner per barrier (the paper's setting)."""
+        deg = self.relative_degree
+        return bool(np.all(deg == deg[0]) and self.n_learners == len(self))
+
+    @property
+    def one_to_one(self) -> bool:
+        """One learner per barrier."""
+        return self.n_learners == len(self)

@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field, fields
+
+import numpy as np
 
 from afvsgp_gym.validation import check_count, check_real
 
@@ -17,6 +20,31 @@ DEFAULT_BETA = 2.5
 DEFAULT_RESIDUAL_CORRECTION = 0.2
 
 
+def _per_barrier(value, name: str, ok, what: str,
+                 nan_ok: bool = False) -> float | tuple[float, ...]:
+    """A float, or a tuple of floats from a sequence or array, each ``ok`` (or NaN with
+    ``nan_ok``); ``ValueError`` naming ``name`` and the entry otherwise."""
+    scalar = np.ndim(value) == 0
+    try:
+        values = np.atleast_1d(np.asarray(value, dtype=np.float64))
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number or a sequence of numbers. Got: {value!r}")\
+            from None
+    if values.ndim != 1 or values.size == 0:
+        raise ValueError(f"{name} must be a number or a 1-D sequence of numbers. Got: {value!r}")
+    for i, v in enumerate(values):
+        if math.isnan(v) and nan_ok:
+            continue
+        if math.isnan(v) or not ok(v):
+            where = "" if scalar else f"[{i}]"
+            raise ValueError(f"{name}{where} must be {what}. Got: {v!r}")
+    return float(values[0]) if scalar else tuple(float(v) for v in values)
+
+
+#: Values of ``FilterConfig.warmup_exploration``.
+WARMUP_EXPLORATION = ("proposal", "backup")
+
+
 @dataclass(frozen=True)
 class FilterConfig:
     """Everything the :class:`~afvsgp_gym.cbf.SafetyController` can be told, checked once.
@@ -24,7 +52,8 @@ class FilterConfig:
     Attributes
     ----------
     relative_degree : int
-        ``r`` of every barrier (2 for the provided envs).
+        ``r`` of every barrier (2 for the provided envs); with a
+        :class:`~afvsgp_gym.types.BarrierLayout` of mixed degrees, the largest.
     alpha : float or tuple of float
         Linear class-K gains ``a_1..a_r`` of the HOCBF chain.
     beta : float
@@ -34,20 +63,42 @@ class FilterConfig:
         Buffer subtracted from ``h`` in the constraint (units of ``h``): the HOCBF condition
         holds in continuous time; with a zero-order-hold action the sampled ``h`` can dip
         O(dt^2) below the boundary without it.
-    activation_distance : float
-        A barrier enters the cone program when ``min(h, h + h'/a_1) < activation_distance``
-        (units of ``h``); the others are still learned. Outside, ``h >= d`` and
-        ``psi_1 = h' + a_1 h >= a_1 d > 0``, so a barrier enters with the HOCBF conditions
-        holding; whether ``psi_2 >= 0`` is then feasible within the action bounds depends on
-        the system's authority at that distance, hence no finite default: ``inf`` (every
-        barrier in the program) unless the env suggests one (``SafetyFilter`` reads
-        ``env.unwrapped.activation_distance``; 0.15 m for the Franka, measured in
-        benchmarks/filter.md).
+    activation_distance : float or tuple of float
+        ``D >= 0``, one for all barriers or one per barrier (units of each barrier's ``h``). A
+        barrier enters the cone program when ``h < D`` or, relative degree >= 2,
+        ``psi_1 < alpha_1(D)`` (for the linear chain: ``min(h, h + h'/a_1) < D``); the others
+        are still learned. Outside, ``h >= D`` and ``psi_1 >= alpha_1(D) > 0``, so a barrier
+        enters with the HOCBF conditions holding; whether ``psi_2 >= 0`` is then feasible
+        within the action bounds depends on the system's authority (see
+        ``braking_deceleration``), hence no finite default: ``inf`` (every barrier in the
+        program) unless the env suggests one (``SafetyFilter`` reads
+        ``env.unwrapped.activation_distance``; for the Franka 0.15 m for the obstacle
+        barriers and its own values for the joint-limit barriers).
+    braking_deceleration : float or tuple of float
+        ``A > 0``, one for all barriers or one per barrier (units of ``h`` per s^2; only
+        relative degree 2): the first class-K function becomes the braking curve of
+        :func:`~afvsgp_gym.cbf.hocbf.braking_alpha`, so the approach speed never exceeds what
+        a deceleration ``A`` can stop, and ``psi_2 >= 0`` stays feasible wherever the actions
+        can make ``h'' >= A`` (:class:`~afvsgp_gym.cbf.hocbf.BarrierConstraints`). ``inf``
+        (default, the paper's) is the linear ``a_1 h``; the Franka envs suggest values
+        derived from the torque limits.
+    first_gain : float or tuple of float
+        The gain ``a_1`` of the first class-K function, one for all barriers or one per
+        barrier, in place of ``alpha``'s first (NaN or the default ``nan``: ``alpha``'s;
+        relative degrees 1 and 2 only). The Franka envs suggest a faster one for their joint
+        speed barriers (relative degree 1) than for the others.
     warmup_samples : int
         ``P``: samples collected before the offline hyperparameter fit (Algorithm 1).
     exploration_noise : float
-        Std of the Gaussian noise added to the proposal during warm-up, as a fraction of the
-        half range of the action bounds.
+        Std of the Gaussian noise added during warm-up, as a fraction of the half range of
+        the action bounds.
+    warmup_exploration : str
+        What the warm-up noise is added to: ``"proposal"`` (the paper's Algorithm 1: the
+        policy's action, through the nominal-only filter: safe only while the policy is, since
+        a nominal model that knows nothing certifies nothing) or ``"backup"`` (the backup
+        action, e.g. the env's damping brake, through the same filter: the policy does not act
+        until the learners are fitted, so the warm-up is safe whatever it proposes; needs a
+        ``u_backup``, else the proposal is used).
     online_exploration : float
         Largest std of the noise added after warm-up (same units), for persistent
         excitation, at the steps where it is needed (see ``exploration_threshold``); the
@@ -92,9 +143,12 @@ class FilterConfig:
     alpha: float | tuple[float, ...] = 4.0
     beta: float = DEFAULT_BETA
     barrier_margin: float = 1e-3
-    activation_distance: float = float("inf")
+    activation_distance: float | tuple[float, ...] = float("inf")
+    braking_deceleration: float | tuple[float, ...] = float("inf")
+    first_gain: float | tuple[float, ...] = float("nan")
     warmup_samples: int = 200
     exploration_noise: float = 0.3
+    warmup_exploration: str = "proposal"
     online_exploration: float = 0.4
     exploration_threshold: float = 1.0
     residual_correction: float = DEFAULT_RESIDUAL_CORRECTION
@@ -116,10 +170,20 @@ class FilterConfig:
             object.__setattr__(self, "alpha", tuple(float(a) for a in self.alpha))
         check_real(self.beta, "beta", low=0.0)
         check_real(self.barrier_margin, "barrier_margin", low=0.0)
-        if self.activation_distance != float("inf"):
-            check_real(self.activation_distance, "activation_distance")
+        object.__setattr__(self, "activation_distance", _per_barrier(
+            self.activation_distance, "activation_distance", lambda v: v >= 0,
+            ">= 0 (inf allowed)"))
+        object.__setattr__(self, "braking_deceleration", _per_barrier(
+            self.braking_deceleration, "braking_deceleration", lambda v: v > 0,
+            "> 0 (inf allowed)"))
+        object.__setattr__(self, "first_gain", _per_barrier(
+            self.first_gain, "first_gain", lambda v: math.isfinite(v) and v > 0,
+            "finite and > 0", nan_ok=True))
         check_count(self.warmup_samples, "warmup_samples", 2)
         check_real(self.exploration_noise, "exploration_noise", low=0.0)
+        if self.warmup_exploration not in WARMUP_EXPLORATION:
+            raise ValueError(f"warmup_exploration must be one of {list(WARMUP_EXPLORATION)}. "
+                             f"Got: {self.warmup_exploration!r}")
         check_real(self.online_exploration, "online_exploration", low=0.0)
         check_real(self.exploration_threshold, "exploration_threshold", low=0.0)
         check_real(self.residual_correction, "residual_correction", low=0.0, high=1.0,
@@ -134,6 +198,18 @@ class FilterConfig:
                 raise ValueError(f"{name} must be None, True or False, got {value!r}")
         if self.seed is not None:
             check_count(self.seed, "seed", 0)
+
+    def per_barrier(self, name: str, n_barriers: int) -> np.ndarray:
+        """The option ``name`` (``activation_distance``, ``braking_deceleration`` or
+        ``first_gain``) as an array of ``n_barriers`` values; ``ValueError`` when a tuple has
+        another length."""
+        value = getattr(self, name)
+        if isinstance(value, tuple):
+            if len(value) != n_barriers:
+                raise ValueError(f"{name} must be one value or {n_barriers} (one per barrier). "
+                                 f"Got: {len(value)} values")
+            return np.array(value, dtype=np.float64)
+        return np.full(n_barriers, float(value))
 
     @classmethod
     def option_names(cls) -> tuple[str, ...]:

@@ -41,12 +41,12 @@ try:
     from afvsgp_gym.cbf import _step
 except ImportError:  # built without a C compiler: the numpy versions
     _step = None
-from afvsgp_gym.cbf.hocbf import HOCBF
+from afvsgp_gym.cbf.hocbf import HOCBF, BarrierConstraints
 from afvsgp_gym.cbf.learners import REGISTRY, check_learner_name, make_bank
 from afvsgp_gym.cbf.measurement import measure_samples
 from afvsgp_gym.cbf.residuals import ResidualObserver
 from afvsgp_gym.cbf.socp import SOCPFilter
-from afvsgp_gym.types import BarrierSet
+from afvsgp_gym.types import BarrierLayout, BarrierSet
 from afvsgp_gym.validation import check_count
 
 __all__ = ["FilterResult", "SafetyController", "StepPrediction"]
@@ -153,9 +153,14 @@ class SafetyController:
     action_low, action_high : array_like of shape (m,)
         Action bounds (the filter never leaves them).
     n_barriers : int
-        Number of barriers K (one learner each).
+        Number of barriers K (one learner each, unless ``layout`` shares them).
     learner : str
         One of :data:`afvsgp_gym.cbf.LEARNERS`.
+    layout : BarrierLayout or None
+        Each barrier's relative degree and which barriers share one learner
+        (:class:`~afvsgp_gym.types.BarrierLayout`; its largest degree must be
+        ``relative_degree``); None: ``n_barriers`` barriers of ``relative_degree``, one
+        learner each.
     dataset : tuple or list of tuples or None
         ``(xi (N, b), u (N, m), z (N,))`` recorded beforehand (one tuple for every barrier,
         or one per barrier): the learners are fitted at construction and warm-up is skipped.
@@ -167,15 +172,31 @@ class SafetyController:
     """
 
     def __init__(self, action_low, action_high, n_barriers: int = 1, learner: str = "afvsgp",
-                 *, dataset=None, config: FilterConfig | None = None, **options: Any):
+                 *, layout: BarrierLayout | None = None, dataset=None,
+                 config: FilterConfig | None = None, **options: Any):
         self.learner_name = check_learner_name(learner)
-        self.n_barriers = check_count(n_barriers, "n_barriers")
+        self.n_barriers = K = check_count(n_barriers, "n_barriers")
         unknown = sorted(set(options) - set(FilterConfig.option_names()))
         if unknown:
             valid = list(FilterConfig.option_names())
             raise ValueError(f"unknown option(s) {unknown}; valid: {valid}")
         self.config = cfg = replace(config or FilterConfig(), **options)
+        if layout is None:
+            layout = BarrierLayout.uniform(K, cfg.relative_degree)
+        elif not isinstance(layout, BarrierLayout) or len(layout) != K:
+            raise ValueError(f"layout must be a BarrierLayout of n_barriers={K} barriers. "
+                             f"Got: {layout!r}")
+        elif layout.max_degree != cfg.relative_degree:
+            raise ValueError(f"layout's largest relative degree ({layout.max_degree}) must be "
+                             f"relative_degree={cfg.relative_degree}")
+        self.layout = layout
         self.hocbf = HOCBF(cfg.relative_degree, cfg.alpha)
+        self.barriers = BarrierConstraints(
+            layout.relative_degree, cfg.alpha, cfg.per_barrier("braking_deceleration", K),
+            cfg.per_barrier("activation_distance", K), cfg.per_barrier("first_gain", K))
+        #: the paper's setting: one degree, the linear chain, one learner per barrier
+        self._plain = self.barriers.uniform_linear and layout.one_to_one
+        self._degrees = None if layout.is_uniform else layout.relative_degree
         self._margin_gain = float(np.prod(self.hocbf.gains))  # d psi_r / d h
         self.socp = SOCPFilter(action_low, action_high, qp_solver=cfg.qp_solver,
                                compiled=cfg.compiled_solver)
@@ -185,7 +206,7 @@ class SafetyController:
         self.uses_true_terms = entry.true_terms
         self.bank = make_bank(self.learner_name, self.n_barriers, self.action_dim,
                               cfg.learner_kwargs, cfg.shared_hyperparameters,
-                              cfg.compiled_learners)
+                              cfg.compiled_learners, layout)
         self.learns = self.bank.learns
         self.socp.prepare(self.n_barriers, cones=False)  # the QP: known model, mean fallback
         if self.learns and cfg.beta > 0:
@@ -269,9 +290,17 @@ class SafetyController:
         return bset
 
     def _active_rows(self, derivs: np.ndarray, ok: np.ndarray | None) -> np.ndarray:
-        """Barriers in the program: ``min(h, h + h'/a_1) < activation_distance`` (and every
-        barrier with non-finite terms, ``ok`` False, so that the program reports them; ``ok``
-        None: all finite)."""
+        """Barriers in the program: within their activation distance
+        (:meth:`BarrierConstraints.active_rows`; for the linear chain ``min(h, h + h'/a_1) <
+        activation_distance``), and every barrier with non-finite terms (``ok`` False, so that
+        the program reports them; ``ok`` None: all finite)."""
+        if not self._plain:
+            rows = self.barriers.active_rows(derivs)
+            if ok is None:
+                return rows
+            inside = np.zeros(len(ok), dtype=bool)
+            inside[rows] = True
+            return np.flatnonzero(inside | ~ok)
         h = derivs[:, 0]
         near = np.minimum(h, h + derivs[:, 1] / self.hocbf.gains[0]) if derivs.shape[1] > 1 else h
         inside = near < self.config.activation_distance
@@ -280,8 +309,9 @@ class SafetyController:
     def _finite_active_rows(self, c0: np.ndarray, c: np.ndarray,
                             bset: BarrierSet) -> np.ndarray | None:
         """:meth:`_active_rows` in the compiled core when every term is finite; None when one
-        is not, or the core is not built or does not take these arrays (float64, C-ordered)."""
-        if _step is None:
+        is not, or the core is not built or does not take these arrays (float64, C-ordered);
+        the paper's setting only (one degree, linear chain)."""
+        if _step is None or not self._plain:
             return None
         d, xi = bset.derivatives, bset.xi
         K, r = d.shape
@@ -337,10 +367,15 @@ class SafetyController:
             raise ValueError(f"u_nom must have shape ({m},). Got: {u_nom.shape}")
         warm = self.warming_up
         if self.learns and warm:
+            if self.config.warmup_exploration == "backup" and u_backup is not None:
+                backup = self.socp._backup_action(u_backup)
+                if backup is not None:
+                    u_nom = backup
             u_nom = self.exploration.perturb(u_nom, warm=True)
-        c0, c = self.hocbf.constraints(bset)
+        c0, c = self.constraints(bset)
         if self.config.barrier_margin:
-            c0 = c0 - self.config.barrier_margin * self._margin_gain
+            gain = self._margin_gain if self._plain else self.barriers.margin_gain
+            c0 = c0 - self.config.barrier_margin * gain
         ok = None
         rows = self._finite_active_rows(c0, c, bset)
         if rows is None:
@@ -411,6 +446,15 @@ class SafetyController:
             n_active=len(rows),
         )
 
+    def constraints(self, terms) -> tuple[np.ndarray, np.ndarray]:
+        """The nominal HOCBF constraints (eq. 45) of every barrier, ``c0 + c @ u >= 0``:
+        ``c0`` (K,), ``c`` (K, m), each barrier with its relative degree and class-K
+        functions (:class:`~afvsgp_gym.cbf.hocbf.BarrierConstraints`)."""
+        bset = BarrierSet.stack(terms)
+        if self._plain:
+            return self.hocbf.constraints(bset)
+        return self.barriers.constraints(bset)
+
     def _excite(self, u_nom: np.ndarray, rows: np.ndarray, sig: np.ndarray, a0: np.ndarray,
                 a: np.ndarray) -> np.ndarray:
         """Online exploration only where it is needed, and only as much as it is needed.
@@ -453,7 +497,7 @@ class SafetyController:
         if u.shape != (self.action_dim,):
             raise ValueError(f"u_applied must have shape ({self.action_dim},). Got: {u.shape}")
         with np.errstate(invalid="ignore", over="ignore"):
-            xi, z, n_bad = measure_samples(before, u, after, dt)
+            xi, z, n_bad = measure_samples(before, u, after, dt, self._degrees)
         if n_bad:  # some sample is not finite
             bad = ~(np.isfinite(z) & np.all(np.isfinite(xi), axis=1))
             self.n_skipped_samples += int(bad.sum())

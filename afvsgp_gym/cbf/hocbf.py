@@ -91,3 +91,133 @@ class HOCBF:
                 f"{self.relative_degree}"
             )
         return terms.lf + terms.derivatives @ self._coeffs[self.relative_degree][:-1], terms.lg
+
+
+def braking_alpha(h: np.ndarray, gain: float | np.ndarray,
+                  deceleration: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The first class-K function of a relative-degree-2 barrier that respects a bounded
+    deceleration, and its derivative: ``(alpha_1(h), alpha_1'(h))``.
+
+    ``alpha_1(h) = 2 a h / (1 + s)``, ``alpha_1'(h) = a / s``, ``s = sqrt(1 + 2 a^2 |h| / A)``
+    (odd in h), ``a`` the gain, ``A`` the deceleration. It is ``sqrt(2 A h + c^2) - c`` with
+    ``c = A / a`` (rationalised: no cancellation), so ``psi_1 = h' + alpha_1(h) >= 0`` bounds the
+    approach speed by the braking curve of deceleration ``A``, offset so that the slope at the
+    boundary is ``a``; ``A = inf`` gives the linear ``a h`` (and ``a``) exactly.
+    ``alpha_1 alpha_1' < A`` everywhere, which is what makes ``psi_2 >= 0`` satisfiable
+    whenever ``h''`` can reach ``A`` (:class:`BarrierConstraints`).
+    """
+    s = np.sqrt(1.0 + (2.0 * gain * gain) * np.abs(h) / deceleration)
+    return (2.0 * gain) * h / (1.0 + s), gain / s
+
+
+class BarrierConstraints:
+    """The HOCBF constraints (eq. 45) of K barriers with their own relative degrees and,
+    for relative degree 2, a braking class-K function.
+
+    Barrier ``k`` of relative degree ``r_k`` uses the gains ``a_1..a_{r_k}`` (the first
+    ``r_k`` of ``alpha``), its first one replaced by ``first_gain[k]`` when given. Relative
+    degree 1: ``psi_1 = h' + a_1 h``. Relative degree 2 with
+    deceleration ``A_k`` (``inf``: the linear chain):
+
+        psi_1 = h' + alpha_1(h),   psi_2 = h'' + alpha_1'(h) h' + a_2 psi_1 >= 0,
+
+    with ``alpha_1`` of :func:`braking_alpha`. Where ``psi_1 = 0`` the constraint asks for
+    ``h'' >= alpha_1 alpha_1' < A_k``, and inside (``psi_1 > 0``) for less: if the actions can
+    make ``h'' >= A_k`` at every state with ``psi_1 >= 0``, the program of this barrier alone
+    is feasible there (the torque limits' stopping distance, Agrawal and Panagou 2021's
+    input-constrained CBFs). Higher degrees use the linear chain (no braking form).
+
+    Parameters
+    ----------
+    relative_degree : array_like of int, shape (K,)
+    alpha : float or sequence of float
+        ``a_1..a_r`` for the largest degree ``r`` (a scalar for all).
+    deceleration : array_like of float, shape (K,)
+        ``A_k > 0`` in units of ``h`` per s^2; ``inf`` for the linear chain.
+    activation : array_like of float, shape (K,)
+        ``D_k >= 0`` (units of ``h``, ``inf``: always): see :meth:`active_rows`.
+    first_gain : array_like of float, shape (K,), or None
+        ``a_1`` per barrier of relative degree 1 or 2 (NaN or None: ``alpha``'s).
+    """
+
+    def __init__(self, relative_degree, alpha, deceleration, activation=np.inf,
+                 first_gain=None):
+        deg = np.asarray(relative_degree, dtype=np.int64)
+        self.degrees = deg
+        self.chain = HOCBF(int(deg.max()), alpha)
+        self.gains = self.chain.gains
+        decel = np.broadcast_to(np.asarray(deceleration, dtype=np.float64), deg.shape).copy()
+        if np.any(~(decel > 0)):
+            raise ValueError(f"deceleration must be > 0 (inf: linear). Got: {decel}")
+        if np.any(np.isfinite(decel) & (deg != 2)):
+            raise ValueError("a finite deceleration needs relative degree 2")
+        self.deceleration = decel
+        first = np.full(deg.shape, self.gains[0])
+        if first_gain is not None:
+            given = np.broadcast_to(np.asarray(first_gain, dtype=np.float64), deg.shape)
+            first = np.where(np.isnan(given), first, given)
+        if np.any(~(first > 0)) or np.any(np.isinf(first)):
+            raise ValueError(f"first_gain must be finite and > 0. Got: {first}")
+        if np.any((first != self.gains[0]) & (deg > 2)):
+            raise ValueError("first_gain applies to relative degrees 1 and 2 only")
+        self.first_gain = first
+        act = np.broadcast_to(np.asarray(activation, dtype=np.float64), deg.shape).copy()
+        if np.any(~(act >= 0)):
+            raise ValueError(f"activation must be >= 0 (inf: always). Got: {act}")
+        self.activation = act
+        self.uniform_linear = bool(np.all(deg == deg[0]) and np.all(np.isinf(decel))
+                                   and np.all(first == self.gains[0]))
+        self._by_degree = [(int(r), np.flatnonzero(deg == r),
+                            HOCBF(int(r), self.gains[:r])._coeffs[r][:-1]) for r in np.unique(deg)]
+        self._braking = np.flatnonzero(np.isfinite(decel))
+        self._two = two = np.flatnonzero(deg == 2)
+        with np.errstate(invalid="ignore"):  # D = inf: every such barrier is active anyway
+            self._alpha_at_activation = braking_alpha(act[two], first[two], decel[two])[0]
+        #: d psi_r / d h at h = 0 per barrier: the product of its gains
+        self.margin_gain = first * np.array([np.prod(self.gains[1:r]) for r in deg])
+
+    def psi1(self, derivatives: np.ndarray) -> np.ndarray:
+        """``psi_1`` (K,) of every barrier (``h`` itself for relative degree 1: its psi_1
+        involves the action)."""
+        d = derivatives
+        out = d[:, 0].copy()
+        two = self._two
+        if len(two):
+            alpha, _ = braking_alpha(d[two, 0], self.first_gain[two], self.deceleration[two])
+            out[two] = d[two, 1] + alpha
+        return out
+
+    def constraints(self, terms: BarrierSet) -> tuple[np.ndarray, np.ndarray]:
+        """Eq. 45 of every barrier: ``c0`` (K,) and ``c`` (K, m), ``c0 + c @ u >= 0``."""
+        if self.uniform_linear:
+            return self.chain.constraints(terms)
+        d = terms.derivatives
+        if d.shape[1] != self.chain.relative_degree:
+            raise ValueError(f"terms have {d.shape[1]} derivative columns, expected "
+                             f"{self.chain.relative_degree}")
+        c0 = np.array(terms.lf, dtype=np.float64)
+        first = self.first_gain
+        for r, rows, coeffs in self._by_degree:
+            if r == 1:
+                c0[rows] += first[rows] * d[rows, 0]
+            elif r == 2:
+                h, hd = d[rows, 0], d[rows, 1]
+                alpha, slope = braking_alpha(h, first[rows], self.deceleration[rows])
+                c0[rows] += slope * hd + self.gains[1] * (hd + alpha)
+            else:
+                c0[rows] += d[rows, :r] @ coeffs
+        return c0, terms.lg
+
+    def active_rows(self, derivatives: np.ndarray) -> np.ndarray:
+        """Barriers within their ``activation`` distance ``D`` of the boundary: ``h < D`` or,
+        relative degree >= 2, ``psi_1 < alpha_1(D)`` (approaching fast enough to reach ``D`` by
+        the class-K rate); outside both, ``h >= D`` and ``psi_1 >= alpha_1(D) > 0``, so a barrier
+        enters the program with its first HOCBF condition holding with margin. NaN terms are
+        not active (the caller adds them)."""
+        h = derivatives[:, 0]
+        near = h < self.activation
+        two = self._two
+        if len(two):
+            alpha_h, _ = braking_alpha(h[two], self.first_gain[two], self.deceleration[two])
+            near[two] |= derivatives[two, 1] + alpha_h < self._alpha_at_activation
+        return np.flatnonzero(near)

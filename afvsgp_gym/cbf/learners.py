@@ -39,8 +39,10 @@ class LearnerBank(Protocol):
 
     learns: bool
 
-    def fit(self, datasets: Sequence[Dataset], learn_hyperparameters: bool = True) -> None:
-        """Fit learner ``k`` on ``datasets[k] = (xi (N, b), u (N, m), z (N,))``."""
+    def fit(self, datasets: Sequence[Dataset], learn_hyperparameters: bool = True,
+            groups: np.ndarray | None = None) -> None:
+        """Fit learner ``k`` on ``datasets[k] = (xi (N, b), u (N, m), z (N,))``; shared
+        hyperparameters only within each of ``groups`` (K,) (None: one group)."""
 
     def predict_affine(self, xi: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``b`` (k, m+1), ``Sigma`` (k, m+1, m+1) of learners ``rows`` at ``xi`` (k, b)."""
@@ -63,7 +65,7 @@ class ZeroBank:
             raise ValueError(f"this learner takes no learner_kwargs. Got: {sorted(kwargs)}")
         self.n_learners, self.action_dim = int(n_barriers), int(action_dim)
 
-    def fit(self, datasets, learn_hyperparameters: bool = True) -> None:
+    def fit(self, datasets, learn_hyperparameters: bool = True, groups=None) -> None:
         return None
 
     def predict_affine(self, xi, rows):
@@ -96,12 +98,20 @@ class LoopBank:
     def _make(self, **override):
         return self._cls(**{**self._kwargs, **override})
 
-    def fit(self, datasets, learn_hyperparameters: bool = True) -> None:
+    def fit(self, datasets, learn_hyperparameters: bool = True, groups=None) -> None:
         from afvsgp_gym.gp.warmup_fit import fit_shared, fit_with_restarts
 
         user_kernel = self._kwargs.get("kernel") is not None
         if self.shared:
-            self.learners = fit_shared(self._make, datasets, learn_hyperparameters, user_kernel)
+            groups = np.zeros(len(datasets), dtype=int) if groups is None else np.asarray(groups)
+            learners: list = [None] * len(datasets)
+            for g in np.unique(groups):
+                rows = np.flatnonzero(groups == g)
+                fitted = fit_shared(self._make, [datasets[k] for k in rows],
+                                    learn_hyperparameters, user_kernel)
+                for k, learner in zip(rows, fitted, strict=True):
+                    learners[k] = learner
+            self.learners = learners
         else:
             self.learners = [fit_with_restarts(self._make, *d, learn_hyperparameters,
                                                user_kernel) for d in datasets]
@@ -133,10 +143,10 @@ class AFVSGPLearnerBank(LoopBank):
         self.compiled = compiled
         self.bank = None
 
-    def fit(self, datasets, learn_hyperparameters: bool = True) -> None:
+    def fit(self, datasets, learn_hyperparameters: bool = True, groups=None) -> None:
         from afvsgp_gym.gp.afvsgp_bank import AFVSGPBank
 
-        super().fit(datasets, learn_hyperparameters)
+        super().fit(datasets, learn_hyperparameters, groups)
         self.bank = AFVSGPBank.from_learners(self.learners, max_inducing_candidates=1,
                                              compiled=self.compiled)
         self.learners = []  # the bank holds the state from here on
@@ -149,6 +159,54 @@ class AFVSGPLearnerBank(LoopBank):
 
     def noise_variance(self, rows) -> np.ndarray:
         return self.bank.noise_variance[rows]
+
+
+class _GroupedBank:
+    """A bank of one learner per barrier whose hyperparameters are shared per group."""
+
+    def __init__(self, bank: LearnerBank, groups: np.ndarray):
+        self.bank, self.groups = bank, groups
+        self.learns = bank.learns
+        self.predict_affine, self.update = bank.predict_affine, bank.update
+        self.noise_variance = bank.noise_variance
+
+    def fit(self, datasets, learn_hyperparameters: bool = True, groups=None) -> None:
+        self.bank.fit(datasets, learn_hyperparameters, self.groups)
+
+
+class MappedBank:
+    """Barrier-level view of a bank of ``L`` learners shared by ``K`` barriers
+    (:class:`~afvsgp_gym.types.BarrierLayout`): barrier ``k``'s model error is ``sign[k]``
+    times learner ``learner[k]``'s, so its prediction is the learner's with the mean's sign
+    flipped (the covariance unchanged), and each learner is fitted and updated with its
+    representative barrier's samples (the others measure the same quantity, up to the sign
+    and rounding). A learner serving several barriers of the program is predicted once (their
+    features are the same: the layout's contract)."""
+
+    learns = True
+
+    def __init__(self, bank: LearnerBank, layout):
+        self.bank, self.layout = bank, layout
+        self._reps = layout.representatives
+        self._learner = layout.learner
+        self._sign = layout.sign
+
+    def fit(self, datasets, learn_hyperparameters: bool = True, groups=None) -> None:
+        self.bank.fit([datasets[k] for k in self._reps], learn_hyperparameters,
+                      self.layout.group)
+
+    def predict_affine(self, xi, rows):
+        learners = self._learner[rows]
+        uniq, first, inverse = np.unique(learners, return_index=True, return_inverse=True)
+        b, sigma = self.bank.predict_affine(xi[first], uniq)
+        return b[inverse] * self._sign[rows][:, None], sigma[inverse]
+
+    def update(self, xi, u, z) -> np.ndarray:
+        reps = self._reps
+        return self.bank.update(xi[reps], u, z[reps])[self._learner]
+
+    def noise_variance(self, rows) -> np.ndarray:
+        return self.bank.noise_variance(self._learner[rows])
 
 
 @dataclass(frozen=True)
@@ -192,18 +250,27 @@ def check_learner_name(name) -> str:
 
 
 def make_bank(name: str, n_barriers: int, action_dim: int, learner_kwargs: dict | None = None,
-              shared_hyperparameters: bool = True, compiled: bool | None = None) -> LearnerBank:
+              shared_hyperparameters: bool = True, compiled: bool | None = None,
+              layout=None) -> LearnerBank:
     """The bank of K = ``n_barriers`` learners called ``name`` (``learner_kwargs`` on top of
     the registry's defaults go to each learner's constructor; ``compiled``: the AFVSGP
-    bank's compiled core, see :class:`~afvsgp_gym.gp.afvsgp_bank.AFVSGPBank`)."""
+    bank's compiled core, see :class:`~afvsgp_gym.gp.afvsgp_bank.AFVSGPBank`). With a
+    :class:`~afvsgp_gym.types.BarrierLayout` whose barriers share learners, a
+    :class:`MappedBank` of its ``L`` learners."""
     entry = REGISTRY[check_learner_name(name)]
     if entry.bank is None:
         return ZeroBank(n_barriers, action_dim, **(learner_kwargs or {}))
     kwargs = {**entry.default_kwargs, **(learner_kwargs or {})}
     if issubclass(entry.bank, AFVSGPLearnerBank):  # the only bank with a compiled core
         kwargs["compiled"] = compiled
-    return entry.bank(n_barriers, action_dim, entry.gp_class,
-                      shared_hyperparameters=shared_hyperparameters, **kwargs)
+    shared = layout is not None and not layout.one_to_one
+    bank = entry.bank(layout.n_learners if shared else n_barriers, action_dim,
+                      entry.gp_class, shared_hyperparameters=shared_hyperparameters, **kwargs)
+    if layout is None or not shared:
+        if layout is not None and np.any(layout.group != layout.group[0]):
+            return _GroupedBank(bank, layout.group)
+        return bank
+    return MappedBank(bank, layout)
 
 
 def make_learner(name: str, action_dim: int, **kwargs):

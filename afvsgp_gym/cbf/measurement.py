@@ -62,16 +62,22 @@ def measure_all(
 
 
 def measure_samples(
-    before: BarrierSet, u: np.ndarray, after: BarrierSet, dt: float
+    before: BarrierSet, u: np.ndarray, after: BarrierSet, dt: float,
+    degrees: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, int]:
     """:func:`measure_all` and the number of samples whose ``z`` or ``xi`` is not finite (the
-    elementwise part in the compiled core when it is built: the same digits)."""
+    elementwise part in the compiled core when it is built: the same digits). ``degrees``
+    (K,): each barrier's relative degree when they differ (the finite difference of its own
+    highest measured derivative, column ``r_k - 1``); None: the terms' own."""
     if not (math.isfinite(dt) and dt > 0):
         raise ValueError(f"dt must be finite and positive. Got: {dt!r}")
     u = np.asarray(u, dtype=np.float64)
     r = before.relative_degree
     lgu_before, lgu_after = before.lg @ u, after.lg @ u
-    if _step is not None:
+    if degrees is not None:
+        rows, col = np.arange(len(degrees)), degrees - 1
+        fd = (after.derivatives[rows, col] - before.derivatives[rows, col]) / dt
+    elif _step is not None:
         K, nb = before.xi.shape
         xi, z = np.empty((K, nb)), np.empty(K)
         try:
@@ -82,7 +88,8 @@ def measure_samples(
             pass
         else:
             return xi, z, bad
-    fd = (after.derivatives[:, r - 1] - before.derivatives[:, r - 1]) / dt
+    if degrees is None:
+        fd = (after.derivatives[:, r - 1] - before.derivatives[:, r - 1]) / dt
     nominal = 0.5 * ((before.lf + lgu_before) + (after.lf + lgu_after))
     xi, z = 0.5 * (before.xi + after.xi), fd - nominal
     if math.isfinite(float(z.sum()) + float(xi.sum())):  # a finite sum: every value is

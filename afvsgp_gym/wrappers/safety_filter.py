@@ -11,7 +11,6 @@ import numpy as np
 from afvsgp_gym.cbf import SafetyController
 from afvsgp_gym.cbf.fastpath import clip
 from afvsgp_gym.cbf.learners import check_learner_name
-from afvsgp_gym.types import BarrierSet
 from afvsgp_gym.validation import check_choice
 
 __all__ = ["ORACLE_TERMS", "SafetyFilter", "with_env_suggestions"]
@@ -22,12 +21,19 @@ ORACLE_TERMS = ("true", "true_robust")
 
 def with_env_suggestions(base: Any, learner: str, options: dict[str, Any]) -> dict[str, Any]:
     """A copy of the filter ``options`` with the settings the env ``base`` suggests as defaults
-    underneath: ``base.activation_distance`` and ``base.learner_defaults[learner]`` (merged
-    key by key under the caller's ``learner_kwargs``; a ``learner_kwargs`` that is not a dict
-    is left for the controller to refuse by name)."""
+    underneath: ``base.filter_defaults`` (a dict of
+    :class:`~afvsgp_gym.cbf.FilterConfig` options; per-barrier options as arrays),
+    ``base.activation_distance`` and ``base.learner_defaults[learner]`` (merged key by key
+    under the caller's ``learner_kwargs``; a ``learner_kwargs`` that is not a dict is left for
+    the controller to refuse by name)."""
     options = dict(options)
+    suggested_options = dict(getattr(base, "filter_defaults", None) or {})
     if getattr(base, "activation_distance", None) is not None:
-        options.setdefault("activation_distance", float(base.activation_distance))
+        suggested_options.setdefault("activation_distance", base.activation_distance)
+    for name, value in suggested_options.items():
+        if isinstance(value, np.ndarray):
+            value = float(value) if value.ndim == 0 else tuple(float(v) for v in value.ravel())
+        options.setdefault(name, value)
     suggested = (getattr(base, "learner_defaults", None) or {}).get(learner)
     mine = options.get("learner_kwargs")
     if suggested and (mine is None or isinstance(mine, dict)):
@@ -60,7 +66,10 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
     number of warm-up samples: ``min(200, warmup_steps - 1)``. Settings the env suggests are
     defaults under the caller's options: ``activation_distance`` and ``learner_defaults``
     (learner name -> ``learner_kwargs``, merged key by key under the caller's; the Franka
-    envs suggest 0.15 m and, for their whole-arm sphere sets, AFVSGP with M = 30, P = 500).
+    envs suggest 0.15 m and, for their whole-arm sphere sets, AFVSGP with M = 30, P = 500),
+    and ``braking_deceleration``. An env with barriers of several relative degrees, or
+    barriers that share one model error, describes them in ``barrier_layout``
+    (:class:`~afvsgp_gym.types.BarrierLayout`).
 
     When no action satisfies the chance constraints (the SOCP is infeasible) the filter applies
     a backup action: by default the env's ``backup_action()`` (the provided envs brake: a
@@ -144,6 +153,7 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
             n_barriers=int(base.n_barriers),
             relative_degree=int(base.relative_degree),
             learner=learner,
+            layout=getattr(base, "barrier_layout", None),
             **options,
         )
         self._dtype = space.dtype
@@ -222,7 +232,7 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
         constraint value (eq. 44, m/s^2 for the provided envs) of the proposal under the true
         model, over all barriers; NaN where the env has no true terms."""
         try:
-            c0, c = self.controller.hocbf.constraints(BarrierSet.stack(base.barrier_terms("true")))
+            c0, c = self.controller.constraints(base.barrier_terms("true"))
         except (ValueError, TypeError):
             return float("nan")
         margin = c0 + c.dot(clip(proposed, self.controller.low, self.controller.high))
