@@ -8,6 +8,9 @@ into its Gymnasium base class and provides the physics and geometry:
 - optionally ``true_terms_error_bound()``, what the ``"exact"`` terms leave out (default 0);
 - ``_advance(u) -> bool`` one control period with action ``u``; True when it went unstable;
 - ``_contact() -> bool`` any robot geometry touches an obstacle;
+- optionally ``_limit_violation() -> bool`` the robot is beyond its own limits (joint range
+  stops, speeds; default False), and ``n_obstacle_barriers``: the first barriers are the
+  obstacle ones (``info["h"]`` is their minimum; default all of them);
 - ``_tracked_point() -> ndarray`` the point that tracks the reference (end-effector);
 - ``_get_obs()``, ``time``, ``reference``, ``obstacles``, ``_obstacle_states``,
   ``tracking_radius`` (radius of the tracked point's sphere, for ``reference_h``).
@@ -111,16 +114,29 @@ class ObstacleTask:
             out = min(out, math.sqrt(float(d @ d)) - ob.radius - self.tracking_radius)
         return out
 
+    @property
+    def n_obstacle_barriers(self) -> int:
+        """The first ``n_obstacle_barriers`` barriers keep the robot off the obstacles (their
+        ``h`` is a distance); any others guard the robot's own limits."""
+        return self.n_barriers
+
+    def _limit_violation(self) -> bool:
+        """The robot is beyond its own limits (none here)."""
+        return False
+
     def _safety_info(self) -> dict[str, Any]:
         hs = self.barrier_values()
         contact = self._contact()
-        h_min = float(hs.min())
+        limits = self._limit_violation()
+        n_obs = self.n_obstacle_barriers
+        h_min = float(hs[:n_obs].min()) if n_obs < len(hs) else float(hs.min())
         err = self._tracked_point() - self._ref_state[0]
         return {
-            "cost": 1.0 if (h_min < 0.0 or contact) else 0.0,
+            "cost": 1.0 if (h_min < 0.0 or contact or limits) else 0.0,
             "h": h_min,
             "h_per_barrier": hs.copy(),
             "collision": bool(contact),
+            "limit_violation": bool(limits),
             "tracking_error": math.sqrt(float(err @ err)),
             "reference_h": self._reference_h(),
         }

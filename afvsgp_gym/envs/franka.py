@@ -13,6 +13,12 @@ from gymnasium.envs.mujoco import MujocoEnv
 
 from afvsgp_gym.envs import franka_model as fm
 from afvsgp_gym.envs.base import NOMINAL_MODELS, SCENARIOS, ObstacleTask, read_kwargs
+from afvsgp_gym.envs.joint_limits import (
+    FRANKA_MAX_ACCELERATION,
+    FRANKA_MAX_SPEED,
+    FRANKA_MAX_TORQUE_RATE,
+    JointLimits,
+)
 from afvsgp_gym.envs.safety_spheres import (
     PANDA_ARM_SPHERES,
     end_effector_sphere,
@@ -27,7 +33,7 @@ from afvsgp_gym.envs.scenario import (
     sphere_barrier,
     sphere_barriers,
 )
-from afvsgp_gym.types import BarrierSet
+from afvsgp_gym.types import BarrierLayout, BarrierSet
 from afvsgp_gym.validation import check_choice, check_real
 
 _BAD_WARNINGS = np.array(
@@ -92,6 +98,26 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
     ``true_terms_error_bound`` (``2 sum_j |n' J_s M^-1|_j f_j``), for an oracle safe under
     friction (``SafetyFilter(..., learner="oracle", oracle_terms="true_robust")``).
 
+    With ``limit_barriers`` (default) the robot's own limits follow the obstacle barriers
+    (``n_obstacle_barriers`` of them): per joint a lower and an upper range barrier (relative
+    degree 2, ``range_margin`` rad inside the model's joint range) and a lower and an upper
+    speed barrier (relative degree 1, ``speed_margin`` rad/s below the datasheet speed),
+    28 in all (:mod:`afvsgp_gym.envs.joint_limits`); their ``lf``/``lg`` are ``+-(q''_0,
+    M^-1 diag(action_scale))`` of joint j in the perturbed and true models and 0 in the
+    zero and kinematic ones (joint accelerations are dynamics), and the four of a joint share
+    one learner (``barrier_layout``). Their features are ``[q, q', 0 (6)]``.
+
+    Suggested filter settings (``filter_defaults``, read by ``SafetyFilter`` under the
+    caller's options): activation distances (0.15 m obstacles, 0.3 rad ranges, always for
+    speeds), braking decelerations (5 m/s^2 obstacles, the datasheet's acceleration limits
+    for the ranges: the first class-K function is then the braking curve of
+    :func:`~afvsgp_gym.cbf.hocbf.braking_alpha`, so the approach speed never exceeds what the
+    torque limits can stop), a first gain of ``SPEED_GAIN`` = 25 1/s for the speed barriers,
+    and the warm-up exploration around the brake (``warmup_exploration="backup"``, noise 0.2).
+    The speed barriers, always in the program, bound every joint's acceleration by
+    ``a (2 V_j)``, so no barrier outside the program can cross its activation margin within
+    one control period.
+
     ## Action Space
     ``Box(-1, 1, (7,), float32)``: joint torques ``tau = u * tau_max``, tau_max = (87, 87, 87,
     87, 12, 12, 12) Nm, added to the robot's gravity compensation (``action_scale`` =
@@ -120,8 +146,15 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
     |p_ee - r|`` (m), ``reward_ctrl = -control_weight |u|^2``; terms in ``info``.
 
     ## Cost (Safety-Gymnasium convention)
-    ``info["cost"] = 1.0`` when some barrier has h < 0 or some arm collision geom (links 1-7,
-    hand, fingers) touches an obstacle (``mj_geomDistance`` < 0), even with every h >= 0.
+    ``info["cost"] = 1.0`` when some obstacle barrier has h < 0 (``info["h"] < 0``), some arm
+    collision geom (links 1-7, hand, fingers) touches an obstacle (``mj_geomDistance`` < 0,
+    ``info["collision"]``), even with every h >= 0, or a joint is beyond the robot's own
+    limits, as the real controller would abort on (``info["limit_violation"]``): at its range
+    stop (``q_j <= lo_j`` or ``>= hi_j``, the model's range) or above its datasheet speed
+    (2.175 rad/s joints 1-4, 2.61 rad/s joints 5-7); with ``check_acceleration`` also above
+    the datasheet acceleration limits (15, 7.5, 10, 12.5, 15, 20, 20 rad/s^2, measured over a
+    control period) and with ``check_torque_rate`` above 1000 Nm/s of commanded torque. The
+    limits count whether or not ``limit_barriers`` are on.
 
     ## Starting State
     The ready pose ``q = (0, -0.785, 0, -2.356, 0, 0, 0.785)`` (end-effector at the reference
@@ -133,11 +166,12 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
     warning; ``info["unstable"] = True``). Truncation by ``TimeLimit``: 4000 steps (16 s).
 
     ## Info
-    ``cost``, ``h`` (min over barriers), ``h_per_barrier``, ``collision`` (contact),
-    ``delta_b_true`` (true minus nominal h'' per barrier for the applied action at the
-    pre-step state), ``tracking_error`` (|p_ee - r|, m), ``reference_h`` (clearance of an
-    ``ee_radius`` sphere at the reference point from every obstacle: the reference is "away
-    from the obstacle" when it is >= 0.05 m), ``unstable``, ``time``, ``reward_tracking``,
+    ``cost``, ``h`` (min over the obstacle barriers, m), ``h_per_barrier`` (every barrier, in
+    its own unit), ``collision`` (contact), ``limit_violation``, ``delta_b_true`` (true minus
+    nominal highest derivative per barrier for the applied action at the pre-step state),
+    ``tracking_error`` (|p_ee - r|, m), ``reference_h`` (clearance of an ``ee_radius`` sphere
+    at the reference point from every obstacle: the reference is "away from the obstacle"
+    when it is >= 0.05 m), ``unstable``, ``time``, ``reward_tracking``,
     ``reward_ctrl``.
 
     ## Scenarios (c = reference centre, y = axis of the cyclic motion)
@@ -182,7 +216,10 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
     | tracking_weight, control_weight | 1.0, 0.01 | reward weights |
     | reset_noise | 0.01 | rad |
     | normalize_action | True | action in [-1, 1] (tau = u tau_max); False: action = tau in Nm |
-    | brake_gain | 1.0 | ``backup_action``: tau = -brake_gain tau_max q' (per rad/s), saturated |
+    | brake_frequency | 50.0 | 1/s, ``backup_action``'s stop-and-hold bandwidth |
+    | limit_barriers | True | joint range and speed barriers after the obstacle ones |
+    | range_margin, speed_margin | 0.1, 0.4 | rad, rad/s: the limit barriers' margins |
+    | check_acceleration, check_torque_rate | False, False | optional limit checks (Cost) |
     | render_mode, width, height | None, 480, 480 | "rgb_array", "depth_array", "human" (display) |
 
     Custom ``obstacles`` replace the scenario's (the reference stays): each dict gives the
@@ -192,7 +229,9 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
 
     ## Version History
     - v0: initial version; whole-arm safety spheres (``safety_spheres="arm"``) are the
-      default, contacts count as cost.
+      default, contacts count as cost; the joint range and speed limits count as cost and
+      have barriers (``limit_barriers``), and the brake stops and holds every joint
+      (``brake_frequency``).
     """
 
     # "human" needs a display (GLFW window); headless machines render offscreen (MUJOCO_GL=egl)
@@ -222,15 +261,40 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         control_weight=0.01,
         reset_noise=0.01,
         normalize_action=True,
-        brake_gain=1.0,
+        brake_frequency=50.0,
+        limit_barriers=True,
+        range_margin=0.1,
+        speed_margin=0.4,
+        check_acceleration=False,
+        check_torque_rate=False,
         render_mode=None,
         width=480,
         height=480,
     )
     AMPLITUDE, WARMUP_AMPLITUDE, PERIOD = 0.28, 0.04, 4.0
-    #: Suggested activation distance of the safety filter (m): barriers farther than this
-    #: (and not approaching faster than a_1 times it) stay out of the cone program.
-    activation_distance = 0.15
+    #: Suggested activation distance of the safety filter for the obstacle barriers (m):
+    #: barriers farther than this (and not approaching faster than alpha_1 of it) stay out of
+    #: the cone program. The joint-limit barriers' are ``RANGE_ACTIVATION`` (rad) and
+    #: ``SPEED_ACTIVATION`` (rad/s): :attr:`activation_distance` gives one per barrier.
+    OBSTACLE_ACTIVATION = 0.15
+    RANGE_ACTIVATION = 0.3
+    SPEED_ACTIVATION = float("inf")
+    #: Braking deceleration suggested for the obstacle barriers (m/s^2) and the joint range
+    #: barriers (rad/s^2, per joint: the datasheet's acceleration limits): the filter's
+    #: first class-K function is the braking curve of this deceleration
+    #: (:func:`~afvsgp_gym.cbf.hocbf.braking_alpha`), which the torque limits can always
+    #: produce (benchmarks/configs/adversarial.toml, docs: "Any policy").
+    OBSTACLE_DECELERATION = 5.0
+    RANGE_DECELERATION = FRANKA_MAX_ACCELERATION
+    #: Gain of the joint speed barriers' class-K function (1/s): ``q'' <= a (V - q')``, a
+    #: tenth of the control rate (the obstacle and range barriers keep ``alpha``'s a_1).
+    SPEED_GAIN = 25.0
+    #: Warm-up exploration suggested to the filter: around the brake (the policy does not act
+    #: until the learners are fitted, so nothing it proposes can break the limits then), with
+    #: a noise of 0.2 of the torque range (white torque noise of 0.3, the method's, drives the
+    #: light, folded joint 1 to its speed limit).
+    WARMUP_FILTER_DEFAULTS: dict[str, Any] = {"warmup_exploration": "backup",
+                                              "exploration_noise": 0.2}
     #: AFVSGP settings suggested to ``SafetyFilter`` (under the user's ``learner_kwargs``) when
     #: the sphere set has several spheres (one learner each): M = 30 inducing points and a
     #: window of P = 500 samples instead of the method's 40 and 1000 (the evidence:
@@ -263,7 +327,9 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         self.control_weight = float(cfg["control_weight"])
         self.reset_noise = float(cfg["reset_noise"])
         self.normalize_action = bool(cfg["normalize_action"])
-        self.brake_gain = check_real(cfg["brake_gain"], "brake_gain", low=0.0)
+        self.limit_barriers = bool(cfg["limit_barriers"])
+        range_margin = check_real(cfg["range_margin"], "range_margin", low=0.0)
+        speed_margin = check_real(cfg["speed_margin"], "speed_margin", low=0.0)
         physics_dt = float(cfg["physics_dt"])
         self._control_dt = physics_dt * frame_skip
         self._user_obstacles = (
@@ -319,6 +385,15 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
                 -self._gear.astype(np.float32), self._gear.astype(np.float32), dtype=np.float32
             )
         self._ctrl_per_action = self.action_scale / self._gear
+        self.brake_frequency = check_real(cfg["brake_frequency"], "brake_frequency", low=0.0,
+                                          low_open=True)
+        self._brake_model: tuple[mujoco.MjModel, mujoco.MjData] | None = None
+        self._hold: np.ndarray | None = None
+        self._backup_step = -2
+        self.joint_limits = JointLimits(
+            m.jnt_range[:7, 0], m.jnt_range[:7, 1], FRANKA_MAX_SPEED, range_margin,
+            speed_margin, FRANKA_MAX_ACCELERATION if cfg["check_acceleration"] else None,
+            FRANKA_MAX_TORQUE_RATE if cfg["check_torque_rate"] else None)
         self._setup_spheres(cfg["safety_spheres"])
         self._arm_geoms = fm.arm_collision_geoms(m)
         self._arm_rbound = m.geom_rbound[self._arm_geoms].copy()
@@ -341,6 +416,8 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
             self.nominal_mj_data = None
         self._obstacle_key = None
         self._zeros: tuple[np.ndarray, np.ndarray] | None = None
+        self._step_rates: tuple[np.ndarray | None, np.ndarray | None] = (None, None)
+        self._last_torque = np.zeros(7)
         self._build_scenario(None)
         self._steps = 0
         self._invalidate_barriers()
@@ -364,12 +441,14 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         self._sphere_radii = radii
         self._sphere_bodies = self._sphere_body_ids.tolist()
         n_s = len(spheres)
-        self.n_barriers = n_s * self.n_obstacles
+        self._n_pairs = n_s * self.n_obstacles
+        limits = self.joint_limits.names() if self.limit_barriers else ()
+        self.n_barriers = self._n_pairs + len(limits)
         self.barrier_names = tuple(
             f"{s.body.removeprefix('panda0_')}[{i}]/obstacle{o}"
             for o in range(self.n_obstacles)
             for i, s in enumerate(spheres)
-        )
+        ) + limits
         # One-sphere shortcuts (the paper's "ee"), each giving the general path's numbers:
         # the sphere at the end-effector site is the site (MuJoCo's site_xpos is xmat @ pos +
         # xpos, the sum _sphere_centres forms; with one nonzero offset entry the order of the
@@ -383,8 +462,69 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         )
         self._kinematics = self._site_kinematics if at_site else self._point_kinematics
         self._geometry_of = (
-            self._one_pair_geometry if self.n_barriers == 1 else self._pair_geometry
+            self._one_pair_geometry if self._n_pairs == 1 else self._pair_geometry
         )
+
+    @property
+    def n_obstacle_barriers(self) -> int:
+        """The (sphere, obstacle) barriers come first; the joint-limit barriers follow."""
+        return self._n_pairs
+
+    @property
+    def barrier_layout(self) -> BarrierLayout:
+        """Relative degree 2 for the obstacle barriers, one learner each; the joint-limit
+        barriers (2 for ranges, 1 for speeds) share one learner per joint, with their own
+        hyperparameter group (:mod:`afvsgp_gym.envs.joint_limits`)."""
+        k = self._n_pairs
+        if not self.limit_barriers:
+            return BarrierLayout.uniform(k, 2)
+        lim = self.joint_limits
+        return BarrierLayout(
+            np.concatenate([np.full(k, 2), lim.relative_degree]),
+            np.concatenate([np.arange(k), k + lim.joint]),
+            np.concatenate([np.ones(k), lim.sign]),
+            np.concatenate([np.zeros(k, dtype=np.int64), np.ones(lim.n_joints, dtype=np.int64)]),
+        )
+
+    @property
+    def activation_distance(self) -> float | np.ndarray:
+        """Suggested activation distance: one per barrier (m for the obstacle barriers, rad
+        and rad/s for the joint-limit ones), or ``OBSTACLE_ACTIVATION`` without limits."""
+        if not self.limit_barriers:
+            return self.OBSTACLE_ACTIVATION
+        n = self.joint_limits.n_joints
+        return np.concatenate([np.full(self._n_pairs, self.OBSTACLE_ACTIVATION),
+                               np.full(2 * n, self.RANGE_ACTIVATION),
+                               np.full(2 * n, self.SPEED_ACTIVATION)])
+
+    @property
+    def first_gain(self) -> np.ndarray:
+        """Suggested first class-K gain per barrier: ``SPEED_GAIN`` for the joint speed
+        barriers, NaN (the filter's ``alpha``) for the others."""
+        parts = [np.full(self._n_pairs, np.nan)]
+        if self.limit_barriers:
+            n = self.joint_limits.n_joints
+            parts += [np.full(2 * n, np.nan), np.full(2 * n, self.SPEED_GAIN)]
+        return np.concatenate(parts)
+
+    @property
+    def filter_defaults(self) -> dict[str, Any]:
+        """The :class:`~afvsgp_gym.cbf.FilterConfig` options this env suggests to
+        ``SafetyFilter`` (under the caller's): per-barrier activation distances, braking
+        decelerations and first gains, and the warm-up exploration."""
+        return {"activation_distance": self.activation_distance,
+                "braking_deceleration": self.braking_deceleration,
+                "first_gain": self.first_gain, **self.WARMUP_FILTER_DEFAULTS}
+
+    @property
+    def braking_deceleration(self) -> np.ndarray:
+        """Suggested braking deceleration per barrier (m/s^2 obstacles, rad/s^2 joint
+        ranges, inf for the speed barriers of relative degree 1)."""
+        parts = [np.full(self._n_pairs, self.OBSTACLE_DECELERATION)]
+        if self.limit_barriers:
+            n = self.joint_limits.n_joints
+            parts += [np.repeat(self.RANGE_DECELERATION, 2), np.full(2 * n, np.inf)]
+        return np.concatenate(parts)
 
     @property
     def learner_defaults(self) -> dict[str, dict[str, Any]]:
@@ -393,6 +533,19 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         if len(self.safety_spheres) < 2:
             return {}
         return {k: dict(v) for k, v in self.ARM_LEARNER_DEFAULTS.items()}
+
+    def _catalogue_inertia(self) -> np.ndarray:
+        """``M_cat(q)`` (7, 7) of the catalogue model at the current joint angles (the model
+        is built on first use)."""
+        if self._brake_model is None:
+            model = fm.build_model(fm.PlantParameters(armature=self.plant.armature), self._scene)
+            self._brake_model = (model, mujoco.MjData(model))
+        m, d = self._brake_model
+        d.qpos[:] = self.data.qpos
+        mujoco.mj_fwdPosition(m, d)
+        inv = np.empty((m.nv, m.nv))
+        mujoco.mj_solveM(m, d, inv, np.eye(m.nv))
+        return np.linalg.inv(inv)[:7, :7]
 
     def _plant_parameters(self, cfg: dict[str, Any]) -> fm.PlantParameters:
         scale = cfg["mass_scale"]
@@ -507,7 +660,20 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         mujoco.mj_forward(self.model, d)
         self._spheres, self._ee = self._kinematics()
         self._geometry = self._geometry_of()
+        if self.limit_barriers:
+            self._geometry = self._with_limit_geometry(self._geometry)
         self._invalidate_barriers()
+
+    def _with_limit_geometry(self, geometry: tuple[np.ndarray, ...]) -> tuple[np.ndarray, ...]:
+        """The obstacle pairs' ``(derivs, n, curv, xi, a_obs)`` with the joint-limit
+        barriers' derivatives and features appended (``n``, ``curv``, ``a_obs`` stay the
+        pairs')."""
+        derivs, n, curv, xi, a_obs = geometry
+        lim, q, qd = self.joint_limits, self.data.qpos, self.data.qvel
+        derivs = np.concatenate([derivs, lim.derivatives(q, qd)])
+        xi = np.concatenate([xi, lim.features(q, qd, self.feature_dim)])
+        derivs.flags.writeable = xi.flags.writeable = False
+        return derivs, n, curv, xi, a_obs
 
     def _place_markers(self) -> None:
         t = self.time
@@ -632,14 +798,18 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
 
     def _joint_torque_barriers(self, kind: str) -> BarrierSet:
         derivs, n, curv, xi, a_obs = self._geometry
-        k = len(curv)
+        k = len(curv)  # obstacle pairs; the joint-limit barriers follow
         if kind == "zero":
-            return BarrierSet(derivs, *self._zero_terms(k), xi)
+            return BarrierSet(derivs, *self._zero_terms(len(derivs)), xi)
         _, _, jac, bias = self._spheres
         n_s = jac.shape[0]
         ns = n.reshape(-1, n_s, 3)  # (obstacles, spheres, 3)
-        if kind == "kinematic":
+        limits = None
+        if kind == "kinematic":  # joint accelerations are dynamics: nothing known
             acc, lg = bias, np.zeros((k, 7))
+            if self.limit_barriers:
+                limits = (np.zeros(self.joint_limits.n_barriers),
+                          np.zeros((self.joint_limits.n_barriers, 7)))
         else:
             m, d = self.model, self.data
             if kind == "perturbed" and self.nominal_mj_data is not None:
@@ -649,8 +819,16 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
                 d.ctrl[:] = 0.0
                 mujoco.mj_forward(m, d)
             flat = jac.reshape(3 * n_s, -1)
-            jminv = np.empty_like(flat)
-            mujoco.mj_solveM(m, d, jminv, flat)  # rows J M^-1 (M symmetric)
+            if self.limit_barriers:  # one solve for the sphere rows and M^-1 itself
+                rhs = np.concatenate([flat, np.eye(m.nv)])
+                sol = np.empty_like(rhs)
+                mujoco.mj_solveM(m, d, sol, rhs)  # rows J M^-1 and M^-1 (M symmetric)
+                jminv = sol[: 3 * n_s]
+                limits = self.joint_limits.terms(d.qacc[:7], sol[3 * n_s :, :7]
+                                                 * self.action_scale)
+            else:
+                jminv = np.empty_like(flat)
+                mujoco.mj_solveM(m, d, jminv, flat)  # rows J M^-1 (M symmetric)
             acc = jac @ d.qacc + bias
             gain = jminv.reshape(n_s, 3, -1) * self.action_scale
             lg = np.einsum("osi,sij->osj", ns, gain).reshape(k, -1)
@@ -665,6 +843,9 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
             if a_obs is not None:  # static obstacles: a_o = 0
                 lf -= np.einsum("ki,ki->k", n, a_obs)
             lf += curv
+        if limits is not None:
+            lf = np.concatenate([lf, limits[0]])
+            lg = np.concatenate([lg, limits[1]])
         lf.flags.writeable = lg.flags.writeable = False
         return BarrierSet(derivs, lf, lg, xi)
 
@@ -680,14 +861,31 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         return 2.0 * (np.abs(lg) @ (f / self.action_scale))
 
     def backup_action(self) -> np.ndarray:
-        """Model-free brake for the safety filter's backup: joint damping torque
-        ``tau = -brake_gain tau_max q'`` saturated at the torque limits, as an action.
+        """The robot's own brake for the safety filter's backup: stop every joint and hold it
+        where the brake engaged, ``tau = M_cat(q) (-2 w q' - w^2 (q - q_hold))`` saturated at
+        the torque limits, as an action (``w`` = ``brake_frequency``, critically damped),
+        with ``q_hold`` the joint angles when the backup was first asked for in a run of
+        consecutive control periods.
 
-        It opposes every joint velocity, so it removes kinetic energy whatever the plant's
-        inertia, payload or friction (no model needed). It does not hold position: the arm
-        sinks under its uncompensated weight at ~0.1 rad/s.
+        ``M_cat`` is the catalogue inertia (the links unscaled, no payload, the plant's rotor
+        inertia): the robot's own model, as its gravity compensation uses the catalogue
+        masses, not the filter's (which may know nothing). Scaled by the inertia, the brake
+        decelerates light and heavy configurations alike: a damping without it either
+        chatters on the light, folded joints (a gain of tau_max per rad/s flips joint 1's
+        speed every control period) or stops the heavy, stretched ones slowly. With the true
+        inertia within a factor of ~2 of the catalogue's, ``w dt`` = 0.2 keeps the sampled
+        loop well damped; the spring holds the arm against its uncompensated weight (a sag of
+        ``residual torque / (M w^2)``, a few mrad). Far from rest it saturates: the torque
+        limits brake.
         """
-        u = -self.brake_gain * np.asarray(self.data.qvel[:7], dtype=np.float64)
+        d = self.data
+        if self._backup_step != self._steps - 1 or self._hold is None:
+            self._hold = d.qpos[:7].copy()
+        self._backup_step = self._steps
+        w = self.brake_frequency
+        acc = -(2.0 * w * d.qvel[:7] + w * w * (d.qpos[:7] - self._hold))
+        tau = self._catalogue_inertia() @ acc
+        u = tau / self._gear
         np.clip(u, -1.0, 1.0, out=u)
         return u * (1.0 if self.normalize_action else self._gear)
 
@@ -729,17 +927,35 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         self.data.qpos[:] = self.q_home + noise
         self.data.qvel[:] = 0.0
         self.data.warning.number[:] = 0
+        self._step_rates = (None, None)
+        self._last_torque = np.zeros(7)
+        self._hold, self._backup_step = None, -2
         self._after_state_change()
         return self._get_obs()
 
     def _get_reset_info(self) -> dict[str, Any]:
         return self._reset_info()
 
+    def _limit_violation(self) -> bool:
+        """A joint at its range stop or above its speed (or, with ``check_acceleration`` /
+        ``check_torque_rate``, above those limits over the last step)."""
+        d = self.data
+        return self.joint_limits.violation(d.qpos[:7], d.qvel[:7], *self._step_rates)
+
     def _advance(self, u: np.ndarray) -> bool:
         m, d = self.model, self.data
         warn_before = int(d.warning.number[_BAD_WARNINGS].sum())
+        lim = self.joint_limits
+        if lim.max_acceleration is not None or lim.max_torque_rate is not None:
+            torque = u * self.action_scale  # Nm on top of the gravity compensation
+            qd_before = d.qvel[:7].copy()
         d.ctrl[:] = u * self._ctrl_per_action
         mujoco.mj_step(m, d, nstep=self.frame_skip)
+        if lim.max_acceleration is not None or lim.max_torque_rate is not None:
+            dt = self._control_dt
+            self._step_rates = ((d.qvel[:7] - qd_before) / dt,
+                                (torque - self._last_torque) / dt)
+            self._last_torque = torque
         self._steps += 1
         warn_after = int(d.warning.number[_BAD_WARNINGS].sum())
         unstable = warn_after > warn_before or not math.isfinite(float(d.qpos.sum() + d.qvel.sum()))

@@ -7,6 +7,7 @@ import pytest
 
 import afvsgp_gym  # noqa: F401
 from afvsgp_gym.agents import NominalController
+from afvsgp_gym.cbf.learners import MappedBank
 from afvsgp_gym.envs import franka_model as fm
 from afvsgp_gym.envs.franka import FrankaObstacleEnv
 
@@ -35,7 +36,9 @@ def _probe(env, q, qd, k, u):
 
 
 def test_true_terms_match_finite_differences(fd_env):
-    """Every (sphere, obstacle) pair: h' from h, lf from h' at u = 0, lg per action unit."""
+    """Every barrier, obstacle pairs and joint limits: h' from h (relative degree 2), and lf at
+    u = 0 and lg per action unit from the highest measured derivative (h' for degree 2, h for
+    the joint speed barriers of degree 1); each group against its own scale (m and rad)."""
     env = fd_env
     rng = np.random.default_rng(1)
     q = fm.Q_HOME + rng.uniform(-0.2, 0.2, 7)
@@ -49,18 +52,26 @@ def test_true_terms_match_finite_differences(fd_env):
     d_now = t0.derivatives.copy()
     lf, lg = t0.lf.copy(), t0.lg.copy()
     dt = env.dt
+    deg = env.barrier_layout.relative_degree
+    assert env.n_barriers == env.n_obstacle_barriers + 28 and np.count_nonzero(deg == 1) == 14
+    rows, top = np.arange(env.n_barriers), deg - 1  # the highest measured derivative
     d0 = _probe(env, q, qd, k, np.zeros(7))
+    lf_fd = (d0[rows, top] - d_now[rows, top]) / dt
+    lg_fd = np.stack([(_probe(env, q, qd, k, np.eye(7)[i])[rows, top] - d0[rows, top]) / dt
+                      for i in range(7)], axis=1)
+    two = np.flatnonzero(deg == 2)
     # MuJoCo's semi-implicit Euler moves q with the new velocity, so the difference of h over
     # dt = 1e-4 s is h' at the new velocity up to O(dt^2); lf and lg by forward differences
-    # (O(dt) errors), tolerances relative to each quantity's scale over all barriers
-    np.testing.assert_allclose((d0[:, 0] - d_now[:, 0]) / dt, d0[:, 1],
-                               rtol=1e-3, atol=1e-4 * np.abs(d_now[:, 1]).max())
-    lf_fd = (d0[:, 1] - d_now[:, 1]) / dt
-    np.testing.assert_allclose(lf_fd, lf, rtol=2e-2, atol=2e-2 * np.abs(lf).max())
-    lg_fd = np.stack([(_probe(env, q, qd, k, np.eye(7)[i])[:, 1] - d0[:, 1]) / dt
-                      for i in range(7)], axis=1)
-    np.testing.assert_allclose(lg_fd, lg, rtol=2e-2, atol=2e-2 * np.abs(lg).max())
-    assert np.abs(lg).max() > 1.0  # the action matters: the check is not vacuous
+    # (O(dt) errors), tolerances relative to each quantity's scale within each group
+    np.testing.assert_allclose((d0[two, 0] - d_now[two, 0]) / dt, d0[two, 1],
+                               rtol=1e-3, atol=1e-4 * np.abs(d_now[two, 1]).max())
+    for group in (np.arange(env.n_obstacle_barriers), np.arange(env.n_obstacle_barriers,
+                                                                  env.n_barriers)):
+        np.testing.assert_allclose(lf_fd[group], lf[group], rtol=2e-2,
+                                   atol=2e-2 * np.abs(lf[group]).max())
+        np.testing.assert_allclose(lg_fd[group], lg[group], rtol=2e-2,
+                                   atol=2e-2 * np.abs(lg[group]).max())
+        assert np.abs(lg[group]).max() > 1.0  # the action matters: the check is not vacuous
 
 
 def test_friction_bound_contains_the_true_terms_error():
@@ -83,15 +94,19 @@ def test_friction_bound_contains_the_true_terms_error():
         np.testing.assert_array_equal(robust.lf, lf - bound)
         np.testing.assert_array_equal(robust.lg, lg)
         assert np.all(bound > 0.0)
-        tol = 2e-2 * np.abs(lf).max()  # the forward difference's O(dt) error, as above
+        # the forward difference's O(dt) error, as above, per group (m and rad)
+        n_obs = env.n_obstacle_barriers
+        tol = np.where(np.arange(env.n_barriers) < n_obs, 2e-2 * np.abs(lf[:n_obs]).max(),
+                       2e-2 * np.abs(lf[n_obs:]).max())
+        rows, top = np.arange(env.n_barriers), env.barrier_layout.relative_degree - 1
         for scale in (0.01, 0.05, 0.3):
             u = rng.uniform(-1.0, 1.0, 7) * scale
-            h2 = (_probe(env, q, qd, 0, u)[:, 1] - d_now[:, 1]) / env.dt
+            h2 = (_probe(env, q, qd, 0, u)[rows, top] - d_now[rows, top]) / env.dt
             err = h2 - (lf + lg @ u)
             assert np.all(np.abs(err) <= bound + tol)
             assert np.all(robust.lf + robust.lg @ u <= h2 + tol)
-            worst = max(worst, float(np.abs(err).max()))
-    assert worst > 5 * tol  # friction does move h'' off the true terms: not vacuous
+            worst = max(worst, float((np.abs(err) / tol).max()))
+    assert worst > 5  # friction does move h'' off the true terms: not vacuous
 
 
 def test_without_friction_robust_terms_are_the_true_terms(fd_env):
@@ -110,7 +125,8 @@ def test_sphere_centres_velocities_and_features(fd_env):
     t = env.barrier_terms("true")
     m, d = env.model, env.data
     po, vo, _ = env._obstacle_states[0]
-    assert env.n_barriers == len(env.safety_spheres) * env.n_obstacles == len(t)
+    assert env.n_obstacle_barriers == len(env.safety_spheres) * env.n_obstacles
+    assert env.n_barriers == env.n_obstacle_barriers + 28 == len(t)
     for k, s in enumerate(env.safety_spheres):
         b = m.body(s.body).id
         p = d.xpos[b] + d.xmat[b].reshape(3, 3) @ np.array(s.offset)
@@ -125,6 +141,11 @@ def test_sphere_centres_velocities_and_features(fd_env):
         np.testing.assert_allclose(t.derivatives[k, 1], (p - po) @ (v - vo) / dist, rtol=1e-10,
                                    atol=1e-13)
     assert env.feature_dim == t.xi.shape[1] == 20
+    lim = env.joint_limits  # the joint-limit barriers: [q, q', 0] and h in rad, rad/s
+    np.testing.assert_array_equal(t.xi[env.n_obstacle_barriers:],
+                                  np.tile(np.r_[d.qpos, d.qvel, np.zeros(6)], (28, 1)))
+    np.testing.assert_allclose(t.derivatives[env.n_obstacle_barriers::2][:7, 0],
+                               d.qpos - lim.lower - lim.range_margin, rtol=1e-15)
 
 
 def test_ee_sphere_is_the_end_effector_site():
@@ -135,7 +156,8 @@ def test_ee_sphere_is_the_end_effector_site():
     po = env._obstacle_states[0][0]
     np.testing.assert_allclose(t.h[0], np.linalg.norm(p - po) - 0.07 - env.obstacles[0].radius,
                                rtol=1e-12)
-    assert env.n_barriers == 1 and env.barrier_names == ("link7[0]/obstacle0",)
+    assert env.n_obstacle_barriers == 1 and env.barrier_names[0] == "link7[0]/obstacle0"
+    assert env.barrier_names[1:3] == ("joint1/range_min", "joint1/range_max")
 
 
 def test_safety_spheres_cover_every_collision_mesh_vertex():
@@ -192,23 +214,31 @@ def test_filter_suggestions_by_sphere_set():
     from afvsgp_gym.wrappers import SafetyFilter
 
     ee = FrankaObstacleEnv("static", safety_spheres="ee")
-    assert ee.activation_distance == 0.15 and ee.learner_defaults == {}
+    assert ee.activation_distance[0] == 0.15 and ee.learner_defaults == {}
+    assert FrankaObstacleEnv("static", limit_barriers=False).activation_distance == 0.15
     two = [{"body": "panda0_link7", "offset": (0, 0, 0.1), "radius": 0.05},
            {"body": "panda0_link5", "offset": (0, 0, 0), "radius": 0.06}]
     for spheres in ("arm", two):
         env = FrankaObstacleEnv("static", safety_spheres=spheres)
-        assert env.activation_distance == 0.15
+        k = env.n_obstacle_barriers
+        np.testing.assert_array_equal(env.activation_distance,
+                                      np.r_[np.full(k, 0.15), np.full(14, 0.3),
+                                            np.full(14, np.inf)])
         assert env.learner_defaults == {"afvsgp": {"num_inducing": 30, "window": 500}}
     env.learner_defaults["afvsgp"]["window"] = 1  # an instance's copy, not the class's
     assert FrankaObstacleEnv.ARM_LEARNER_DEFAULTS["afvsgp"]["window"] == 500
     reach = gym.make("afvsgp_gym/FrankaObstacleReach-v0").unwrapped  # not measured there
     assert reach.learner_defaults == {}
+    def settings(f):  # the learner bank (behind the map of the joint-limit barriers)
+        bank = f.controller.bank
+        bank = bank.bank if isinstance(bank, MappedBank) else bank
+        return {k: bank._kwargs[k] for k in ("num_inducing", "window")}
+
     f = SafetyFilter(gym.make(IDS["static"]), learner="afvsgp")
-    assert {k: f.controller.bank._kwargs[k] for k in ("num_inducing", "window")} == {
-        "num_inducing": 30, "window": 500}
-    ee_filter = SafetyFilter(gym.make(IDS["static"], safety_spheres="ee"), learner="afvsgp")
-    assert {k: ee_filter.controller.bank._kwargs[k] for k in ("num_inducing", "window")} == {
-        "num_inducing": 40, "window": 1000}
+    assert settings(f) == {"num_inducing": 30, "window": 500}
+    ee_filter = SafetyFilter(gym.make(IDS["static"], safety_spheres="ee",
+                                      limit_barriers=False), learner="afvsgp")
+    assert settings(ee_filter) == {"num_inducing": 40, "window": 1000}
 
 
 def test_user_spheres_and_contact_cost():
@@ -218,7 +248,7 @@ def test_user_spheres_and_contact_cost():
         obstacles=[{"position": [0.307, 0.0, 0.487 + 0.2], "radius": 0.08}],
     )
     _, info = env.reset(seed=0)
-    assert env.n_barriers == 1 and info["h"] > 0  # the tiny sphere is clear ...
+    assert env.n_obstacle_barriers == 1 and info["h"] > 0  # the tiny sphere is clear ...
     assert info["collision"] and info["cost"] == 1.0  # ... but the hand touches the obstacle
 
 
@@ -233,7 +263,7 @@ def test_delta_b_true_is_true_minus_nominal(nominal_model):
     np.testing.assert_allclose(tn.derivatives, tt.derivatives)
     _, _, _, _, info = env.step(u)
     expected = (tt.lf + tt.lg @ u) - (tn.lf + tn.lg @ u)
-    assert info["delta_b_true"].shape == (env.n_barriers,) == (21,)
+    assert info["delta_b_true"].shape == (env.n_barriers,) == (21 + 28,)
     np.testing.assert_allclose(info["delta_b_true"], expected, rtol=1e-10,
                                atol=1e-12 * np.abs(expected).max())
     if nominal_model == "exact":
@@ -242,8 +272,8 @@ def test_delta_b_true_is_true_minus_nominal(nominal_model):
         assert np.abs(info["delta_b_true"]).min() > 1e-4  # a real mismatch to learn
     if nominal_model == "zero":
         assert not np.any(tn.lf) and not np.any(tn.lg)
-    if nominal_model == "kinematic":
-        assert not np.any(tn.lg) and np.all(tn.lf != 0.0)
+    if nominal_model == "kinematic":  # kinematics known; joint accelerations are dynamics
+        assert not np.any(tn.lg) and np.all(tn.lf[:21] != 0.0) and not np.any(tn.lf[21:])
 
 
 def test_gravity_compensation_and_torque_scaling():
@@ -349,11 +379,13 @@ def test_info_reward_and_spaces():
     for key in keys:
         assert key in info
     base = env.unwrapped
-    assert base.relative_degree == 2 and base.n_obstacles == 1 and base.n_barriers == 21
+    assert base.relative_degree == 2 and base.n_obstacles == 1
+    assert base.n_obstacle_barriers == 21 and base.n_barriers == 21 + 28
+    assert "limit_violation" in info and not info["limit_violation"]
     assert base.metadata["render_fps"] == round(1 / base.dt) == 250
     terms = base.barrier_terms()
-    assert len(terms) == 21 and terms[0].lg.shape == (7,) and terms[0].derivatives.shape == (2,)
-    assert info["h"] == info["h_per_barrier"].min() and info["h_per_barrier"].shape == (21,)
+    assert len(terms) == 49 and terms[0].lg.shape == (7,) and terms[0].derivatives.shape == (2,)
+    assert info["h"] == info["h_per_barrier"][:21].min() and info["h_per_barrier"].shape == (49,)
 
 
 def test_bad_input_never_reaches_mujoco():
@@ -411,12 +443,12 @@ def test_multiple_obstacles_collision_and_render():
     )
     obs, info = env.reset(seed=0)
     base = env.unwrapped
-    assert obs.shape == (29 + 12,) and base.n_obstacles == 2 and base.n_barriers == 42
-    hs = info["h_per_barrier"].reshape(2, 21)  # obstacle-major
+    assert obs.shape == (29 + 12,) and base.n_obstacles == 2 and base.n_obstacle_barriers == 42
+    hs = info["h_per_barrier"][:42].reshape(2, 21)  # obstacle-major, then the joint limits
     assert info["collision"] and info["cost"] == 1.0 and hs[0].min() < 0 < hs[1].min()
     assert base.barrier_names[21].endswith("/obstacle1")
     _, _, _, _, info = env.step(np.zeros(7))
-    assert info["delta_b_true"].shape == (42,) and len(base.barrier_terms()) == 42
+    assert info["delta_b_true"].shape == (70,) and len(base.barrier_terms()) == 70
     img = env.render()
     assert img.shape == (96, 96, 3) and img.std() > 0
     env.close()
@@ -463,22 +495,36 @@ def test_perturbed_model_equals_plant_without_mismatch():
 
 
 @pytest.mark.parametrize("normalize", [True, False])
-def test_backup_action_is_a_saturated_joint_brake(normalize):
+def test_backup_action_is_a_saturated_joint_brake_that_holds(normalize):
+    """The brake: ``M_cat(q) (-2 w q' - w^2 (q - q_hold))`` saturated, with the catalogue
+    inertia (computed independently here with ``mj_fullM``'s product ``mj_mulM``) and
+    ``q_hold`` latched when the backup is first asked for; on the real plant (payload 1 kg,
+    scaled links) it stops every joint without chatter and holds the arm where it engaged."""
     env = FrankaObstacleEnv(normalize_action=normalize)
     env.reset(seed=0)
-    qd = np.array([0.2, -0.8, 0.05, 1.0, -0.1, 0.3, -0.02])
+    qd = np.array([0.02, -0.08, 0.005, 0.1, -0.01, 0.03, -0.002])  # slow: not saturated
     env.set_state(fm.Q_HOME, qd)
     u = env.backup_action()
-    scale = 1.0 if normalize else fm.TAU_MAX
-    np.testing.assert_allclose(u, np.clip(-1.0 * qd, -1, 1) * scale)
+    cat = fm.build_model(fm.PlantParameters(armature=np.full(7, 0.1)), fm.SceneOptions())
+    data = mujoco.MjData(cat)
+    data.qpos[:] = fm.Q_HOME
+    mujoco.mj_forward(cat, data)
+    tau = np.zeros(cat.nv)
+    mujoco.mj_mulM(cat, data, tau, -2.0 * 50.0 * qd)
+    assert np.all(np.abs(tau) < fm.TAU_MAX)
+    scale = fm.TAU_MAX if normalize else 1.0
+    np.testing.assert_allclose(u * scale, tau, rtol=1e-9, atol=1e-9 * np.abs(tau).max())
     assert env.action_space.contains(u.astype(np.float32))
-    # on the real plant (payload, scaled links) braking removes most of the joint speed and
-    # keeps it down (no chatter at the control period; the arm sinks slowly under its weight)
+    env.set_state(fm.Q_HOME, 10 * qd)
+    q0 = env.data.qpos.copy()
     speeds = []
     for _ in range(250):  # 1 s
         env.step(env.backup_action().astype(np.float32))
-        speeds.append(np.linalg.norm(env.data.qvel))
-    assert max(speeds[100:]) < 0.2 * np.linalg.norm(qd)
+        speeds.append(np.abs(env.data.qvel).max())
+    assert max(speeds[50:]) < 0.05 * np.abs(10 * qd).max()  # stopped within 0.2 s
+    assert max(speeds[:10]) <= np.abs(10 * qd).max()  # no overshoot growth (chatter)
+    np.testing.assert_allclose(env.data.qpos, env._hold, atol=0.01)  # held, sag ~ mrad
+    assert np.abs(env._hold - q0).max() < 0.1  # where the brake engaged
 
 
 @pytest.mark.parametrize("spheres", ["ee", "arm"])
@@ -523,7 +569,7 @@ def test_one_sphere_shortcuts_equal_general_path(spheres, scenario):
     three products in ``dot3``'s order (the x86-64 wheels); elsewhere to 1e-12 (rounding is
     ~1e-16 of these O(1-100) numbers, a wrong term O(1))."""
     env = FrankaObstacleEnv(scenario, safety_spheres=spheres, nominal_model="perturbed",
-                            warmup_steps=0)
+                            warmup_steps=0, limit_barriers=False)  # the pairs' terms only
     assert env._geometry_of == env._one_pair_geometry
     assert (env._kinematics == env._site_kinematics) == (spheres == "ee")
     if _einsum_sums_like_dot3():
