@@ -363,8 +363,8 @@ def _cmd_train(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int
         last = eps[-max(1, len(eps) // 10):]
         cost = sum(r["cost_steps"] for r in eps)
         after = sum(r["cost_steps_after_warmup"] for r in eps)
-        print(f"episodes: {len(eps)}; cost steps (h < 0 or contact): {cost} in total, {after} "
-              f"after the filter's warm-up; last {len(last)} episodes: success "
+        print(f"episodes: {len(eps)}; cost steps (h < 0, contact or limits): {cost} in total, "
+              f"{after} after the filter's warm-up; last {len(last)} episodes: success "
               f"{sum(r['success'] for r in last) / len(last):.0%}, return "
               f"{sum(r['return'] for r in last) / len(last):.2f}")
     else:
@@ -405,7 +405,9 @@ def build_parser() -> argparse.ArgumentParser:
                                     "and print a per-episode safety report and a summary.")
     ev.add_argument("--env", default=DEFAULT_ENV, help=f"env id (default {DEFAULT_ENV})")
     ev.add_argument("--agent", default="nominal",
-                    help="nominal | random | PATH.zip (Stable-Baselines3; default nominal)")
+                    help="nominal | random | ram | swing1..swing7 | greedy | untrained-ppo "
+                         "(policies built to break the filter) | PATH.zip (Stable-Baselines3; "
+                         "default nominal)")
     ev.add_argument("--learner", default="afvsgp", help="filter learner (default afvsgp)")
     ev.add_argument("--compare", default=None, metavar="A,B,...",
                     help="several learners side by side on the same seeds (overrides --learner)")

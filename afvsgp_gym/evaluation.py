@@ -7,9 +7,10 @@ process it runs in (the env is reset with the seed and the filter's exploration 
 with it). ``evaluate`` and ``afvsgp-gym sweep`` both run episodes this way, through the
 executors of :mod:`afvsgp_gym.executors` (in-process, a local process pool, or Ray).
 
-Per episode (see :data:`EPISODE_FIELDS`): ``cost_steps`` (``info["cost"] > 0``: some barrier
-``h < 0`` or an arm contact), ``violation_steps`` (``info["h"] < 0``), ``contact_steps``
-(``info["collision"]``), ``min_h``, ``interventions`` (``info["filter_active"]``),
+Per episode (see :data:`EPISODE_FIELDS`): ``cost_steps`` (``info["cost"] > 0``, see
+:data:`COST_DEFINITION`), and by kind ``violation_steps`` (``info["h"] < 0``), ``contact_steps``
+(``info["collision"]``), ``limit_steps`` (``info["limit_violation"]``), ``min_h``,
+``interventions`` (``info["filter_active"]``),
 ``infeasible_steps`` (``not info["filter_feasible"]``: the filter applied its backup),
 ``tracking_error_mean``/``_max`` over the steps after the env's warm-up whose reference keeps
 ``info["reference_h"] >= REFERENCE_CLEARANCE`` from every obstacle (NaN when no step does or
@@ -37,6 +38,7 @@ import numpy as np
 
 __all__ = [
     "BUILTIN_AGENTS",
+    "COST_DEFINITION",
     "EPISODE_FIELDS",
     "REFERENCE_CLEARANCE",
     "SUMMARY_FIELDS",
@@ -61,6 +63,7 @@ COUNT_FIELDS = (
     "cost_steps",
     "violation_steps",
     "contact_steps",
+    "limit_steps",
     "min_h",
     "interventions",
     "infeasible_steps",
@@ -83,9 +86,11 @@ SUMMARY_FIELDS = (
     "cost_rate_upper",
     "episodes_with_violation",
     "episodes_with_contact",
+    "episodes_with_limit_violation",
     "cost_steps",
     "violation_steps",
     "contact_steps",
+    "limit_steps",
     "min_h",
     "interventions",
     "infeasible_steps",
@@ -100,11 +105,21 @@ SUMMARY_FIELDS = (
     "filter_time_p99_s",
 )
 
+#: The one definition of the safety cost, printed with every table.
+COST_DEFINITION = (
+    "cost: steps with info['cost'] > 0, i.e. some obstacle barrier has h < 0 (h<0), the robot "
+    "touches an obstacle (contact), or a joint is at its range stop or above its speed limit "
+    "(limits; with the env's optional checks also above its acceleration or torque-rate limit)"
+)
+
 #: m/s^2; a proposal is "safe with margin" when its true HOCBF constraint value exceeds this
 #: for every barrier (``info["proposal_true_margin"]``, the minimal-intervention count).
 SAFE_MARGIN = 2.0
 
-BUILTIN_AGENTS = ("nominal", "random")
+#: Agents by name: the obstacle-blind tracker, uniform random actions and the adversarial
+#: policies of :mod:`afvsgp_gym.agents.adversarial` (Franka torque envs).
+BUILTIN_AGENTS = ("nominal", "random", "ram", *(f"swing{j}" for j in range(1, 8)), "greedy",
+                  "untrained-ppo")
 
 #: m; tracking error counts where the reference's ee sphere keeps this clearance (reference_h).
 REFERENCE_CLEARANCE = 0.05
@@ -176,8 +191,10 @@ def make_policy(agent: str, env: Any, seed: int | None = None) -> Policy:
     """Build an ``obs -> action`` callable for ``agent``.
 
     ``"nominal"``: :class:`afvsgp_gym.agents.NominalController` (ignores obstacles, the filter's
-    u_nom); ``"random"``: uniform samples of the action space seeded by ``seed``; a path ending in
-    ``.zip``: a Stable-Baselines3 model (deterministic actions, see :mod:`afvsgp_gym.agents.sb3`).
+    u_nom); ``"random"``: uniform samples of the action space seeded by ``seed``; ``"ram"``,
+    ``"swing1"`` .. ``"swing7"``, ``"greedy"``, ``"untrained-ppo"``: the adversarial policies of
+    :mod:`afvsgp_gym.agents.adversarial`; a path ending in ``.zip``: a Stable-Baselines3 model
+    (deterministic actions, see :mod:`afvsgp_gym.agents.sb3`).
     """
     if agent == "nominal":
         from afvsgp_gym.agents import NominalController
@@ -187,6 +204,10 @@ def make_policy(agent: str, env: Any, seed: int | None = None) -> Policy:
         space = env.action_space
         space.seed(seed)
         return lambda obs: space.sample()
+    from afvsgp_gym.agents.adversarial import ADVERSARIAL_AGENTS
+
+    if agent in ADVERSARIAL_AGENTS:
+        return ADVERSARIAL_AGENTS[agent](env, seed=seed)
     if str(agent).endswith(".zip"):
         from afvsgp_gym.agents.sb3 import load_policy
 
@@ -261,7 +282,7 @@ def run_episode(
     dt = float(getattr(base, "dt", 1.0))
     warmup_steps = int(getattr(base, "warmup_steps", 0) or 0)
     ret = 0.0
-    steps = cost = violations = contacts = interventions = infeasible = 0
+    steps = cost = violations = contacts = limits = interventions = infeasible = 0
     safe = kept = 0
     unstable = False
     min_h = math.inf
@@ -279,6 +300,7 @@ def run_episode(
         violations += int(h < 0.0)
         min_h = min(min_h, h)
         contacts += int(bool(info.get("collision", False)))
+        limits += int(bool(info.get("limit_violation", False)))
         interventions += int(bool(info.get("filter_active", False)))
         infeasible += int(not bool(info.get("filter_feasible", True)))
         unstable |= bool(info.get("unstable", False))
@@ -306,6 +328,7 @@ def run_episode(
         "cost_steps": cost,
         "violation_steps": violations,
         "contact_steps": contacts,
+        "limit_steps": limits,
         "min_h": min_h,
         "interventions": interventions,
         "infeasible_steps": infeasible,
@@ -403,9 +426,12 @@ def summarize(records: Iterable[Mapping[str, Any]], confidence: float = 0.95) ->
         "cost_rate_upper": clopper_pearson_upper(int(with_cost), n, confidence),
         "episodes_with_violation": int(sum(int(r["violation_steps"]) > 0 for r in records)),
         "episodes_with_contact": int(sum(int(r["contact_steps"]) > 0 for r in records)),
+        "episodes_with_limit_violation": int(sum(int(r.get("limit_steps") or 0) > 0
+                                                 for r in records)),
         "cost_steps": int(sum(int(r["cost_steps"]) for r in records)),
         "violation_steps": int(sum(int(r["violation_steps"]) for r in records)),
         "contact_steps": int(sum(int(r["contact_steps"]) for r in records)),
+        "limit_steps": int(sum(int(r.get("limit_steps") or 0) for r in records)),
         "min_h": float(min(_num(r["min_h"]) for r in records)),
         "interventions": int(sum(int(r["interventions"]) for r in records)),
         "infeasible_steps": int(sum(int(r["infeasible_steps"]) for r in records)),
@@ -518,14 +544,15 @@ def _nan_for_none(v: Any) -> Any:
 #: (key, header) of the printed tables; JSON and CSV hold every field.
 _EPISODE_TABLE = (("learner", "learner"), ("episode", "ep"), ("seed", "seed"),
                   ("steps", "steps"), ("return", "return"), ("cost_steps", "cost"),
-                  ("violation_steps", "h<0"), ("contact_steps", "contact"), ("min_h", "min_h"),
+                  ("violation_steps", "h<0"), ("contact_steps", "contact"),
+                  ("limit_steps", "limits"), ("min_h", "min_h"),
                   ("interventions", "interv"), ("infeasible_steps", "backup"),
                   ("tracking_error_mean", "track"), ("tracking_error_max", "track_max"),
                   ("filter_time_median_s", "t_med_us"), ("filter_time_p99_s", "t_p99_us"))
 _SUMMARY_TABLE = (("learner", "learner"), ("episodes", "episodes"),
                   ("episodes_with_cost", "w/ cost"), ("cost_rate_upper", "cost<=95%"),
                   ("episodes_with_violation", "w/ h<0"), ("episodes_with_contact", "w/ contact"),
-                  ("contact_steps", "contacts"), ("min_h", "min_h"),
+                  ("episodes_with_limit_violation", "w/ limits"), ("min_h", "min_h"),
                   ("interventions", "interv"), ("infeasible_steps", "backup"),
                   ("tracking_error_mean", "track"), ("tracking_error_max", "track_max"),
                   ("minimal_intervention", "kept"), ("return_mean", "return"),
@@ -541,7 +568,7 @@ def format_table(result: dict) -> str:
 
     sum_rows = [{"learner": k, **v} for k, v in result["summary"].items()]
     return ("Episodes\n" + table(result["episodes"], *cols(_EPISODE_TABLE), micro=True)
-            + "\n\nSummary (cost: steps with info['cost'] > 0, h < 0 or a contact; w/ cost: "
+            + f"\n\nSummary ({COST_DEFINITION}; w/ cost: "
               "episodes with cost; cost<=95%: exact Clopper-Pearson 95 % upper bound on the "
               "per-episode cost rate; track: mean tracking error (m) away from the obstacle; "
               "backup: infeasible steps; kept: share of the proposals safe with margin that "

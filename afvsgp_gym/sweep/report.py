@@ -19,7 +19,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from afvsgp_gym.evaluation import jsonable, summarize
+from afvsgp_gym.evaluation import COST_DEFINITION, jsonable, summarize
 
 __all__ = ["REPORT_COLUMNS", "config_fields", "dedupe", "format_report", "group", "report",
            "write_report_json"]
@@ -31,6 +31,7 @@ REPORT_COLUMNS = (
     ("cost_rate_upper", "cost<=95%"),
     ("episodes_with_violation", "w/ h<0"),
     ("episodes_with_contact", "w/ contact"),
+    ("episodes_with_limit_violation", "w/ limits"),
     ("contact_steps", "contacts"),
     ("min_h", "min_h"),
     ("tracking_error_mean", "track"),
@@ -145,8 +146,8 @@ def format_report(rep: Mapping[str, Any], markdown: bool = False) -> str:
     heads = [*(f.split(".", 1)[-1] for f in fields), *(h for _, h in REPORT_COLUMNS)]
     conf = rep["confidence"]
     heads = [h.replace("95%", f"{100 * conf:g}%") for h in heads]
-    lines = [f"{rep['episodes']} episodes in {len(rows)} groups; w/ cost: episodes with "
-             f"info['cost'] > 0 (h < 0 or contact); cost<={100 * conf:g}%: exact "
+    lines = [f"{rep['episodes']} episodes in {len(rows)} groups; {COST_DEFINITION}; w/ cost: "
+             f"episodes with cost; cost<={100 * conf:g}%: exact "
              f"Clopper-Pearson upper bound on the per-episode cost rate; track: mean tracking "
              f"error (m) away from the obstacle; backup: infeasible steps; filter times in us"]
     if rep.get("duplicates"):

@@ -18,6 +18,7 @@ EPISODE_SAFETY_FIELDS = (
     "cost_steps_after_warmup",
     "violation_steps",
     "contact_steps",
+    "limit_steps",
     "min_h",
     "interventions",
     "infeasible_steps",
@@ -36,10 +37,11 @@ class EpisodeSafetyStats(gym.Wrapper, gym.utils.RecordConstructorArgs):
     :class:`~afvsgp_gym.wrappers.ActionRepeat`, so every filtered step is counted even when the
     agent acts less often.
 
-    - ``cost_steps``: ``info["cost"] > 0`` (some barrier h < 0 or an arm contact);
-      ``cost_steps_after_warmup`` those with ``info["warmup"]`` False (the filter's learners
-      fitted; every step without a filter); ``violation_steps`` h < 0; ``contact_steps``
-      ``info["collision"]``; ``min_h`` the smallest h.
+    - ``cost_steps``: ``info["cost"] > 0``
+      (:data:`~afvsgp_gym.evaluation.COST_DEFINITION`); ``cost_steps_after_warmup`` those with
+      ``info["warmup"]`` False (the filter's learners fitted; every step without a filter);
+      ``violation_steps`` h < 0; ``contact_steps`` ``info["collision"]``; ``limit_steps``
+      ``info["limit_violation"]``; ``min_h`` the smallest h.
     - ``interventions``: ``info["filter_active"]``; ``infeasible_steps`` not
       ``info["filter_feasible"]``, split by ``info["filter_status"]`` into ``backup_steps``
       (the backup or max-margin fallback applied) and ``relaxed_steps`` (the mean-only
@@ -94,6 +96,7 @@ class EpisodeSafetyStats(gym.Wrapper, gym.utils.RecordConstructorArgs):
         s["violation_steps"] += h < 0.0
         s["min_h"] = min(s["min_h"], h)
         s["contact_steps"] += bool(info.get("collision", False))
+        s["limit_steps"] += bool(info.get("limit_violation", False))
         s["interventions"] += bool(info.get("filter_active", False))
         status = str(info.get("filter_status", ""))
         if not info.get("filter_feasible", True):
