@@ -166,11 +166,15 @@ def _cmd_evaluate(args: argparse.Namespace, parser: argparse.ArgumentParser) -> 
 
     _check_env(parser, args.env)
     if args.compare:
+        from afvsgp_gym.evaluation import UNFILTERED
+
         learners = [s.strip() for s in args.compare.split(",") if s.strip()]
         if not learners:
             parser.error("--compare needs a comma-separated list of learners")
         for name in learners:
-            _check_learner(parser, name, "--compare")
+            if name != UNFILTERED:
+                _check_learner(parser, name, "--compare")
+        learners = [None if name == UNFILTERED else name for name in learners]
     else:
         learners = [_check_learner(parser, args.learner)]
     _check_agent(parser, args.agent)
@@ -410,7 +414,8 @@ def build_parser() -> argparse.ArgumentParser:
                          "default nominal)")
     ev.add_argument("--learner", default="afvsgp", help="filter learner (default afvsgp)")
     ev.add_argument("--compare", default=None, metavar="A,B,...",
-                    help="several learners side by side on the same seeds (overrides --learner)")
+                    help="several learners side by side on the same seeds (overrides --learner); "
+                         "'unfiltered' runs the env without a filter")
     ev.add_argument("--episodes", type=_positive, default=3)
     ev.add_argument("--seed", type=int, default=0, help="episode i uses seed + i")
     ev.add_argument("--max-steps", type=_positive, default=None,

@@ -42,9 +42,11 @@ __all__ = [
     "EPISODE_FIELDS",
     "REFERENCE_CLEARANCE",
     "SUMMARY_FIELDS",
+    "UNFILTERED",
     "EpisodeSpec",
     "check_writable",
     "code_version",
+    "cpu_model",
     "evaluate",
     "format_table",
     "jsonable",
@@ -104,6 +106,9 @@ SUMMARY_FIELDS = (
     "filter_time_median_s",
     "filter_time_p99_s",
 )
+
+#: The name of "no filter" where a learner name is expected (``--compare``, sweep configs).
+UNFILTERED = "unfiltered"
 
 #: The one definition of the safety cost, printed with every table.
 COST_DEFINITION = (
@@ -167,7 +172,7 @@ class EpisodeSpec:
 
     @property
     def learner_name(self) -> str:
-        return "unfiltered" if self.learner is None else str(self.learner)
+        return UNFILTERED if self.learner is None else str(self.learner)
 
 
 @functools.lru_cache(maxsize=1)
@@ -185,6 +190,21 @@ def code_version() -> str:
         except (OSError, subprocess.SubprocessError):
             pass
     return str(afvsgp_gym.__version__)
+
+
+@functools.lru_cache(maxsize=1)
+def cpu_model() -> str:
+    """The CPU's model name (from /proc/cpuinfo where present, else the platform's)."""
+    import platform
+
+    try:
+        with open("/proc/cpuinfo") as fh:
+            for line in fh:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
 
 
 def make_policy(agent: str, env: Any, seed: int | None = None) -> Policy:
@@ -361,7 +381,8 @@ def run_spec(spec: EpisodeSpec, trace: bool = False) -> tuple[dict, dict | None]
 
     The record (JSON-able) holds ``key``, ``config``, ``seed``, ``code_version``, the counts of
     :func:`run_episode`, ``wall_s`` and ``cpu_s`` (construction and run, wall-clock and CPU
-    time of the worker) and ``host``. This is the task every executor runs.
+    time of the worker), ``host``, ``machine`` (the CPU model) and ``date`` (the day it ran).
+    This is the task every executor runs.
     """
     t0, c0 = time.perf_counter(), time.process_time()
     env = make_env(spec)
@@ -379,6 +400,8 @@ def run_spec(spec: EpisodeSpec, trace: bool = False) -> tuple[dict, dict | None]
         "wall_s": time.perf_counter() - t0,
         "cpu_s": time.process_time() - c0,
         "host": os.uname().nodename if hasattr(os, "uname") else "",
+        "machine": cpu_model(),
+        "date": time.strftime("%Y-%m-%d"),
     }
     return jsonable(record), tr
 

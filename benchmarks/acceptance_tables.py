@@ -42,7 +42,9 @@ def same_tracker(pr: str) -> str:
 
 
 def summary(recs: list[dict]) -> dict:
-    track, track_se = mean_se([float(r["tracking_error_mean"]) for r in recs])
+    tracked = [float(r["tracking_error_mean"]) for r in recs
+               if r.get("tracking_error_mean") is not None]
+    track, track_se = mean_se(tracked) if tracked else (float("nan"), float("nan"))
     safe = sum(r["safe_proposals"] for r in recs)
     return {
         "n": len(recs),
@@ -55,6 +57,7 @@ def summary(recs: list[dict]) -> dict:
         "kept": sum(r["safe_proposals_kept"] for r in recs) / safe if safe else 1.0,
         "contact_eps": sum(r["contact_steps"] > 0 for r in recs),
         "h_eps": sum(r["violation_steps"] > 0 for r in recs),
+        "limit_eps": sum((r.get("limit_steps") or 0) > 0 for r in recs),
     }
 
 
@@ -103,7 +106,8 @@ def main() -> None:
         if group:
             s = summary(group)
             print(f"| {name} | {s['n']} | {s['cost']} (h<0: {s['h_eps']}, contact: "
-                  f"{s['contact_eps']}) | {s['bound']:.4f} | {s['min_h']:.4f} |")
+                  f"{s['contact_eps']}, limits: {s['limit_eps']}) | {s['bound']:.4f} | "
+                  f"{s['min_h']:.4f} |")
 
     if select(recs, "priors"):
         priors_tables(recs)

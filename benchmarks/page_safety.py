@@ -61,7 +61,8 @@ def meta(recs: list[dict]) -> dict:
 
 
 def cost_cell(s: dict) -> str:
-    return f"{s['cost']} (h < 0: {s['h_eps']}, contact: {s['contact_eps']})"
+    return (f"{s['cost']} (h < 0: {s['h_eps']}, contact: {s['contact_eps']}, limits: "
+            f"{s['limit_eps']})")
 
 
 def headline_rows(recs: list[dict]) -> list[tuple[str, list[dict]]]:

@@ -13,16 +13,9 @@ def machine() -> str:
     """CPU model name (from /proc/cpuinfo where present), core count, Python version, whether
     numpy runs AVX-512 kernels on it (its float64 ``exp`` is vectorised only there) and which
     copy of the learners' compiled hot loops runs."""
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as fh:
-            for line in fh:
-                if line.startswith("model name"):
-                    cpu = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    out = f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}"
+    from afvsgp_gym.evaluation import cpu_model
+
+    out = f"{cpu_model()}, {os.cpu_count()} cores, Python {platform.python_version()}"
     avx512 = _numpy_avx512()
     if avx512 is not None:
         out += f", numpy AVX-512 {'yes' if avx512 else 'no'}"

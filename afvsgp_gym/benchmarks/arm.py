@@ -1,8 +1,11 @@
 """Whole-arm filter timing: the filtered step against the number of barriers.
 
 ``python -m afvsgp_gym.benchmarks.arm [--quick] [--steps N] [--seeds S ...]`` runs the nominal
-tracker behind ``SafetyFilter(learner)`` on the static Franka scenario (nominal "zero") with
-1, 7, 21 and 42 barriers (the end-effector sphere; the 7 hand spheres; the 21 arm spheres; the
+tracker behind ``SafetyFilter(learner)`` on the static Franka scenario (nominal "zero"): the
+default env (21 arm spheres and the 28 joint-limit barriers, 49 in all, which share 21 + 7
+learners), the same arm before the limits (the 21 obstacle pairs, the linear class-K chain and
+the warm-up around the proposal: the price of the limits), and the obstacle pairs alone with 1,
+7, 21 and 42 barriers (the end-effector sphere; the 7 hand spheres; the 21 arm spheres; the
 arm with a second obstacle), each with the env's suggested settings (AFVSGP with M = 30, P =
 500 on several spheres, the method's M = 40, P = 1000 on one), plus the end-effector sphere at
 the whole-arm settings (K = 21 against K = 1 at equal settings) and the arm at the method's, and
@@ -15,7 +18,9 @@ times, per control step after the warm-up, with ``perf_counter``:
   and its two parts: ``update`` (every learner, every step) and the prediction time per
   barrier predicted (only the barriers in the program are: their number is the scenario's
   geometry, not the bank's batching);
-- ``fit``: the end-of-warm-up hyperparameter fit of all K learners (CPU seconds).
+- ``fit``: the end-of-warm-up hyperparameter fit of all K learners (CPU seconds);
+- ``env.step``: the whole wrapped step the user calls (the physics, the env's barrier terms,
+  the filter and the learning).
 
 Everything runs in one process. The configurations' episodes of one seed advance one control
 step each in turn (lockstep), so that a drift of the machine's speed, up to 2x within minutes
@@ -49,17 +54,25 @@ METHOD_LEARNER = {k: REGISTRY["afvsgp"].default_kwargs[k] for k in ARM_LEARNER}
 #: name -> env kwargs; "filter": SafetyFilter options on top of the env's suggestions;
 #: "fast_path": False turns the solver's certified fast path off, so every cone program goes
 #: to clarabel (the step without what the fast path saves)
+#: the filter as it was before the joint-limit barriers: the obstacle pairs only, the linear
+#: class-K chain, the warm-up around the proposal with the method's noise
+BEFORE_LIMITS: dict[str, Any] = {"limit_barriers": False, "filter": {
+    "braking_deceleration": float("inf"), "warmup_exploration": "proposal",
+    "exploration_noise": 0.3}}
+
 CONFIGS: dict[str, dict[str, Any]] = {
-    "1 (ee)": {"safety_spheres": "ee"},
-    "1 (ee), arm settings": {"safety_spheres": "ee", "filter": {"learner_kwargs": ARM_LEARNER}},
-    "7 (hand)": {"safety_spheres": "hand"},
+    "1 (ee)": {"safety_spheres": "ee", "limit_barriers": False},
+    "1 (ee), arm settings": {"safety_spheres": "ee", "limit_barriers": False,
+                             "filter": {"learner_kwargs": ARM_LEARNER}},
+    "7 (hand)": {"safety_spheres": "hand", "limit_barriers": False},
     "21 (arm)": {},
+    "21 (arm), before the limits": BEFORE_LIMITS,
     "21 (arm), method settings": {"filter": {"learner_kwargs": METHOD_LEARNER}},
     "21 (arm), clarabel only": {"fast_path": False},
     "21 (arm), numpy solver": {"filter": {"compiled_solver": False}},
     "21 (arm), numpy learners": {"filter": {"compiled_learners": False}},
     "21 (arm), numpy only": {"filter": {"compiled_solver": False, "compiled_learners": False}},
-    "42 (arm, 2 obstacles)": {"obstacles": "two"},
+    "42 (arm, 2 obstacles)": {"obstacles": "two", "limit_barriers": False},
 }
 
 
@@ -126,7 +139,8 @@ class TimedEpisode:
         ctrl.fit = timed_fit
         filt, observe = ctrl.filter, ctrl.observe
         self.out: dict[str, list] = {"step": [], "filter": [], "learners": [], "update": [],
-                                     "predict": [], "n_predicted": [], "n_active": []}
+                                     "predict": [], "n_predicted": [], "n_active": [],
+                                     "env_step": []}
         current = {"t": 0.0}
 
         def timed_filter(*a, **k):
@@ -161,7 +175,12 @@ class TimedEpisode:
         if self.remaining <= 0:
             return
         self.remaining -= 1
-        self.obs, _, term, trunc, _ = self.env.step(self.policy(self.obs))
+        action = self.policy(self.obs)
+        timed = len(self.out["step"])
+        t0 = time.perf_counter()
+        self.obs, _, term, trunc, _ = self.env.step(action)
+        if len(self.out["step"]) > timed:  # a timed control step: the wrapped env.step too
+            self.out["env_step"].append(time.perf_counter() - t0)
         if term or trunc:
             self.obs, _ = self.env.reset()
 
@@ -227,6 +246,9 @@ def run(quick: bool = False, steps: int | None = None, rounds: int = 2,
         learn = np.concatenate(d["learners"])
         out[f"{name}: step median_s"] = float(np.median(step))
         out[f"{name}: step p99_s"] = float(np.percentile(step, 99))
+        env_step = np.concatenate(d["env_step"])
+        out[f"{name}: env.step median_s"] = float(np.median(env_step))
+        out[f"{name}: env.step p99_s"] = float(np.percentile(env_step, 99))
         filt = np.concatenate(d["filter"])
         out[f"{name}: filter median_s"] = float(np.median(filt))
         out[f"{name}: filter p99_s"] = float(np.percentile(filt, 99))
@@ -239,11 +261,16 @@ def run(quick: bool = False, steps: int | None = None, rounds: int = 2,
         out[f"{name}: barriers in program (mean)"] = float(np.mean(np.concatenate(d["n_active"])))
         out[f"{name}: fit cpu_s"] = float(np.median(np.concatenate(d["fit_cpu_s"])))
     one = "1 (ee), arm settings"  # K = 21 against K = 1 at equal learner settings
-    out["learners median, K=21 / K=1"] = (out["21 (arm): learners median_s"]
+    arm = "21 (arm), before the limits"  # the obstacle pairs alone, as the one sphere's
+    out["learners median, K=21 / K=1"] = (out[f"{arm}: learners median_s"]
                                           / out[f"{one}: learners median_s"])
     for part in ("update median", "prediction per barrier"):  # the two parts of it
-        out[f"{part}, K=21 / K=1"] = (out[f"21 (arm): {part}_s"] / out[f"{one}: {part}_s"])
-    out["fit, K=21 / K=1"] = out["21 (arm): fit cpu_s"] / out[f"{one}: fit cpu_s"]
+        out[f"{part}, K=21 / K=1"] = (out[f"{arm}: {part}_s"] / out[f"{one}: {part}_s"])
+    out["fit, K=21 / K=1"] = out[f"{arm}: fit cpu_s"] / out[f"{one}: fit cpu_s"]
+    for what in ("step", "env.step"):  # the 28 joint-limit barriers' price
+        for q in ("median", "p99"):
+            out[f"{what} {q}: with the 28 limits / before"] = (
+                out[f"21 (arm): {what} {q}_s"] / out[f"{arm}: {what} {q}_s"])
     for q in ("median", "p99"):
         out[f"step {q}, K=21: arm / method settings"] = (
             out[f"21 (arm): step {q}_s"] / out[f"21 (arm), method settings: step {q}_s"])

@@ -36,14 +36,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from afvsgp_gym.evaluation import EpisodeSpec
+from afvsgp_gym.evaluation import UNFILTERED, EpisodeSpec
 
 __all__ = ["BLOCK_KEYS", "Block", "ConfigError", "Sweep", "load_config", "parse_config"]
 
 TOP_KEYS = ("description", "defaults", "grid")
 BLOCK_KEYS = ("name", "envs", "env_kwargs", "learners", "filter_kwargs", "agents", "seeds",
               "max_steps")
-UNFILTERED = "unfiltered"
 
 
 class ConfigError(ValueError):

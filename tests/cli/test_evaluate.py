@@ -100,3 +100,31 @@ def test_single_learner_default_table(capsys):
                  "--episodes", "1", "--max-steps", "20", "--no-progress"]) == 0
     out = capsys.readouterr().out
     assert "none" in out and "Summary" in out
+
+
+def test_limit_violations_are_counted_by_kind_and_printed(tmp_path, capsys):
+    """Joint 1 swung at full torque without a filter exceeds its speed limit: the steps with
+    ``info["limit_violation"]`` (counted by hand here) are the episode's ``limit_steps``, they
+    are cost, and both tables show the kind."""
+    from afvsgp_gym.evaluation import make_policy
+
+    env_id = "afvsgp_gym/FrankaObstacleStatic-v0"
+    env = gym.make(env_id)
+    policy = make_policy("swing1", env, seed=0)
+    obs, _ = env.reset(seed=0)
+    limits = costs = 0
+    for _ in range(300):
+        obs, _, _, _, info = env.step(policy(obs))
+        limits += info["limit_violation"]
+        costs += info["cost"] > 0
+    assert limits > 0 and costs >= limits
+    jpath = tmp_path / "r.json"
+    assert main(["evaluate", "--env", env_id, "--agent", "swing1", "--compare", "unfiltered",
+                 "--episodes", "1", "--max-steps", "300", "--json", str(jpath),
+                 "--no-progress"]) == 0
+    out = capsys.readouterr().out
+    assert "limits" in out and "w/ limits" in out and "range stop" in out
+    data = json.loads(jpath.read_text())
+    assert data["episodes"][0]["limit_steps"] == limits
+    assert data["episodes"][0]["cost_steps"] == costs
+    assert data["summary"]["unfiltered"]["episodes_with_limit_violation"] == 1

@@ -1,0 +1,227 @@
+"""Write docs/adversarial.md: the filter against policies built to break it.
+
+    python benchmarks/page_adversarial.py            # writes docs/adversarial.md
+    python benchmarks/page_adversarial.py --check    # exit 1 if it is not what this writes
+
+Reads three results files of one sitting on one machine:
+
+- ``results/adversarial.jsonl.gz``: ``afvsgp-gym sweep benchmarks/configs/adversarial.toml``;
+- ``results/routes.jsonl.gz``: ``afvsgp-gym sweep benchmarks/configs/routes.toml`` (the
+  class-K routes compared);
+- ``results/braking_authority.json``: ``python benchmarks/braking_authority.py --json ...``.
+
+To refresh them, run those commands, then ``python benchmarks/page_adversarial.py --refresh
+ADVERSARIAL.jsonl ROUTES.jsonl AUTHORITY.json``: it keeps the fields the page reads
+(:data:`FIELDS`), compresses the records into the results files and writes the page.
+"""
+
+from __future__ import annotations
+
+import gzip
+import json
+import shutil
+import sys
+
+from acceptance_tables import PRIORS, learner, prior, scenario, summary
+from docgen import DOCS, RESULTS, main, measured, provenance, read_json, read_jsonl, table
+
+SOURCE = RESULTS / "adversarial.jsonl.gz"
+ROUTES = RESULTS / "routes.jsonl.gz"
+AUTHORITY = RESULTS / "braking_authority.json"
+PAGE = DOCS / "adversarial.md"
+
+#: the record fields the page reads (the rest of a sweep's records is left out of the tree)
+FIELDS = ("block", "config", "seed", "code_version", "machine", "date", "steps",
+          "cost_steps", "violation_steps", "contact_steps", "limit_steps", "min_h",
+          "infeasible_steps", "tracking_error_mean", "safe_proposals", "safe_proposals_kept",
+          "filter_time_median_s")
+
+AGENTS = ("ram", "greedy", "swing1", "swing2", "swing3", "swing4", "swing5", "swing6",
+          "swing7", "random", "untrained-ppo")
+ROUTE_NAMES = {
+    "R0_linear_a4": "linear `alpha_1 = 4 h` (the gains before)",
+    "R1_linear_from_limits": "linear `alpha_1 = 1.3 h` (`a_1 <= A / v_max`)",
+    "R2_braking": "braking curve, `A` = 5 m/s^2 (chosen)",
+}
+
+
+def meta(recs: list[dict]) -> dict:
+    def one(key: str) -> str | None:
+        values = sorted({str(r[key]) for r in recs if r.get(key)})
+        return " / ".join(values) or None
+
+    return {"machine": one("machine"), "date": one("date"), "code": one("code_version")}
+
+
+def cost_cell(s: dict) -> str:
+    return (f"{s['cost']} (h < 0: {s['h_eps']}, contact: {s['contact_eps']}, limits: "
+            f"{s['limit_eps']})")
+
+
+def label(rec: dict) -> str:
+    name = learner(rec) or "unfiltered"
+    return {"oracle": "oracle (true model)", "afvsgp": "AFVSGP", "none": "nominal model only",
+            "unfiltered": "no filter"}.get(name, name)
+
+
+def headline(recs: list[dict]) -> list[tuple]:
+    rows = []
+    for name in ("oracle", "afvsgp", "none", None):
+        group = [r for r in recs if learner(r) == name]
+        if not group:
+            continue
+        priors = PRIORS if name in ("afvsgp", "none") else (None,)
+        for pr in priors:
+            sub = [r for r in group if pr is None or prior(r) == pr]
+            if sub:
+                s = summary(sub)
+                rows.append((label(sub[0]) + (f", prior \"{pr}\"" if pr else ""), s["n"],
+                             cost_cell(s), f"{100 * s['bound']:.2g} %", f"{s['min_h']:+.4f}"))
+    return rows
+
+
+def by_agent(recs: list[dict]) -> list[tuple]:
+    rows = []
+    for agent in AGENTS:
+        cells = [agent]
+        for name, pr in (("oracle", None), ("afvsgp", "zero"), ("afvsgp", "kinematic"),
+                         ("afvsgp", "perturbed"), ("none", "zero"), (None, None)):
+            group = [r for r in recs if r["config"]["agent"] == agent and learner(r) == name
+                     and (pr is None or prior(r) == pr)]
+            cells.append(f"{sum(r['cost_steps'] > 0 for r in group)} / {len(group)}"
+                         if group else "-")
+        rows.append(cells)
+    return rows
+
+
+def routes(recs: list[dict]) -> list[str]:
+    adversarial = [r for r in recs if r["config"]["agent"] != "nominal"]
+    tracker = [r for r in recs if r["config"]["agent"] == "nominal"]
+    rows = []
+    for block, name in ROUTE_NAMES.items():
+        adv = [r for r in adversarial if r["block"].startswith(block)]
+        cells = [name]
+        if adv:
+            s = summary(adv)
+            cells += [f"{s['cost']} / {s['n']}", f"{s['min_h']:+.4f}",
+                      f"{sum(r['infeasible_steps'] for r in adv)}"]
+        else:
+            cells += ["-", "-", "-"]
+        for lrn in ("oracle", "afvsgp"):
+            group = [r for r in tracker if r["block"].startswith(block) and learner(r) == lrn]
+            if group:
+                s = summary(group)
+                cells.append(f"{s['track']:.4f} ({s['cost']} / {s['n']} with cost)")
+            else:
+                cells.append("-")
+        oracle = [r for r in tracker if r["block"].startswith(block) and learner(r) == "oracle"]
+        learned = [r for r in tracker if r["block"].startswith(block) and learner(r) == "afvsgp"]
+        cells.append(f"{summary(learned)['track'] / summary(oracle)['track']:.2f}"
+                     if oracle and learned else "-")
+        rows.append(cells)
+    return [measured(meta(recs)) + f" {len(recs)} episodes.", "",
+            table(("first class-K function", "adversarial, oracle: with cost", "min h [m]",
+                   "infeasible steps", "tracker, oracle: tracking [m]",
+                   "tracker, AFVSGP zero: tracking [m]", "AFVSGP / oracle"), rows)]
+
+
+def authority(res: dict) -> list[str]:
+    pct = res["authority_over_demand_percentiles"]
+    fast = res["fast_authority_over_demand_percentiles"]
+    rows = [(name, f"{100 * res['sphere_infeasible_share'][name]:.4f} %",
+             f"{pct[name]['0.01%']:.2f}", f"{pct[name]['1%']:.2f}",
+             f"{fast[name]['min']:.2f}", f"{fast[name]['1%']:.2f}")
+            for name in res["sphere_infeasible_share"]]
+    joints = res["joint_infeasible_share"]
+    return [f"**Machine:** {res.get('machine', 'not recorded')}; **date:** "
+            f"{res.get('date', 'not recorded')}; {res['sphere_samples']} (state, sphere, "
+            f"direction) samples from {res['states']} states, {res['fast_approach_samples']} "
+            "of them approaching faster than 1.5 m/s.", "",
+            table(("first class-K function", "infeasible samples",
+                   "authority / demand, 0.01 %", "1 %", "approach > 1.5 m/s: min", "1 %"),
+                  rows), "",
+            "The joint range barriers: infeasible samples per joint (of "
+            f"{res['joint_samples']} states each), linear `a = 4`: "
+            + ", ".join(f"{100 * v:.2g} %" for v in joints["linear a=4"])
+            + "; braking curve of the datasheet's accelerations: "
+            + ", ".join(f"{100 * v:.2g} %" for v in joints["braking (datasheet A_j), a=4"])
+            + "."]
+
+
+def build() -> dict:
+    recs = read_jsonl(SOURCE)
+    out = [provenance("benchmarks/page_adversarial.py",
+                      ["benchmarks/results/adversarial.jsonl.gz",
+                       "benchmarks/results/routes.jsonl.gz",
+                       "benchmarks/results/braking_authority.json"]),
+           "",
+           "# Any policy: the filter against policies built to break it",
+           "",
+           "Seeded 16 s episodes of the Franka scenarios (static, dynamic, random) with the "
+           "default whole-arm filter and its joint-limit barriers, driven by the policies of "
+           "`afvsgp_gym.agents.adversarial`: a stiff task-space spring that rams the hand into "
+           "the nearest obstacle (`ram`), full-torque bang-bang swings of each joint "
+           "(`swing1`..`swing7`), the box vertex that lowers the smallest barrier fastest under "
+           "the true model (`greedy`), uniform random actions (`random`) and a freshly "
+           "initialised PPO policy sampled stochastically (`untrained-ppo`). An episode *has "
+           "cost* when any step has `info[\"cost\"] > 0`: an obstacle barrier `h < 0`, an "
+           "arm-obstacle contact, or a joint at its range stop or above its datasheet speed "
+           "(`limits`). The bound is the exact one-sided Clopper-Pearson 95 % upper bound on "
+           "the per-episode cost rate; `min h` the closest approach to an obstacle (m).",
+           "",
+           measured(meta(recs)) + f" {len(recs)} episodes "
+           "(`afvsgp-gym sweep benchmarks/configs/adversarial.toml`).",
+           "",
+           "## Episodes with cost",
+           "",
+           table(("filter", "episodes", "with cost", "95 % bound", "min h [m]"),
+                 headline(recs)),
+           "",
+           "By policy (episodes with cost / episodes, the three scenarios):",
+           "",
+           table(("policy", "oracle", "AFVSGP zero", "AFVSGP kinematic", "AFVSGP perturbed",
+                  "nominal only, zero", "no filter"), by_agent(recs)),
+           "",
+           "By scenario, AFVSGP (all priors):",
+           "",
+           table(("scenario", "episodes", "with cost"),
+                 [(sc, len(g), cost_cell(summary(g)))
+                  for sc in ("static", "dynamic", "random")
+                  if (g := [r for r in recs if learner(r) == "afvsgp" and scenario(r) == sc])]),
+           ""]
+    if ROUTES.exists():
+        out += ["## Routes to feasibility under the torque limits", "",
+                "The same oracle filter with three first class-K functions "
+                "(`benchmarks/configs/routes.toml`): against the ram, the greedy policy and "
+                "the swings of joints 1 and 2, and behind the nominal tracker (tracking error "
+                "where the reference is 5 cm clear of the obstacle, prior \"zero\").", ""]
+        out += routes(read_jsonl(ROUTES)) + [""]
+    if AUTHORITY.exists():
+        out += ["## Can the torque limits meet the demand?", "",
+                "Where `psi_1 = 0` a barrier approaching at `v` asks for `h'' >= a v` (linear) "
+                "or `A v / (v + A / a)` (braking curve). `python benchmarks/braking_authority.py` "
+                "samples states of the arm (joint angles in range, speeds within the "
+                "datasheet's, payloads 0, 1 and 3 kg), every safety sphere and directions it "
+                "approaches, and compares the best `h''` the torque box can make along the "
+                "direction (with the drift; the curvature, >= 0, left out) with the demand: a "
+                "ratio below 1 is a state where that barrier's program alone is infeasible.",
+                ""]
+        out += authority(read_json(AUTHORITY)) + [""]
+    return {PAGE: "\n".join(out).rstrip("\n") + "\n"}
+
+
+def refresh(adversarial: str, routes_file: str, authority_file: str) -> None:
+    """Keep :data:`FIELDS` of the sweeps' records, compress them into the results files."""
+    for src, dst in ((adversarial, SOURCE), (routes_file, ROUTES)):
+        recs = read_jsonl(src)
+        with gzip.open(dst, "wt", encoding="utf-8") as fh:
+            for r in recs:
+                fh.write(json.dumps({k: r.get(k) for k in FIELDS}) + "\n")
+    shutil.copyfile(authority_file, AUTHORITY)
+
+
+if __name__ == "__main__":
+    if len(sys.argv) == 5 and sys.argv[1] == "--refresh":
+        refresh(*sys.argv[2:])
+        sys.argv[1:] = []
+    raise SystemExit(main(__doc__, build))
