@@ -9,10 +9,11 @@ imported when an environment is made):
 - ``afvsgp_gym/PointMassObstacle-v0``
 """
 
+from afvsgp_gym._compiled import available as compiled_extensions
 from afvsgp_gym.envs.registration import register_envs
 
 __version__ = "0.1.0"
 
 register_envs()
 
-__all__ = ["__version__", "register_envs"]
+__all__ = ["__version__", "compiled_extensions", "register_envs"]

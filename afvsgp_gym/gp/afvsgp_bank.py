@@ -21,15 +21,16 @@ columns), which leaves every posterior quantity unchanged. The rare inducing-set
 learners whose prediction is needed (e.g. the barriers near an obstacle).
 
 The per-step arithmetic (the window step of every learner, the predictions, the eqs. 27-28
-decision on a new inducing point) runs compiled when ``afvsgp_gym.gp._bank`` is built
-(:data:`COMPILED`; the same formulas in C with scipy's BLAS and LAPACK, one call each in place
-of tens of numpy calls; the kernel's exponent from the differences to the inducing points,
-its exponential by the core's own vectorised exp, within 1.5 ulp; for a learner predicted at
-consecutive steps the update carries its whitened statistics ``A = L^-1 S L^-T``, ``A +=
-scale (l l' - phi^P l_old l_old')`` with ``l = L^-1 k_new``, so that its prediction factors
-``I + A / s2`` without solving ``A`` afresh),
-else, or with ``compiled=False``, in numpy; the installation of a new inducing point and the
-rare cases (skipped samples, a failed factorisation) always run in numpy.
+decision on a new inducing point, the installation of a new inducing point with its factor
+and inverse of ``K_oo``) runs compiled when ``afvsgp_gym.gp._bank`` is built (the backend
+``"auto"`` or ``"compiled"``, see :mod:`afvsgp_gym._compiled`; the same formulas in C with
+scipy's BLAS and LAPACK, one call each in place of tens of numpy calls; the kernel's exponent
+from the differences to the inducing points, its exponential by the core's own vectorised
+exp, within 1.5 ulp; for a learner predicted at consecutive steps the update carries its
+whitened statistics ``A = L^-1 S L^-T``, ``A += scale (l l' - phi^P l_old l_old')`` with
+``l = L^-1 k_new``, so that its prediction factors ``I + A / s2`` without solving ``A``
+afresh), else, or with the backend ``"numpy"``, in numpy; the rare cases (skipped samples,
+a kernel exponent that overflows, a failed factorisation) always run in numpy.
 """
 
 from __future__ import annotations
@@ -43,18 +44,13 @@ import numpy as np
 from scipy.linalg.blas import dtrsm
 from scipy.linalg.lapack import dpotrf, dtrtri
 
+from afvsgp_gym import _compiled
 from afvsgp_gym.gp._linalg import jittered_cholesky
 from afvsgp_gym.gp.kernels import ADPKernel
 
-try:
-    from afvsgp_gym.gp import _bank as _core
-except ImportError:  # built without a C compiler
-    _core = None
+__all__ = ["AFVSGPBank", "BankSettings", "FittedState"]
 
-__all__ = ["COMPILED", "AFVSGPBank", "BankSettings", "FittedState"]
-
-#: True when the compiled core (``afvsgp_gym.gp._bank``) is importable.
-COMPILED = _core is not None
+_core = _compiled.extension("bank")
 
 
 @dataclass(frozen=True)
@@ -120,12 +116,15 @@ class AFVSGPBank:
         27 residual go first, the others are considered again with their next samples): it
         bounds the worst-case step time. None examines every candidate, exactly as K
         separate learners do.
-    compiled : bool or None
-        Run the per-step arithmetic in the compiled core (None: when it is built; True
-        without it raises ``ImportError``), or in numpy (False). Settable later.
+    backend : str
+        Where the per-step arithmetic runs: ``"auto"`` (default) in the compiled core when it
+        is built, ``"numpy"`` in numpy, ``"compiled"`` in the compiled core (``ImportError``
+        when it was not built); see :mod:`afvsgp_gym._compiled`. Settable later.
 
     Attributes
     ----------
+    compiled : bool
+        True when the per-step arithmetic runs in the compiled core.
     n_learners : int
     n_inducing_ : ndarray of int, shape (K,)
         Current inducing-set sizes.
@@ -133,11 +132,11 @@ class AFVSGPBank:
     """
 
     def __init__(self, settings: BankSettings, states: Sequence[FittedState],
-                 max_inducing_candidates: int | None = None, compiled: bool | None = None):
+                 max_inducing_candidates: int | None = None, backend="auto"):
         if not states:
             raise ValueError("states must hold at least one fitted learner state")
         self._set_settings(settings, states[0].kernel, max_inducing_candidates)
-        self.compiled = compiled
+        self.backend = backend
         K, P, b, c, mp = len(states), self.window, self.input_dim, self._c, self._mp
         self.n_learners = K
         for k, st in enumerate(states):
@@ -232,14 +231,15 @@ class AFVSGPBank:
         """True when the per-step arithmetic runs in the compiled core."""
         return self._compiled
 
-    @compiled.setter
-    def compiled(self, value: bool | None) -> None:
-        if value is not None and not isinstance(value, bool | np.bool_):
-            raise ValueError(f"compiled must be None, True or False. Got: {value!r}")
-        if value and _core is None:
-            raise ImportError("compiled=True needs afvsgp_gym.gp._bank, which was not built "
-                              "(install the package where a C compiler is available)")
-        self._compiled = COMPILED if value is None else bool(value)
+    @property
+    def backend(self) -> str:
+        """``"auto"``, ``"numpy"`` or ``"compiled"`` (see the class docstring); settable."""
+        return self._backend
+
+    @backend.setter
+    def backend(self, value) -> None:
+        resolved = _compiled.resolve(value, ("bank",))
+        self._backend, self._compiled = resolved.name, resolved.bank
 
     @property
     def _ind_xi(self) -> np.ndarray:
@@ -267,15 +267,17 @@ class AFVSGPBank:
             self._step_out = self._new_step_out()
         if "_lsl" not in state:  # pickled before the whitened statistics were kept
             self._lsl, self._white = self._new_whitened(self.n_learners)
+        if "_backend" not in state:  # pickled when the switch was compiled=None/True/False
+            self._backend = "auto" if self._compiled else "numpy"
         if _core is None:
             self._compiled = False
 
     @classmethod
     def stack(cls, banks: Sequence[AFVSGPBank],
               max_inducing_candidates: int | None = None,
-              compiled: bool | None = None) -> AFVSGPBank:
+              backend="auto") -> AFVSGPBank:
         """One bank holding copies of the learners of ``banks`` (equal settings), in order
-        (``compiled``: see the class docstring)."""
+        (``backend``: see the class docstring)."""
         if not banks:
             raise ValueError("banks must hold at least one AFVSGPBank")
         first = banks[0]
@@ -287,7 +289,7 @@ class AFVSGPBank:
                 raise ValueError(f"banks[{i}] has other input/action dimensions")
         out = cls.__new__(cls)
         out._set_settings(first.settings, first.kernels[0], max_inducing_candidates)
-        out.compiled = compiled
+        out.backend = backend
         for name in _STACKED:
             setattr(out, name, np.concatenate([getattr(bk, name) for bk in banks]))
         out.kernels = [k.clone() for bk in banks for k in bk.kernels]
@@ -297,7 +299,7 @@ class AFVSGPBank:
 
     @classmethod
     def from_learners(cls, learners: Sequence, max_inducing_candidates: int | None = None,
-                      compiled: bool | None = None) -> AFVSGPBank:
+                      backend="auto") -> AFVSGPBank:
         """One bank holding copies of the state of fitted :class:`~afvsgp_gym.gp.AFVSGP`
         ``learners`` (each a bank of one; equal settings; see ``max_inducing_candidates`` in
         the class docstring)."""
@@ -307,7 +309,7 @@ class AFVSGPBank:
             if not isinstance(getattr(lr, "_bank", None), AFVSGPBank):
                 raise ValueError(f"learners[{k}] must be a fitted AFVSGP")
         try:
-            return cls.stack([lr._bank for lr in learners], max_inducing_candidates, compiled)
+            return cls.stack([lr._bank for lr in learners], max_inducing_candidates, backend)
         except ValueError as exc:
             raise ValueError(f"learners: {exc}") from None
 
