@@ -25,11 +25,12 @@ never imports ``afvsgp_gym.cbf`` (the layers import downward).
 from __future__ import annotations
 
 import importlib
+import warnings
 from collections.abc import Iterable
 from dataclasses import dataclass
 from types import ModuleType
 
-__all__ = ["BACKENDS", "EXTENSIONS", "Backend", "available", "extension", "resolve"]
+__all__ = ["ABI", "BACKENDS", "EXTENSIONS", "Backend", "available", "extension", "resolve"]
 
 #: The values of ``FilterConfig.backend`` (and of every ``backend`` argument).
 BACKENDS = ("auto", "numpy", "compiled")
@@ -41,12 +42,17 @@ EXTENSIONS = {
     "bank": "afvsgp_gym.gp._bank",
 }
 
+#: The calling convention (the module's ``ABI``, 1 when it has none) each extension must have:
+#: one built from older sources (an editable install not rebuilt) counts as not built.
+ABI = {"cones": 1, "step": 1, "bank": 2}
+
 _loaded: dict[str, ModuleType | None] = {}
 
 
 def extension(name: str) -> ModuleType | None:
     """The extension ``name`` (``"cones"``, ``"step"`` or ``"bank"``), imported on the first
-    call; None when it was not built (or does not load)."""
+    call; None when it was not built (or does not load, or was built from other sources: a
+    ``RuntimeWarning`` says to rebuild it)."""
     try:
         return _loaded[name]
     except KeyError:
@@ -54,6 +60,12 @@ def extension(name: str) -> ModuleType | None:
     try:
         mod = importlib.import_module(EXTENSIONS[name])
     except ImportError:
+        mod = None
+    if mod is not None and getattr(mod, "ABI", 1) != ABI[name]:
+        warnings.warn(f"{EXTENSIONS[name]} was built from other sources (ABI "
+                      f"{getattr(mod, 'ABI', 1)}, this package needs {ABI[name]}): the numpy "
+                      "path runs; rebuild it (pip install -e . again, or python setup.py "
+                      "build_ext --inplace)", RuntimeWarning, stacklevel=2)
         mod = None
     _loaded[name] = mod
     return mod

@@ -51,6 +51,19 @@ def test_backends_resolve_to_the_extensions_they_run(without_extensions):
     assert resolve("compiled", ("step",)).step is built["step"] or not built["step"]
 
 
+def test_an_extension_built_from_other_sources_counts_as_not_built(monkeypatch):
+    """An editable install not rebuilt after the calling convention changed: a warning says
+    to rebuild, and the numpy path runs."""
+    if _compiled.extension("bank") is None:
+        pytest.skip("afvsgp_gym.gp._bank not built")
+    monkeypatch.setitem(_compiled.ABI, "bank", _compiled.ABI["bank"] + 1)
+    monkeypatch.delitem(_compiled._loaded, "bank")
+    with pytest.warns(RuntimeWarning, match=r"afvsgp_gym\.gp\._bank was built from other "
+                                            r"sources .* rebuild it"):
+        assert _compiled.extension("bank") is None
+    assert not resolve("auto").bank
+
+
 def test_a_backend_unpickled_where_an_extension_is_missing_runs_numpy(without_extensions):
     blob = pickle.dumps(Backend("compiled", cones=True, step=True, bank=True))
     without_extensions("step")

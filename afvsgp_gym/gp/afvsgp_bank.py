@@ -95,6 +95,18 @@ class _Candidate(NamedTuple):
     r_new: float
 
 
+#: The arrays the compiled core holds in its state (its names -> the bank's attributes; the
+#: per-step outputs k_new, kss, resid are the bank's ``_step_out``).
+_CORE_ARRAYS = (("ind_xit", "_ind_xit"), ("log_var", "log_var"), ("inv_ls2", "inv_ls2"),
+                ("ubt", "_ubt"), ("var", "var"), ("koo_inv", "_koo_inv"), ("stats", "_stats"),
+                ("scale", "_scale"), ("wk", "_wk"), ("wz", "_wz"), ("wxt", "_wxt"),
+                ("wubt", "_wubt"), ("work", "_work"), ("head", "_head"), ("count", "_count"),
+                ("n_seen", "n_seen_"), ("fresh", "_fresh"), ("since", "_since_refresh"),
+                ("noise_variance", "noise_variance"), ("l_oo", "_l_oo"), ("lsl", "_lsl"),
+                ("white", "_white"), ("l_d", "_l_d"), ("cvec", "_cvec"), ("ind_ub", "_ind_ub"),
+                ("koo", "_koo"), ("n_added", "n_added_"), ("n_removed", "n_removed_"),
+                ("pow_rev", "_pow_rev"))
+
 #: Per-learner arrays (leading axis K), concatenated by :meth:`AFVSGPBank.stack`.
 _STACKED = ("inv_ls2", "var", "_var_diag", "log_var", "noise_variance", "jitter", "n_inducing_",
             "_ind_xit", "_ind_ub", "_amat", "_ubt", "_koo", "_l_oo", "_koo_inv", "_stats",
@@ -225,6 +237,7 @@ class AFVSGPBank:
         self._since_refresh = (np.arange(K) * self._refresh_every) // K
         self._synced = bool((self._head == self._head[0]).all()
                             and (self._count == self._count[0]).all())
+        self._cstate = None  # the arrays are new: the core takes them again
 
     @property
     def compiled(self) -> bool:
@@ -258,9 +271,29 @@ class AFVSGPBank:
         (K,) flags of the learners whose ``A`` is current (none)."""
         return np.zeros((K, self._mp, self._mp)), np.zeros(K, dtype=bool)
 
+    def _core_state(self):
+        """The compiled core's state of this bank: its arrays, taken once (on the first call
+        after they were allocated) and held by the core (see ``_bank.state``)."""
+        state = self._cstate
+        if state is None:
+            arrays = {name: getattr(self, attr) for name, attr in _CORE_ARRAYS}
+            arrays["k_new"], arrays["kss"], arrays["resid"] = self._step_out
+            state = self._cstate = _core.state(
+                self._dims, arrays, (self._inv_phi, self._phi_p, self._add_floor,
+                                     self.swap_margin, self._refresh_every))
+        return state
+
+    def __getstate__(self) -> dict:
+        """Pickle (and deepcopy) without the compiled core's state (it holds the arrays'
+        buffers; a copy takes its own arrays again)."""
+        state = dict(self.__dict__)
+        state["_cstate"] = None
+        return state
+
     def __setstate__(self, state: dict) -> None:
         """Unpickle; a bank pickled where the core was built runs numpy where it is not."""
         self.__dict__.update(state)
+        self._cstate = None
         if "_ind_xi" in state:  # pickled when the inducing inputs were stored by point
             self._ind_xit = np.ascontiguousarray(self.__dict__.pop("_ind_xi").transpose(0, 2, 1))
         if "_step_out" not in state:  # pickled before the per-step outputs were kept
@@ -474,12 +507,8 @@ class AFVSGPBank:
         n = len(idx)
         if self._compiled:
             bvec, sig = np.empty((n, c)), np.empty((n, c, c))
-            rc = _core.predict(self._dims, n, self._ind_xit, self.log_var, self.inv_ls2,
-                               self._ubt, self.var,
-                               self._l_oo, self._stats, self._scale, self.noise_variance,
-                               self._l_d, self._cvec, self._fresh, np.ascontiguousarray(idx),
-                               np.ascontiguousarray(xi), bvec, sig, self._work, self._lsl,
-                               self._white)
+            rc = _core.predict(self._core_state(), n, np.ascontiguousarray(idx),
+                               np.ascontiguousarray(xi), bvec, sig)
             if rc == 0:
                 return bvec, sig
         kt = self._kt(rows, xi)
@@ -591,13 +620,7 @@ class AFVSGPBank:
         ub[1:] = u
         xi, z = np.ascontiguousarray(xi), np.ascontiguousarray(z)
         k_new, kss, resid = self._step_out
-        rc, n_cand, best, refresh, renormalise = _core.update(
-            self._dims, self._ind_xit, self.log_var, self.inv_ls2, self._ubt, self.var,
-            self._koo_inv,
-            self._stats, self._scale, self._wk, self._wz, self._wxt, self._wubt, xi, ub, z,
-            k_new, kss, resid, self._work, self._head, self._count, self.n_seen_, self._fresh,
-            self._since_refresh, self.noise_variance, self._inv_phi, self._phi_p,
-            self._add_floor, self._refresh_every, self._l_oo, self._lsl, self._white)
+        rc, n_cand, best, refresh, renormalise = _core.update(self._core_state(), xi, ub, z)
         if rc != 0:
             return None
         if refresh:
@@ -772,10 +795,9 @@ class AFVSGPBank:
         m, cnt = int(self.n_inducing_[k]), int(self._count[k])
         lvec, col, srow = np.empty(self._mp), np.empty(self.window), np.empty(self._mp)
         code, drop, dd, sdiag, r_new = _core.candidate(
-            self._dims, k, m, int(self._head[k]), cnt, float(kss), float(self.jitter[k]),
-            self.swap_margin, self._l_oo, self._koo_inv, self._stats, self._scale, self._wk,
-            self._wz, self._wxt, self._wubt, self.inv_ls2, self.log_var, self._pow_rev,
-            np.ascontiguousarray(xi), ub, np.ascontiguousarray(k_new), lvec, col, srow, self._work)
+            self._core_state(), k, m, int(self._head[k]), cnt, float(kss),
+            float(self.jitter[k]), np.ascontiguousarray(xi), ub, np.ascontiguousarray(k_new),
+            lvec, col, srow)
         if code == 0:
             return None
         return _Candidate(drop if code == 2 else None, lvec[:m], col[:cnt], srow[:m], dd,
@@ -794,12 +816,10 @@ class AFVSGPBank:
         self._set_exponent_rows(k, pos, xi)
         kss_jit = kss + self.jitter[k]
         if self._compiled:
-            if _core.install(self._dims, k, m, pos, drop is not None, int(self._count[k]),
-                             float(kss_jit), float(cand.sdiag), float(cand.r_new),
-                             float(cand.dd), xi, ub, k_new, cand.srow, cand.col, cand.lvec,
-                             self._ind_xit, self._ind_ub, self._ubt, self._koo, self._stats,
-                             self._wk, self._l_oo, self._koo_inv, self._fresh, self.n_added_,
-                             self.n_removed_) == 0:
+            if _core.install(self._core_state(), k, m, pos, drop is not None,
+                             int(self._count[k]), float(kss_jit), float(cand.sdiag),
+                             float(cand.r_new), float(cand.dd), xi, ub, k_new, cand.srow,
+                             cand.col, cand.lvec) == 0:
                 self.n_inducing_[k] = mm
                 return
         else:

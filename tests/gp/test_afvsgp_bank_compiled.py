@@ -249,6 +249,47 @@ def test_compiled_step_hands_skipped_samples_and_huge_inputs_to_numpy():
     np.testing.assert_allclose(sc[3], np.diag(comp.var[3]), rtol=1e-12, atol=0)
 
 
+def _state_arrays(bank):
+    """The arguments of the core's ``state`` for ``bank``, as the bank passes them."""
+    arrays = {name: getattr(bank, attr) for name, attr in afvsgp_bank._CORE_ARRAYS}
+    arrays["k_new"], arrays["kss"], arrays["resid"] = bank._step_out
+    return bank._dims, arrays, (bank._inv_phi, bank._phi_p, bank._add_floor,
+                                bank.swap_margin, bank._refresh_every)
+
+
+@needs_core
+def test_the_core_takes_the_banks_arrays_once_and_checks_them():
+    """The core's state holds the bank's arrays (built on first use, again after new arrays
+    are allocated, never pickled); a state of wrong sizes, dtypes, layouts or names is
+    refused with a ValueError naming the array, before anything is taken."""
+    streams = _streams(P + 5)
+    u = streams[0][1]
+    bank = AFVSGPBank.from_learners(_learners(streams, u), backend="compiled")
+    core = afvsgp_bank._core
+    state = bank._core_state()
+    assert isinstance(state, core.State) and bank._core_state() is state
+    assert pickle.loads(pickle.dumps(bank))._cstate is None
+    assert copy.deepcopy(bank)._core_state() is not state
+    dims, arrays, settings = _state_arrays(bank)
+    for name, bad, message in [
+            ("ind_xit", bank._ind_xi, "ind_xit must be a C-contiguous"),  # the (K, Mp, b) view
+            ("stats", bank._stats[:, :, 1:].copy(), "stats must hold"),
+            ("head", bank._head.astype(np.int32), "head must be of dtype int64"),
+            ("fresh", bank._fresh.astype(np.int64), "fresh must be of dtype bool"),
+            ("log_var", np.zeros(3), "log_var must hold 12 elements. Got: 3")]:
+        with pytest.raises(ValueError, match=message):
+            core.state(dims, {**arrays, name: bad}, settings)
+    with pytest.raises(ValueError, match="arrays has no stats"):
+        core.state(dims, {**{k: v for k, v in arrays.items() if k != "stats"}, "x": None},
+                   settings)
+    with pytest.raises(ValueError, match="must hold the 32 arrays"):
+        core.state(dims, {**arrays, "x": None}, settings)
+    with pytest.raises(ValueError, match="dims must be positive"):
+        core.state((0, *dims[1:]), arrays, settings)
+    with pytest.raises(TypeError):
+        core.update(arrays, np.zeros((K, 3)), np.ones(3), np.zeros(K))
+
+
 @needs_core
 def test_compiled_entry_points_refuse_bad_input():
     """Wrong sizes, dtypes and rows give a ValueError naming the argument; a rejected update
@@ -258,31 +299,27 @@ def test_compiled_entry_points_refuse_bad_input():
     bank = AFVSGPBank.from_learners(_learners(streams, u), backend="compiled")
     core = afvsgp_bank._core
     n, c = 2, bank._c
-    args = [bank._dims, n, bank._ind_xit, bank.log_var, bank.inv_ls2, bank._ubt, bank.var,
-            bank._l_oo, bank._stats, bank._scale, bank.noise_variance, bank._l_d, bank._cvec,
-            bank._fresh, np.array([0, 1]), np.zeros((n, 3)), np.empty((n, c)),
-            np.empty((n, c, c)), bank._work, bank._lsl, bank._white]
+    args = [bank._core_state(), n, np.array([0, 1]), np.zeros((n, 3)), np.empty((n, c)),
+            np.empty((n, c, c))]
     assert core.predict(*args) == 0
     bad = list(args)
-    bad[14] = np.array([0, K])
+    bad[2] = np.array([0, K])
     with pytest.raises(ValueError, match="rows"):
         core.predict(*bad)
     bad = list(args)
-    bad[15] = np.zeros((n, 4))
+    bad[3] = np.zeros((n, 4))
     with pytest.raises(ValueError, match="xi must hold 6 elements"):
         core.predict(*bad)
     bad = list(args)
-    bad[14] = np.array([0, 1], dtype=np.int32)
+    bad[2] = np.array([0, 1], dtype=np.int32)
     with pytest.raises(ValueError, match="rows must be of dtype int64"):
         core.predict(*bad)
     bad = list(args)
-    bad[16] = np.empty((n, c))[:, ::-1]
+    bad[4] = np.empty((n, c))[:, ::-1]
     with pytest.raises(ValueError, match="b_out must be a C-contiguous"):
         core.predict(*bad)
-    bad = list(args)
-    bad[2] = bank._ind_xi  # the (K, Mp, b) view of the storage by dimension
-    with pytest.raises(ValueError, match="ind_xit must be a C-contiguous"):
-        core.predict(*bad)
+    with pytest.raises(ValueError, match="z must hold 4 elements"):
+        core.update(bank._core_state(), np.zeros((K, 3)), np.ones(c), np.zeros(K + 1))
     with pytest.raises(ValueError, match="k and m"):
         core.factor_inverse(bank._dims, K, 3, True, bank._koo, bank._l_oo, bank._koo_inv,
                             bank._fresh)
@@ -426,15 +463,13 @@ def test_compiled_install_refuses_a_slot_out_of_range():
     m = int(bank.n_inducing_[0])
     snap = pickle.dumps(bank)
     args = (0, m, m, True, 1, 1.0, 1.0, 0.0, 1.0, np.zeros(3), np.ones(bank._c),
-            np.zeros(bank._mp), np.zeros(m), np.zeros(1), np.zeros(m), bank._ind_xit,
-            bank._ind_ub, bank._ubt, bank._koo, bank._stats, bank._wk, bank._l_oo,
-            bank._koo_inv, bank._fresh, bank.n_added_, bank.n_removed_)
+            np.zeros(bank._mp), np.zeros(m), np.zeros(1), np.zeros(m))
     with pytest.raises(ValueError, match="pos"):
-        afvsgp_bank._core.install(bank._dims, *args)
+        afvsgp_bank._core.install(bank._core_state(), *args)
     bad = list(args)
     bad[2], bad[12] = 0, np.zeros(m + 1)  # a replace with srow too long
     with pytest.raises(ValueError, match="srow must hold"):
-        afvsgp_bank._core.install(bank._dims, *bad)
+        afvsgp_bank._core.install(bank._core_state(), *bad)
     assert pickle.dumps(bank) == snap  # nothing changed
 
 
