@@ -6,7 +6,11 @@ imported when an environment is made):
 - ``afvsgp_gym/FrankaObstacleStatic-v0``
 - ``afvsgp_gym/FrankaObstacleDynamic-v0``
 - ``afvsgp_gym/FrankaObstacleRandom-v0``
+- ``afvsgp_gym/FrankaObstacleReach-v0``
 - ``afvsgp_gym/PointMassObstacle-v0``
+
+``compiled_extensions()`` says which optional C extensions were built
+(:mod:`afvsgp_gym._compiled`).
 """
 
 from afvsgp_gym._compiled import available as compiled_extensions

@@ -236,7 +236,8 @@ def cbfpy_comparison(n_barriers: int, n: int, seed: int = 0, block: int = 50) ->
     """cbfpy's configurations and our known-model filter on the same states in one run:
     blocks of ``block`` states, each solved by ours and then by every cbfpy configuration
     (``block=1`` interleaves every call; the code of one filter then evicts the other's from
-    the caches, which costs ours about as much as its solve, see benchmarks/solver.md).
+    the caches, which costs ours about as much as its solve; docs/performance.md has the
+    figures of ``block=50``).
     ``ours_with_backup``: ours given a backup action (a joint-damping brake, as the env
     wrapper passes one), returned flagged on infeasible states instead of the
     max-worst-margin fallback. Median / p99 per call (first call of each apart,

@@ -14,7 +14,7 @@ from afvsgp_gym.validation import check_count, check_real
 __all__ = ["DEFAULT_BETA", "DEFAULT_RESIDUAL_CORRECTION", "FilterConfig"]
 
 #: Confidence multiplier of the chance constraint (eq. 49 replaced by a constant, as in
-#: Castaneda et al. 2021; the choice is measured in benchmarks/filter.md).
+#: Castaneda et al. 2021; the choice: docs/filter.md, "Defaults that differ from the paper").
 DEFAULT_BETA = 2.5
 
 #: Weight of the residual correction (an exponential average over ~1/0.2 = 5 steps).
@@ -125,7 +125,7 @@ class FilterConfig:
         One hyperparameter fit, on the barrier whose warm-up data has the largest mean square,
         shared by all barriers with each barrier's own output scale (True: the cost of one fit
         plus K posteriors), or one fit per barrier (K fits). Measured alike in safety and
-        tracking on the Franka sweeps (benchmarks/filter.md).
+        tracking on the Franka sweeps (docs/filter.md, docs/learners.md).
     online : bool
         Update the learners with every observed sample after warm-up.
     qp_solver : str or None

@@ -225,8 +225,9 @@ class LearnerEntry:
 #: Learner name -> bank construction. AFVSGP inside the filter keeps a window of P = 1000
 #: samples with phi = 0.999 and M = 40 inducing points, rebuilds [r, S] from the window every
 #: 25 P updates (the drift of the recursion stays ~1e-13 relative over 2e4 updates) and makes
-#: at most one inducing-set change per step (benchmarks/filter.md). The Franka envs suggest
-#: M = 30, P = 500 for their whole-arm sphere sets (``env.unwrapped.learner_defaults``).
+#: at most one inducing-set change per step (docs/filter.md, docs/learners.md). The Franka
+#: envs suggest M = 30, P = 500 for their whole-arm sphere sets
+#: (``env.unwrapped.learner_defaults``).
 REGISTRY: dict[str, LearnerEntry] = {
     "none": LearnerEntry(),
     "oracle": LearnerEntry(true_terms=True),

@@ -199,8 +199,8 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
 
     With the exact model and no joint friction a CBF-filtered run keeps every barrier h >= 0
     with no arm contact in every scenario and seed tested (tests/envs/test_franka.py,
-    benchmarks/filter.md); with friction the true terms are not exact (above) and it does not
-    always (benchmarks/acceptance.md, "The oracle on the randomised plants").
+    docs/safety.md); with friction the true terms are not exact (above) and it does not
+    always (docs/safety.md, "What this does not show").
 
     ## Arguments
     | Parameter | Default | Description |
@@ -275,7 +275,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
     #: AFVSGP settings suggested to ``SafetyFilter`` (under the user's ``learner_kwargs``) when
     #: the sphere set has several spheres (one learner each): M = 30 inducing points and a
     #: window of P = 500 samples instead of the method's 40 and 1000 (the evidence:
-    #: benchmarks/filter.md, "M = 30, P = 500 for the whole arm"). One sphere (the paper's
+    #: docs/filter.md, "Defaults that differ from the paper"). One sphere (the paper's
     #: "ee") keeps the method's settings.
     ARM_LEARNER_DEFAULTS: dict[str, dict[str, Any]] = {"afvsgp": {"num_inducing": 30,
                                                                    "window": 500}}
