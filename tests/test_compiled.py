@@ -45,10 +45,12 @@ def test_backends_resolve_to_the_extensions_they_run(without_extensions):
         resolve("fast")
     without_extensions("cones", "bank")
     assert resolve("auto") == Backend("auto", step=built["step"])
-    with pytest.raises(ImportError, match=r"needs afvsgp_gym\.cbf\._cones, afvsgp_gym\.gp\._bank, "
-                                          r"which were not built"):
+    step = "afvsgp_gym.cbf._step, " if not built["step"] else ""
+    with pytest.raises(ImportError, match=rf"needs afvsgp_gym\.cbf\._cones, {step}"
+                                          r"afvsgp_gym\.gp\._bank, which were not built"):
         resolve("compiled")
-    assert resolve("compiled", ("step",)).step is built["step"] or not built["step"]
+    if built["step"]:
+        assert resolve("compiled", ("step",)) == Backend("compiled", step=True)
 
 
 def test_an_extension_built_from_other_sources_counts_as_not_built(monkeypatch):
@@ -101,7 +103,7 @@ def test_the_backend_reaches_every_part_of_the_filter():
 
 def test_backend_compiled_without_an_extension_is_an_import_error(without_extensions):
     without_extensions("step")
-    with pytest.raises(ImportError, match=r"afvsgp_gym\.cbf\._step, which was not built"):
+    with pytest.raises(ImportError, match=r"needs (\S+, )*afvsgp_gym\.cbf\._step,? .*not built"):
         SafetyController(-np.ones(2), np.ones(2), backend="compiled")
     assert not SafetyController(-np.ones(2), np.ones(2)).backend.step
 

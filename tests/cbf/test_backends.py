@@ -46,6 +46,7 @@ def _same_decision(a, b):
     assert a.status in CLARABEL and b.status.startswith("certified:"), (a.status, b.status)
 
 
+@needs_all
 @pytest.mark.parametrize("r", [1, 2, 3])
 def test_known_model_filter_is_the_same_digits_on_either_backend(r):
     """No learner (the known-model QP): the barriers in the program (ties at the activation
