@@ -66,9 +66,9 @@ def measure_samples(
 ) -> tuple[np.ndarray, np.ndarray, int]:
     """:func:`measure_all` and the number of samples whose ``z`` or ``xi`` is not finite (the
     elementwise part in the compiled step glue unless ``backend`` is ``"numpy"``: the same
-    digits). ``degrees``
-    (K,): each barrier's relative degree when they differ (the finite difference of its own
-    highest measured derivative, column ``r_k - 1``); None: the terms' own."""
+    digits). ``degrees`` (K,): each barrier's relative degree when they differ (the finite
+    difference of its own highest measured derivative, column ``r_k - 1``); None: the terms'
+    own."""
     if not (math.isfinite(dt) and dt > 0):
         raise ValueError(f"dt must be finite and positive. Got: {dt!r}")
     u = np.asarray(u, dtype=np.float64)

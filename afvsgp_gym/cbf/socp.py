@@ -111,11 +111,12 @@ class SOCPFilter:
     fast_path : bool
         Use the certified fast paths (False: clarabel for every active call; for reference
         and benchmarks).
-    backend : str
+    backend : str or Backend
         ``"auto"`` (default): the compiled several-cones path
         (:mod:`afvsgp_gym.cbf.binding_cones`) for programs with several cones when it is
         built; ``"numpy"``: the numpy paths only; ``"compiled"``: require it (``ImportError``
-        if it was not built). See :mod:`afvsgp_gym._compiled`.
+        if it was not built); a resolved ``Backend``: as it says (the filter's). See
+        :mod:`afvsgp_gym._compiled`.
 
     Attributes
     ----------

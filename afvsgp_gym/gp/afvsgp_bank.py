@@ -128,10 +128,11 @@ class AFVSGPBank:
         27 residual go first, the others are considered again with their next samples): it
         bounds the worst-case step time. None examines every candidate, exactly as K
         separate learners do.
-    backend : str
+    backend : str or Backend
         Where the per-step arithmetic runs: ``"auto"`` (default) in the compiled core when it
         is built, ``"numpy"`` in numpy, ``"compiled"`` in the compiled core (``ImportError``
-        when it was not built); see :mod:`afvsgp_gym._compiled`. Settable later.
+        when it was not built), or as a resolved ``Backend`` says (the filter's); see
+        :mod:`afvsgp_gym._compiled`. Settable later.
 
     Attributes
     ----------
