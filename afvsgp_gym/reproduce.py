@@ -392,28 +392,18 @@ def reproduce(
 
 
 def _code_version() -> dict:
-    """Package version and, in a git checkout, the commit and whether the tree was modified."""
-    import subprocess
-
+    """The package's version and :func:`~afvsgp_gym.evaluation.code_version` (in a git
+    checkout its commit, ``-dirty`` when the tree was modified), as episode records say it."""
     import afvsgp_gym
+    from afvsgp_gym.evaluation import code_version
 
-    out: dict[str, Any] = {"version": afvsgp_gym.__version__}
-    root = Path(afvsgp_gym.__file__).resolve().parent.parent
-    try:
-        out["git_commit"] = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, text=True,
-                                           capture_output=True, timeout=5).stdout.strip()
-        out["git_modified"] = subprocess.run(
-            ["git", "status", "--porcelain", "--untracked-files=no"], cwd=root, text=True,
-            capture_output=True, timeout=5).stdout.splitlines()
-    except (OSError, subprocess.SubprocessError):
-        pass
-    return out
+    return {"version": afvsgp_gym.__version__, "code_version": code_version()}
 
 
 def _jsonable(x: Any) -> Any:
-    from afvsgp_gym.evaluation import _jsonable as conv
+    from afvsgp_gym.evaluation import jsonable
 
-    return conv(x)
+    return jsonable(x)
 
 
 def _save_traces(path: Path, series: dict, switch_time: float, h_traces: dict) -> None:

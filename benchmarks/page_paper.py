@@ -109,8 +109,9 @@ def verdicts(res: dict, paper: dict) -> list[str]:
 def build() -> dict:
     res, proto = read_json(RESULT), read_json(PROTOCOL)
     cfg, paper = proto["config"], proto["paper"]["table1"]
+    code = proto.get("code") or {}  # git_commit: protocols written before code_version
     meta = {"machine": proto.get("machine"), "date": proto.get("date"),
-            "code": (proto.get("code") or {}).get("git_commit", "")[:7] or None}
+            "code": code.get("code_version") or code.get("git_commit", "")[:7] or None}
     n_stream = res["table1"]["afvsgp"]["n_stream"]
     out = [provenance("benchmarks/page_paper.py", ["docs/reproduce.json",
                                                    "docs/reproduce_protocol.json"]), "",

@@ -4,7 +4,7 @@
     python benchmarks/page_rl.py --check    # exit 1 if it is not what this writes
 
 Reads ``benchmarks/results/rl_results.json`` (PPO behind the AFVSGP filter, behind the oracle
-filter and with no filter: the ``rl_results.json`` that ``python -m afvsgp_gym.benchmarks.rl``
+filter and with no filter: the ``rl_results.json`` that ``python benchmarks/rl_benchmark.py``
 writes, runs of one machine and code merged into one file) and
 ``benchmarks/results/rl_results_explore005.json`` (AFVSGP agents trained behind the filter with
 ``online_exploration=0.05``). Each gives its ``machine``, ``date``, ``code`` and ``commands``.
@@ -25,6 +25,10 @@ from docgen import (
     welch_p,
     wilson,
 )
+
+#: The benchmark's command when the results were made, and the script that runs it now (the
+#: results files keep the commands that made them; the page shows how to run them today).
+MOVED = ("python -m afvsgp_gym.benchmarks.rl", "python benchmarks/rl_benchmark.py")
 
 MAIN = RESULTS / "rl_results.json"
 EXPLORE = RESULTS / "rl_results_explore005.json"
@@ -131,7 +135,7 @@ def build() -> dict:
            "",
            measured(data),
            "",
-           "```bash"] + [*data.get("commands", [])] + [
+           "```bash"] + [c.replace(*MOVED) for c in data.get("commands", [])] + [
            "python benchmarks/page_rl.py          # this page",
            "```", "",
            "![Training curves: return, success rate and cumulative training cost against "

@@ -20,3 +20,10 @@ def test_import_does_not_import_mujoco():
     code = "import sys, afvsgp_gym; print('mujoco' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
+
+
+def test_docstring_lists_every_registered_id():
+    ids = sorted(i for i in gym.registry if i.startswith("afvsgp_gym/"))
+    assert len(ids) == 5
+    for env_id in ids:
+        assert f"``{env_id}``" in afvsgp_gym.__doc__

@@ -24,12 +24,12 @@ def machine() -> str:
 
 
 def _learners_core_simd() -> str | None:
-    """The copy of the learners' compiled hot loops in use ('avx512f', 'avx2', 'base')."""
-    try:
-        from afvsgp_gym.gp import _bank
-    except ImportError:
-        return None
-    return _bank.simd()[0]
+    """The copy of the learners' compiled hot loops in use ('avx512f', 'avx2', 'base'); None
+    without the compiled core."""
+    from afvsgp_gym._compiled import extension
+
+    core = extension("bank")
+    return None if core is None else core.simd()[0]
 
 
 def _numpy_avx512() -> bool | None:

@@ -39,6 +39,7 @@ from typing import Any
 
 import numpy as np
 
+from afvsgp_gym._compiled import resolve
 from afvsgp_gym.benchmarks._machine import calibration_line, machine
 from afvsgp_gym.cbf.learners import REGISTRY
 from afvsgp_gym.envs.franka import FrankaObstacleEnv as FrankaEnv
@@ -53,7 +54,8 @@ METHOD_LEARNER = {k: REGISTRY["afvsgp"].default_kwargs[k] for k in ARM_LEARNER}
 
 #: name -> env kwargs; "filter": SafetyFilter options on top of the env's suggestions;
 #: "fast_path": False turns the solver's certified fast path off, so every cone program goes
-#: to clarabel (the step without what the fast path saves)
+#: to clarabel (the step without what the fast path saves); the "numpy" rows run the cone
+#: program, the learners or everything (the backend "numpy": no compiled code) in numpy
 #: the filter as it was before the joint-limit barriers: the obstacle pairs only, the linear
 #: class-K chain, the warm-up around the proposal with the method's noise
 BEFORE_LIMITS: dict[str, Any] = {"limit_barriers": False, "filter": {
@@ -69,9 +71,9 @@ CONFIGS: dict[str, dict[str, Any]] = {
     "21 (arm), before the limits": BEFORE_LIMITS,
     "21 (arm), method settings": {"filter": {"learner_kwargs": METHOD_LEARNER}},
     "21 (arm), clarabel only": {"fast_path": False},
-    "21 (arm), numpy solver": {"filter": {"compiled_solver": False}},
-    "21 (arm), numpy learners": {"filter": {"compiled_learners": False}},
-    "21 (arm), numpy only": {"filter": {"compiled_solver": False, "compiled_learners": False}},
+    "21 (arm), numpy solver": {"filter": {"backend": resolve("auto", ("step", "bank"))}},
+    "21 (arm), numpy learners": {"filter": {"backend": resolve("auto", ("cones", "step"))}},
+    "21 (arm), numpy only": {"filter": {"backend": "numpy"}},
     "42 (arm, 2 obstacles)": {"obstacles": "two", "limit_barriers": False},
 }
 

@@ -17,7 +17,8 @@ The stream is a synthetic robot-like one: a 3-D periodic latent state embedded i
 features, m=7 actions, dB = sin(2 s0) + 0.3 sum_j u_j cos(s1 + j) + noise. BLAS runs on one
 thread during the measurement (OpenBLAS threads only add jitter at these sizes).
 
-Run: ``python -m afvsgp_gym.benchmarks.gp [--quick]``; results and history in benchmarks/gp.md.
+Run: ``python -m afvsgp_gym.benchmarks.gp [--quick]`` (or ``afvsgp-gym bench --only gp``);
+what it measures: docs/performance.md, "Other benchmarks".
 """
 
 from __future__ import annotations

@@ -19,22 +19,20 @@ violated (relative to its tolerance) at the projection joins it, a cone whose mu
 out negative leaves, until no other cone is violated.
 
 The iteration runs compiled only (``afvsgp_gym.cbf._cones``, built with the package when a C
-compiler is there; :data:`AVAILABLE`): without it the filter takes its numpy paths
-(``benchmarks/solver.md`` says why there is no numpy version). The answer is only a
-candidate: :class:`~afvsgp_gym.cbf.socp.SOCPFilter` certifies it (:func:`fastpath.certify`).
+compiler is there, see :mod:`afvsgp_gym._compiled`): without it, or with the backend
+``"numpy"``, the filter takes its numpy paths (``docs/filter.md`` says why there is no numpy
+version). The answer is only a candidate:
+:class:`~afvsgp_gym.cbf.socp.SOCPFilter` certifies it (:func:`fastpath.certify`).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-try:
-    from afvsgp_gym.cbf import _cones
-except ImportError:  # built without a C compiler
-    _cones = None
+from afvsgp_gym import _compiled
 
-#: True when the compiled core is importable.
-AVAILABLE = _cones is not None
+_cones = _compiled.extension("cones")
+
 #: Largest action dimension, binding set and program (cones) the compiled core takes.
 MAX_ACTIONS, MAX_CONES, MAX_PROGRAM_CONES = 16, 8, 64
 #: The compiled core's return code for an answer with a negative multiplier.

@@ -8,12 +8,13 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
+from afvsgp_gym._compiled import BACKENDS, Backend
 from afvsgp_gym.validation import check_count, check_real
 
 __all__ = ["DEFAULT_BETA", "DEFAULT_RESIDUAL_CORRECTION", "FilterConfig"]
 
 #: Confidence multiplier of the chance constraint (eq. 49 replaced by a constant, as in
-#: Castaneda et al. 2021; the choice is measured in benchmarks/filter.md).
+#: Castaneda et al. 2021; the choice: docs/filter.md, "Defaults that differ from the paper").
 DEFAULT_BETA = 2.5
 
 #: Weight of the residual correction (an exponential average over ~1/0.2 = 5 steps).
@@ -124,17 +125,19 @@ class FilterConfig:
         One hyperparameter fit, on the barrier whose warm-up data has the largest mean square,
         shared by all barriers with each barrier's own output scale (True: the cost of one fit
         plus K posteriors), or one fit per barrier (K fits). Measured alike in safety and
-        tracking on the Franka sweeps (benchmarks/filter.md).
+        tracking on the Franka sweeps (docs/filter.md, docs/learners.md).
     online : bool
         Update the learners with every observed sample after warm-up.
     qp_solver : str or None
         qpsolvers backend for the known-model QP (None: clarabel directly).
-    compiled_solver : bool or None
-        The cone program's compiled several-cones path (``SOCPFilter(compiled=...)``): None
-        when it is built, True to require it, False for the numpy paths only.
-    compiled_learners : bool or None
-        The AFVSGP learners' compiled per-step arithmetic (``AFVSGPBank(compiled=...)``): None
-        when it is built, True to require it, False for numpy only.
+    backend : str
+        Which code runs the filter's arithmetic: ``"auto"`` (default) the compiled extensions
+        that are built (the cone program's several-cones path, the controller's step glue,
+        the AFVSGP learners' core), ``"numpy"`` the numpy paths only (the reference; no
+        compiled code runs), ``"compiled"`` all three extensions (``ImportError`` naming
+        those that were not built when the filter is made). For diagnostics, a
+        ``Backend`` of some extensions only, e.g. ``_compiled.resolve("compiled",
+        ("step", "bank"))`` for the cone program in numpy (:mod:`afvsgp_gym._compiled`).
     seed : int or None
         Seed of the exploration noise.
     """
@@ -158,8 +161,7 @@ class FilterConfig:
     shared_hyperparameters: bool = True
     online: bool = True
     qp_solver: str | None = None
-    compiled_solver: bool | None = None
-    compiled_learners: bool | None = None
+    backend: str | Backend = "auto"
     seed: int | None = None
 
     def __post_init__(self) -> None:
@@ -192,10 +194,9 @@ class FilterConfig:
             object.__setattr__(self, "learner_kwargs", {})
         if not isinstance(self.learner_kwargs, dict):
             raise ValueError(f"learner_kwargs must be a dict, got {self.learner_kwargs!r}")
-        for name in ("compiled_solver", "compiled_learners"):
-            value = getattr(self, name)
-            if value is not None and not isinstance(value, bool):
-                raise ValueError(f"{name} must be None, True or False, got {value!r}")
+        if not isinstance(self.backend, Backend) and (
+                not isinstance(self.backend, str) or self.backend not in BACKENDS):
+            raise ValueError(f"backend must be one of {list(BACKENDS)}. Got: {self.backend!r}")
         if self.seed is not None:
             check_count(self.seed, "seed", 0)
 

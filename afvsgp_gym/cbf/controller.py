@@ -34,13 +34,9 @@ from typing import Any
 import numpy as np
 from scipy.linalg.lapack import dpotrf
 
+from afvsgp_gym import _compiled
 from afvsgp_gym.cbf.config import FilterConfig
 from afvsgp_gym.cbf.exploration import Exploration, exploration_scale
-
-try:
-    from afvsgp_gym.cbf import _step
-except ImportError:  # built without a C compiler: the numpy versions
-    _step = None
 from afvsgp_gym.cbf.hocbf import HOCBF, BarrierConstraints
 from afvsgp_gym.cbf.learners import REGISTRY, check_learner_name, make_bank
 from afvsgp_gym.cbf.measurement import measure_samples
@@ -50,6 +46,11 @@ from afvsgp_gym.types import BarrierLayout, BarrierSet
 from afvsgp_gym.validation import check_count
 
 __all__ = ["FilterResult", "SafetyController", "StepPrediction"]
+
+_step = _compiled.extension("step")
+
+#: Options that were replaced, and by what (named in the error for the old name).
+_REPLACED_OPTIONS = {"compiled_solver": "backend", "compiled_learners": "backend"}
 
 
 @dataclass(frozen=True)
@@ -118,11 +119,13 @@ def cone_matrix(sigma: np.ndarray, beta: float) -> np.ndarray:
     return (beta * np.sqrt(np.maximum(w, 0.0)))[:, None] * v.T
 
 
-def cone_matrices(sigma: np.ndarray, beta: float, compiled: bool | None = None) -> np.ndarray:
+def cone_matrices(sigma: np.ndarray, beta: float,
+                  backend: str | _compiled.Backend = "auto") -> np.ndarray:
     """:func:`cone_matrix` of every ``Sigma`` in the stack ``sigma`` (k, m+1, m+1): one
-    batched Cholesky when all are numerically positive definite, else one by one
-    (``compiled``: the batch in the compiled core, None: when it is built)."""
-    if ((compiled is None or compiled) and _step is not None and sigma.ndim == 3
+    batched Cholesky when all are numerically positive definite, else one by one (the batch
+    in the compiled step glue unless ``backend`` is ``"numpy"``, see
+    :mod:`afvsgp_gym._compiled`)."""
+    if (_compiled.resolve(backend, ("step",)).step and sigma.ndim == 3
             and 1 <= sigma.shape[1] <= 17):
         out = np.empty(sigma.shape)
         n, c = sigma.shape[:2]
@@ -179,8 +182,12 @@ class SafetyController:
         unknown = sorted(set(options) - set(FilterConfig.option_names()))
         if unknown:
             valid = list(FilterConfig.option_names())
-            raise ValueError(f"unknown option(s) {unknown}; valid: {valid}")
+            hint = "".join(f" ({name} was replaced by {_REPLACED_OPTIONS[name]})"
+                           for name in unknown if name in _REPLACED_OPTIONS)
+            raise ValueError(f"unknown option(s) {unknown}; valid: {valid}{hint}")
         self.config = cfg = replace(config or FilterConfig(), **options)
+        #: the compiled extensions this filter runs (``cfg.backend`` resolved)
+        self.backend = _compiled.resolve(cfg.backend)
         if layout is None:
             layout = BarrierLayout.uniform(K, cfg.relative_degree)
         elif not isinstance(layout, BarrierLayout) or len(layout) != K:
@@ -199,21 +206,22 @@ class SafetyController:
         self._degrees = None if layout.is_uniform else layout.relative_degree
         self._margin_gain = float(np.prod(self.hocbf.gains))  # d psi_r / d h
         self.socp = SOCPFilter(action_low, action_high, qp_solver=cfg.qp_solver,
-                               compiled=cfg.compiled_solver)
+                               backend=self.backend)
         self.low, self.high = self.socp.low, self.socp.high
         self.action_dim = self.socp.m
         entry = REGISTRY[self.learner_name]
         self.uses_true_terms = entry.true_terms
         self.bank = make_bank(self.learner_name, self.n_barriers, self.action_dim,
                               cfg.learner_kwargs, cfg.shared_hyperparameters,
-                              cfg.compiled_learners, layout)
+                              self.backend, layout)
         self.learns = self.bank.learns
         self.socp.prepare(self.n_barriers, cones=False)  # the QP: known model, mean fallback
         if self.learns and cfg.beta > 0:
             self.socp.prepare(self.n_barriers, cones=True)
         self.exploration = Exploration(self.low, self.high, cfg.exploration_noise,
                                        cfg.online_exploration, cfg.seed)
-        self.residuals = ResidualObserver(self.n_barriers, cfg.residual_correction)
+        self.residuals = ResidualObserver(self.n_barriers, cfg.residual_correction,
+                                          self.backend)
         self.learning = bool(cfg.online)
         self.fitted = not self.learns
         self._buffer: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
@@ -308,10 +316,10 @@ class SafetyController:
 
     def _finite_active_rows(self, c0: np.ndarray, c: np.ndarray,
                             bset: BarrierSet) -> np.ndarray | None:
-        """:meth:`_active_rows` in the compiled core when every term is finite; None when one
-        is not, or the core is not built or does not take these arrays (float64, C-ordered);
-        the paper's setting only (one degree, linear chain)."""
-        if _step is None or not self._plain:
+        """:meth:`_active_rows` in the compiled step glue when every term is finite; None when
+        one is not, or the backend does not run the glue, or it does not take these arrays
+        (float64, C-ordered); the paper's setting only (one degree, linear chain)."""
+        if not self.backend.step or not self._plain:
             return None
         d, xi = bset.derivatives, bset.xi
         K, r = d.shape
@@ -328,9 +336,10 @@ class SafetyController:
                        rows: np.ndarray, sig: np.ndarray) -> tuple[bool, np.ndarray | None]:
         """The learned mean and residual bias added to every constraint of the program in
         place (``a0 += bvec[:, 0] + bias[rows]``, ``a += bvec[:, 1:]``, eq. 05) and the cone
-        matrices :func:`cone_matrices` (``beta > 0``, else None), in the compiled core:
-        ``(True, G)``, or ``(False, None)`` with nothing changed without it."""
-        if _step is None:
+        matrices :func:`cone_matrices` (``beta > 0``, else None), in the compiled step glue:
+        ``(True, G)``, or ``(False, None)`` with nothing changed when the backend does not run
+        it."""
+        if not self.backend.step:
             return False, None
         beta = float(self.config.beta)
         n, c = sig.shape[:2]
@@ -341,7 +350,7 @@ class SafetyController:
         except (ValueError, TypeError):
             return False, None
         if rc != 0:  # a covariance not numerically positive definite: the eigen-factor
-            G = cone_matrices(sig, beta)
+            G = cone_matrices(sig, beta, self.backend)
         return True, G
 
     def filter(self, u_nom, terms, true_terms=None, u_backup=None) -> FilterResult:
@@ -408,7 +417,7 @@ class SafetyController:
                     u_nom = self._excite(u_nom, pred_rows, sig, a0[where], a[where])
                     if self.config.beta > 0:
                         G = np.zeros((len(rows), m + 1, m + 1))
-                        G[where] = cone_matrices(sig, self.config.beta)
+                        G[where] = cone_matrices(sig, self.config.beta, self.backend)
             except Exception as exc:  # a learner failure must not stop the loop
                 self.last_error = f"{type(exc).__name__}: {exc}"
                 a0 = np.full(len(rows), np.nan)
@@ -474,7 +483,7 @@ class SafetyController:
         rho = exploration_scale(sig, a0, a, u_nom, self.low, self.high,
                                 np.sqrt(self.bank.noise_variance(rows)),
                                 self.exploration.half_range, self.config.exploration_threshold,
-                                2.0 * max(self.config.beta, 1.0))
+                                2.0 * max(self.config.beta, 1.0), self.backend)
         if rho < 0.0:  # no barrier gated (NaN is not: full noise)
             return u_nom
         return self.exploration.perturb(u_nom, warm=False, scale=rho)
@@ -497,7 +506,7 @@ class SafetyController:
         if u.shape != (self.action_dim,):
             raise ValueError(f"u_applied must have shape ({self.action_dim},). Got: {u.shape}")
         with np.errstate(invalid="ignore", over="ignore"):
-            xi, z, n_bad = measure_samples(before, u, after, dt, self._degrees)
+            xi, z, n_bad = measure_samples(before, u, after, dt, self._degrees, self.backend)
         if n_bad:  # some sample is not finite
             bad = ~(np.isfinite(z) & np.all(np.isfinite(xi), axis=1))
             self.n_skipped_samples += int(bad.sum())

@@ -14,14 +14,12 @@ import math
 
 import numpy as np
 
+from afvsgp_gym import _compiled
 from afvsgp_gym.cbf.fastpath import clip
 
-try:
-    from afvsgp_gym.cbf import _step
-except ImportError:  # built without a C compiler: the numpy versions
-    _step = None
-
 __all__ = ["Exploration", "exploration_scale", "relative_gain_uncertainty"]
+
+_step = _compiled.extension("step")
 
 
 class Exploration:
@@ -74,7 +72,7 @@ def relative_gain_uncertainty(sigma: np.ndarray, gain: np.ndarray,
 def exploration_scale(sigma: np.ndarray, a0: np.ndarray, a: np.ndarray, u_nom: np.ndarray,
                       low: np.ndarray, high: np.ndarray, noise_std: np.ndarray,
                       half_range: np.ndarray, threshold: float, reach: float,
-                      compiled: bool | None = None) -> float:
+                      backend: str | _compiled.Backend = "auto") -> float:
     """The scale of the online exploration noise at the proposal ``u_nom``, or -1.0 for none.
 
     With ``u = clip(u_nom)`` and ``ubar = [1, u]``, barrier ``k`` (``sigma`` (k, m+1, m+1) its
@@ -82,9 +80,10 @@ def exploration_scale(sigma: np.ndarray, a0: np.ndarray, a: np.ndarray, u_nom: n
     deviation ``std_k = sqrt(ubar' Sigma_k ubar)`` exceeds ``threshold`` noise standard
     deviations ``noise_std`` and the mean margin is below ``reach std_k``. The answer is the
     largest :func:`relative_gain_uncertainty` among the gated barriers (NaN if one is NaN),
-    -1.0 when none is gated. ``compiled``: the compiled core (None: when it is built)."""
+    -1.0 when none is gated. In the compiled step glue unless ``backend`` is ``"numpy"``
+    (:mod:`afvsgp_gym._compiled`)."""
     n, m = np.shape(a)
-    if (compiled is None or compiled) and _step is not None and n and m + 1 <= 17:
+    if _compiled.resolve(backend, ("step",)).step and n and m + 1 <= 17:
         arrays = (sigma, a0, a, u_nom, low, high, noise_std, half_range)
         try:  # as they are when C-ordered float64 (the controller's), else converted
             return _step.exploration_scale(n, m, *arrays, float(threshold), float(reach))

@@ -135,12 +135,12 @@ class LoopBank:
 
 class AFVSGPLearnerBank(LoopBank):
     """AFVSGP learners fitted one by one (or shared), then run as one :class:`AFVSGPBank`
-    (``compiled``: its compiled core, see that class)."""
+    (``backend``: whether it runs its compiled core, see that class)."""
 
     def __init__(self, n_barriers: int, action_dim: int, cls_name: str = "AFVSGP",
-                 compiled: bool | None = None, **kwargs):
+                 backend="auto", **kwargs):
         super().__init__(n_barriers, action_dim, cls_name, **kwargs)
-        self.compiled = compiled
+        self.backend = backend
         self.bank = None
 
     def fit(self, datasets, learn_hyperparameters: bool = True, groups=None) -> None:
@@ -148,7 +148,7 @@ class AFVSGPLearnerBank(LoopBank):
 
         super().fit(datasets, learn_hyperparameters, groups)
         self.bank = AFVSGPBank.from_learners(self.learners, max_inducing_candidates=1,
-                                             compiled=self.compiled)
+                                             backend=self.backend)
         self.learners = []  # the bank holds the state from here on
 
     def predict_affine(self, xi, rows):
@@ -225,8 +225,9 @@ class LearnerEntry:
 #: Learner name -> bank construction. AFVSGP inside the filter keeps a window of P = 1000
 #: samples with phi = 0.999 and M = 40 inducing points, rebuilds [r, S] from the window every
 #: 25 P updates (the drift of the recursion stays ~1e-13 relative over 2e4 updates) and makes
-#: at most one inducing-set change per step (benchmarks/filter.md). The Franka envs suggest
-#: M = 30, P = 500 for their whole-arm sphere sets (``env.unwrapped.learner_defaults``).
+#: at most one inducing-set change per step (docs/filter.md, docs/learners.md). The Franka
+#: envs suggest M = 30, P = 500 for their whole-arm sphere sets
+#: (``env.unwrapped.learner_defaults``).
 REGISTRY: dict[str, LearnerEntry] = {
     "none": LearnerEntry(),
     "oracle": LearnerEntry(true_terms=True),
@@ -250,11 +251,11 @@ def check_learner_name(name) -> str:
 
 
 def make_bank(name: str, n_barriers: int, action_dim: int, learner_kwargs: dict | None = None,
-              shared_hyperparameters: bool = True, compiled: bool | None = None,
+              shared_hyperparameters: bool = True, backend="auto",
               layout=None) -> LearnerBank:
     """The bank of K = ``n_barriers`` learners called ``name`` (``learner_kwargs`` on top of
-    the registry's defaults go to each learner's constructor; ``compiled``: the AFVSGP
-    bank's compiled core, see :class:`~afvsgp_gym.gp.afvsgp_bank.AFVSGPBank`). With a
+    the registry's defaults go to each learner's constructor; ``backend``: whether the AFVSGP
+    bank runs its compiled core, see :class:`~afvsgp_gym.gp.afvsgp_bank.AFVSGPBank`). With a
     :class:`~afvsgp_gym.types.BarrierLayout` whose barriers share learners, a
     :class:`MappedBank` of its ``L`` learners."""
     entry = REGISTRY[check_learner_name(name)]
@@ -262,7 +263,7 @@ def make_bank(name: str, n_barriers: int, action_dim: int, learner_kwargs: dict 
         return ZeroBank(n_barriers, action_dim, **(learner_kwargs or {}))
     kwargs = {**entry.default_kwargs, **(learner_kwargs or {})}
     if issubclass(entry.bank, AFVSGPLearnerBank):  # the only bank with a compiled core
-        kwargs["compiled"] = compiled
+        kwargs["backend"] = backend
     shared = layout is not None and not layout.one_to_one
     bank = entry.bank(layout.n_learners if shared else n_barriers, action_dim,
                       entry.gp_class, shared_hyperparameters=shared_hyperparameters, **kwargs)

@@ -18,12 +18,10 @@ import math
 
 import numpy as np
 
+from afvsgp_gym import _compiled
 from afvsgp_gym.types import BarrierSet, BarrierTerms
 
-try:
-    from afvsgp_gym.cbf import _step
-except ImportError:  # built without a C compiler: numpy
-    _step = None
+_step = _compiled.extension("step")
 
 
 def nominal_highest_derivative(terms: BarrierTerms, u: np.ndarray) -> float:
@@ -64,11 +62,13 @@ def measure_all(
 def measure_samples(
     before: BarrierSet, u: np.ndarray, after: BarrierSet, dt: float,
     degrees: np.ndarray | None = None,
+    backend: str | _compiled.Backend = "auto",
 ) -> tuple[np.ndarray, np.ndarray, int]:
     """:func:`measure_all` and the number of samples whose ``z`` or ``xi`` is not finite (the
-    elementwise part in the compiled core when it is built: the same digits). ``degrees``
-    (K,): each barrier's relative degree when they differ (the finite difference of its own
-    highest measured derivative, column ``r_k - 1``); None: the terms' own."""
+    elementwise part in the compiled step glue unless ``backend`` is ``"numpy"``: the same
+    digits). ``degrees`` (K,): each barrier's relative degree when they differ (the finite
+    difference of its own highest measured derivative, column ``r_k - 1``); None: the terms'
+    own."""
     if not (math.isfinite(dt) and dt > 0):
         raise ValueError(f"dt must be finite and positive. Got: {dt!r}")
     u = np.asarray(u, dtype=np.float64)
@@ -77,7 +77,7 @@ def measure_samples(
     if degrees is not None:
         rows, col = np.arange(len(degrees)), degrees - 1
         fd = (after.derivatives[rows, col] - before.derivatives[rows, col]) / dt
-    elif _step is not None:
+    elif _compiled.resolve(backend, ("step",)).step:
         K, nb = before.xi.shape
         xi, z = np.empty((K, nb)), np.empty(K)
         try:

@@ -12,20 +12,22 @@ from __future__ import annotations
 
 import numpy as np
 
-try:
-    from afvsgp_gym.cbf import _step
-except ImportError:  # built without a C compiler: numpy
-    _step = None
+from afvsgp_gym import _compiled
 
 __all__ = ["ResidualObserver"]
 
+_step = _compiled.extension("step")
+
 
 class ResidualObserver:
-    """Exponential average of the measured minus the predicted ``Delta B^(r)`` per barrier."""
+    """Exponential average of the measured minus the predicted ``Delta B^(r)`` per barrier
+    (the update from ``z`` in the compiled step glue unless ``backend`` is ``"numpy"``)."""
 
-    def __init__(self, n_barriers: int, weight: float):
+    def __init__(self, n_barriers: int, weight: float,
+                 backend: str | _compiled.Backend = "auto"):
         self.weight = float(weight)
         self.bias = np.zeros(int(n_barriers))
+        self.backend = _compiled.resolve(backend, ("step",))
 
     def reset(self) -> None:
         """Forget the bias (e.g. at an episode reset: the state jumps)."""
@@ -38,7 +40,7 @@ class ResidualObserver:
         ``measured = z[rows]``; every other barrier's bias returns to 0. NaN measurements leave
         the bias."""
         if z is not None:
-            if _step is not None:
+            if self.backend.step:
                 try:
                     _step.residual_update(len(self.bias), len(rows), self.bias, rows,
                                           predicted, z, self.weight)

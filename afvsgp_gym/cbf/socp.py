@@ -43,6 +43,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from afvsgp_gym import _compiled
 from afvsgp_gym.cbf import binding_cones, fastpath
 from afvsgp_gym.cbf.cone_programs import SOLVED, ConePrograms
 
@@ -110,10 +111,17 @@ class SOCPFilter:
     fast_path : bool
         Use the certified fast paths (False: clarabel for every active call; for reference
         and benchmarks).
-    compiled : bool or None
-        Use the compiled several-cones path (:mod:`afvsgp_gym.cbf.binding_cones`) for programs
-        with several cones: None when it is built, True to require it (ImportError if it is
-        not), False for the numpy paths only.
+    backend : str or Backend
+        ``"auto"`` (default): the compiled several-cones path
+        (:mod:`afvsgp_gym.cbf.binding_cones`) for programs with several cones when it is
+        built; ``"numpy"``: the numpy paths only; ``"compiled"``: require it (``ImportError``
+        if it was not built); a resolved ``Backend``: as it says (the filter's). See
+        :mod:`afvsgp_gym._compiled`.
+
+    Attributes
+    ----------
+    compiled : bool
+        True when the compiled several-cones path runs.
     """
 
     def __init__(
@@ -126,7 +134,7 @@ class SOCPFilter:
         tol: float = 1e-9,
         fallback_regularization: float = 1e-4,
         fast_path: bool = True,
-        compiled: bool | None = None,
+        backend: str | _compiled.Backend = "auto",
     ):
         low = np.asarray(action_low, dtype=np.float64).ravel()
         high = np.asarray(action_high, dtype=np.float64).ravel()
@@ -161,12 +169,7 @@ class SOCPFilter:
         self.tol = float(tol)
         self.fallback_regularization = float(fallback_regularization)
         self.fast_path = bool(fast_path)
-        if compiled is not None and not isinstance(compiled, (bool, np.bool_)):
-            raise ValueError(f"compiled must be None, True or False. Got: {compiled!r}")
-        if compiled and not binding_cones.AVAILABLE:
-            raise ImportError("compiled=True needs afvsgp_gym.cbf._cones, which was not built "
-                              "(a C compiler is needed when the package is installed)")
-        self.compiled = binding_cones.AVAILABLE if compiled is None else bool(compiled)
+        self.compiled = _compiled.resolve(backend, ("cones",)).cones
         #: largest ``||u||`` in the box: the action scale of :func:`fastpath.constraint_scales`
         self.bound_norm = float(np.linalg.norm(np.maximum(np.abs(low), np.abs(high))))
         #: smallest ``high - low``: coordinates this close (times 1e-12) outside count as in

@@ -2,6 +2,10 @@
 
 - ``point_mass``: ``PointMassObstacleEnv`` (analytic double integrator, closed-form terms).
 - ``franka``: ``FrankaObstacleEnv`` (MuJoCo Panda, torque control, hidden model mismatch).
+- ``reach``: ``FrankaObstacleReachEnv`` (the Panda reaching goals past obstacles with
+  task-space velocity actions: the reinforcement-learning task).
+- ``base``: what every obstacle env shares (the step, the info keys, the barrier cache, the
+  arguments' check).
 - ``franka_model``: assembling the Panda MJCF from gymnasium_robotics with MjSpec.
 - ``mjspec_compat``: MjSpec setters that work on every supported MuJoCo release.
 - ``scenario``: reference motions, obstacle trajectories, the sphere barrier's kinematics.

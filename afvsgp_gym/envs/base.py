@@ -20,7 +20,10 @@ The step and the info keys are then the same for every env (see :meth:`ObstacleT
 
 from __future__ import annotations
 
+import functools
+import inspect
 import math
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -36,6 +39,8 @@ __all__ = [
     "TERMS_MODELS",
     "ObstacleTask",
     "UnknownArgumentError",
+    "keyword_defaults",
+    "named_arguments",
 ]
 
 SCENARIOS = ("static", "dynamic", "random")
@@ -50,14 +55,28 @@ class UnknownArgumentError(TypeError, ValueError):
     """An unknown keyword argument (a TypeError, and a ValueError per the package rules)."""
 
 
-def read_kwargs(defaults: dict[str, Any], kwargs: dict[str, Any]) -> dict[str, Any]:
-    """``defaults`` updated with ``kwargs``; :class:`UnknownArgumentError` names unknown keys."""
-    unknown = sorted(set(kwargs) - set(defaults))
-    if unknown:
-        raise UnknownArgumentError(
-            f"unknown argument(s) {unknown}; valid: {['scenario', *defaults]}"
-        )
-    return {**defaults, **kwargs}
+def named_arguments(init: Callable) -> Callable:
+    """Decorate an env's ``__init__`` of explicit (keyword) arguments: an unknown keyword
+    raises :class:`UnknownArgumentError` naming the valid ones, in the signature's order
+    (Python's own ``TypeError`` names none), before anything is built; ``help()`` and
+    ``inspect.signature`` show ``init``'s signature."""
+    valid = [name for name in inspect.signature(init).parameters if name != "self"]
+
+    @functools.wraps(init)
+    def checked(self, *args: Any, **kwargs: Any) -> None:
+        unknown = sorted(set(kwargs) - set(valid))
+        if unknown:
+            raise UnknownArgumentError(f"unknown argument(s) {unknown}; valid: {valid}")
+        init(self, *args, **kwargs)
+
+    return checked
+
+
+def keyword_defaults(init: Callable) -> dict[str, Any]:
+    """The keyword-only arguments of ``init`` and their defaults, in the signature's order
+    (an env's ``_DEFAULTS``: its ``## Arguments`` table is tested against them)."""
+    return {name: p.default for name, p in inspect.signature(init).parameters.items()
+            if p.kind is inspect.Parameter.KEYWORD_ONLY}
 
 
 class ObstacleTask:

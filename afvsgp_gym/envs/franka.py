@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Sequence
 from typing import Any
 
 import mujoco
@@ -12,7 +13,13 @@ from gymnasium import spaces
 from gymnasium.envs.mujoco import MujocoEnv
 
 from afvsgp_gym.envs import franka_model as fm
-from afvsgp_gym.envs.base import NOMINAL_MODELS, SCENARIOS, ObstacleTask, read_kwargs
+from afvsgp_gym.envs.base import (
+    NOMINAL_MODELS,
+    SCENARIOS,
+    ObstacleTask,
+    keyword_defaults,
+    named_arguments,
+)
 from afvsgp_gym.envs.joint_limits import (
     FRANKA_MAX_ACCELERATION,
     FRANKA_MAX_SPEED,
@@ -192,8 +199,8 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
 
     With the exact model and no joint friction a CBF-filtered run keeps every barrier h >= 0
     with no arm contact in every scenario and seed tested (tests/envs/test_franka.py,
-    benchmarks/filter.md); with friction the true terms are not exact (above) and it does not
-    always (benchmarks/acceptance.md, "The oracle on the randomised plants").
+    docs/safety.md); with friction the true terms are not exact (above) and it does not
+    always (docs/safety.md, "What this does not show").
 
     ## Arguments
     | Parameter | Default | Description |
@@ -241,36 +248,6 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         "render_fps": 250,
     }
 
-    _DEFAULTS: dict[str, Any] = dict(
-        nominal_model="zero",
-        safety_spheres="arm",
-        payload_mass=1.0,
-        mass_scale=(0.9, 1.3),
-        damping=1.0,
-        friction=0.0,
-        armature=0.1,
-        plant_seed=0,
-        physics_dt=0.002,
-        frame_skip=2,
-        ee_radius=0.05,
-        obstacles=None,
-        obstacle_speed=0.15,
-        switch_time=None,
-        warmup_steps=500,
-        tracking_weight=1.0,
-        control_weight=0.01,
-        reset_noise=0.01,
-        normalize_action=True,
-        brake_frequency=50.0,
-        limit_barriers=True,
-        range_margin=0.1,
-        speed_margin=0.4,
-        check_acceleration=False,
-        check_torque_rate=False,
-        render_mode=None,
-        width=480,
-        height=480,
-    )
     AMPLITUDE, WARMUP_AMPLITUDE, PERIOD = 0.28, 0.04, 4.0
     #: Suggested activation distance of the safety filter for the obstacle barriers (m):
     #: barriers farther than this (and not approaching faster than alpha_1 of it) stay out of
@@ -298,46 +275,83 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
     #: AFVSGP settings suggested to ``SafetyFilter`` (under the user's ``learner_kwargs``) when
     #: the sphere set has several spheres (one learner each): M = 30 inducing points and a
     #: window of P = 500 samples instead of the method's 40 and 1000 (the evidence:
-    #: benchmarks/filter.md, "M = 30, P = 500 for the whole arm"). One sphere (the paper's
+    #: docs/filter.md, "Defaults that differ from the paper"). One sphere (the paper's
     #: "ee") keeps the method's settings.
     ARM_LEARNER_DEFAULTS: dict[str, dict[str, Any]] = {"afvsgp": {"num_inducing": 30,
                                                                    "window": 500}}
 
-    def __init__(self, scenario: str = "static", **kwargs: Any) -> None:
-        cfg = read_kwargs(self._DEFAULTS, kwargs)
+    @named_arguments
+    def __init__(
+        self,
+        scenario: str = "static",
+        *,
+        nominal_model: str = "zero",
+        safety_spheres: str | Sequence = "arm",
+        payload_mass: float = 1.0,
+        mass_scale: float | tuple[float, float] = (0.9, 1.3),
+        damping: float = 1.0,
+        friction: float = 0.0,
+        armature: float = 0.1,
+        plant_seed: int = 0,
+        physics_dt: float = 0.002,
+        frame_skip: int = 2,
+        ee_radius: float = 0.05,
+        obstacles: Sequence[dict] | None = None,
+        obstacle_speed: float = 0.15,
+        switch_time: float | None = None,
+        warmup_steps: int = 500,
+        tracking_weight: float = 1.0,
+        control_weight: float = 0.01,
+        reset_noise: float = 0.01,
+        normalize_action: bool = True,
+        brake_frequency: float = 50.0,
+        limit_barriers: bool = True,
+        range_margin: float = 0.1,
+        speed_margin: float = 0.4,
+        check_acceleration: bool = False,
+        check_torque_rate: bool = False,
+        render_mode: str | None = None,
+        width: int = 480,
+        height: int = 480,
+    ) -> None:
         self.scenario = check_choice("scenario", scenario, SCENARIOS)
-        self.nominal_model = check_choice("nominal_model", cfg["nominal_model"], NOMINAL_MODELS)
-        for name in ("payload_mass", "damping", "friction", "armature", "reset_noise"):
-            cfg[name] = check_real(cfg[name], name, low=0.0)
-        for name in ("physics_dt", "ee_radius", "obstacle_speed"):
-            cfg[name] = check_real(cfg[name], name, low=0.0, low_open=True)
-        frame_skip = int(cfg["frame_skip"])
-        if frame_skip < 1:
-            raise ValueError(f"frame_skip must be >= 1, got {cfg['frame_skip']}")
-        self.warmup_steps = int(cfg["warmup_steps"])
+        self.nominal_model = check_choice("nominal_model", nominal_model, NOMINAL_MODELS)
+        payload_mass = check_real(payload_mass, "payload_mass", low=0.0)
+        damping = check_real(damping, "damping", low=0.0)
+        friction = check_real(friction, "friction", low=0.0)
+        armature = check_real(armature, "armature", low=0.0)
+        reset_noise = check_real(reset_noise, "reset_noise", low=0.0)
+        physics_dt = check_real(physics_dt, "physics_dt", low=0.0, low_open=True)
+        ee_radius = check_real(ee_radius, "ee_radius", low=0.0, low_open=True)
+        obstacle_speed = check_real(obstacle_speed, "obstacle_speed", low=0.0, low_open=True)
+        n_skip = int(frame_skip)
+        if n_skip < 1:
+            raise ValueError(f"frame_skip must be >= 1, got {frame_skip}")
+        self.warmup_steps = int(warmup_steps)
         if self.warmup_steps < 0:
-            raise ValueError(f"warmup_steps must be >= 0, got {cfg['warmup_steps']}")
-        st = cfg["switch_time"]
+            raise ValueError(f"warmup_steps must be >= 0, got {warmup_steps}")
+        st = switch_time
         if st is not None and not (float(st) > 0):
             raise ValueError(f"switch_time must be > 0 or None, got {st}")
         self._switch_time_arg = None if st is None else float(st)
-        self.ee_radius = self.tracking_radius = float(cfg["ee_radius"])
-        self.obstacle_speed = float(cfg["obstacle_speed"])
-        self.tracking_weight = float(cfg["tracking_weight"])
-        self.control_weight = float(cfg["control_weight"])
-        self.reset_noise = float(cfg["reset_noise"])
-        self.normalize_action = bool(cfg["normalize_action"])
-        self.limit_barriers = bool(cfg["limit_barriers"])
-        range_margin = check_real(cfg["range_margin"], "range_margin", low=0.0)
-        speed_margin = check_real(cfg["speed_margin"], "speed_margin", low=0.0)
-        physics_dt = float(cfg["physics_dt"])
-        self._control_dt = physics_dt * frame_skip
+        self.ee_radius = self.tracking_radius = float(ee_radius)
+        self.obstacle_speed = float(obstacle_speed)
+        self.tracking_weight = float(tracking_weight)
+        self.control_weight = float(control_weight)
+        self.reset_noise = float(reset_noise)
+        self.normalize_action = bool(normalize_action)
+        self.limit_barriers = bool(limit_barriers)
+        range_margin = check_real(range_margin, "range_margin", low=0.0)
+        speed_margin = check_real(speed_margin, "speed_margin", low=0.0)
+        physics_dt = float(physics_dt)
+        self._control_dt = physics_dt * n_skip
         self._user_obstacles = (
             None
-            if cfg["obstacles"] is None
-            else parse_obstacles(cfg["obstacles"], 3, self.warmup_steps * self._control_dt)
+            if obstacles is None
+            else parse_obstacles(obstacles, 3, self.warmup_steps * self._control_dt)
         )
-        self.plant = self._plant_parameters(cfg)
+        self.plant = self._plant_parameters(mass_scale, plant_seed, payload_mass, damping,
+                                            friction, armature)
         n_obs = 1 if self._user_obstacles is None else len(self._user_obstacles)
         radii = (
             (0.05,) * n_obs
@@ -347,7 +361,6 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         if self.scenario == "random" and self._user_obstacles is None:
             radii = (0.07,)  # drawn radii <= 0.07: the visual sphere is rescaled per reset
         self._scene = fm.SceneOptions(radii, self.ee_radius, physics_dt)
-        render_mode = cfg["render_mode"]
         if render_mode is not None:
             check_choice("render_mode", render_mode, self.metadata["render_modes"])
         self.metadata = {**self.metadata, "render_fps": int(round(1.0 / self._control_dt))}
@@ -362,11 +375,11 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         obs_space = spaces.Box(-lim.astype(np.float32), lim.astype(np.float32), dtype=np.float32)
         super().__init__(
             fm.asset_dir(),  # the model is assembled in _initialize_simulation
-            frame_skip,
+            n_skip,
             obs_space,
             render_mode=render_mode,
-            width=int(cfg["width"]),
-            height=int(cfg["height"]),
+            width=int(width),
+            height=int(height),
             default_camera_config={
                 "distance": 1.5,
                 "azimuth": 200.0,
@@ -385,16 +398,16 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
                 -self._gear.astype(np.float32), self._gear.astype(np.float32), dtype=np.float32
             )
         self._ctrl_per_action = self.action_scale / self._gear
-        self.brake_frequency = check_real(cfg["brake_frequency"], "brake_frequency", low=0.0,
+        self.brake_frequency = check_real(brake_frequency, "brake_frequency", low=0.0,
                                           low_open=True)
         self._brake_model: tuple[mujoco.MjModel, mujoco.MjData] | None = None
         self._hold: np.ndarray | None = None
         self._backup_step = -2
         self.joint_limits = JointLimits(
             m.jnt_range[:7, 0], m.jnt_range[:7, 1], FRANKA_MAX_SPEED, range_margin,
-            speed_margin, FRANKA_MAX_ACCELERATION if cfg["check_acceleration"] else None,
-            FRANKA_MAX_TORQUE_RATE if cfg["check_torque_rate"] else None)
-        self._setup_spheres(cfg["safety_spheres"])
+            speed_margin, FRANKA_MAX_ACCELERATION if check_acceleration else None,
+            FRANKA_MAX_TORQUE_RATE if check_torque_rate else None)
+        self._setup_spheres(safety_spheres)
         self._arm_geoms = fm.arm_collision_geoms(m)
         self._arm_rbound = m.geom_rbound[self._arm_geoms].copy()
         self._obstacle_geoms = np.array([m.geom(f"obstacle{i}").id for i in range(n_obs)])
@@ -421,6 +434,10 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         self._build_scenario(None)
         self._steps = 0
         self._invalidate_barriers()
+
+    #: The keyword arguments and their defaults (from the signature; the ``## Arguments``
+    #: table is tested against them).
+    _DEFAULTS: dict[str, Any] = keyword_defaults(__init__)
 
     # ------------------------------------------------------------------ construction
     def _setup_spheres(self, spec) -> None:
@@ -547,8 +564,8 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         mujoco.mj_solveM(m, d, inv, np.eye(m.nv))
         return np.linalg.inv(inv)[:7, :7]
 
-    def _plant_parameters(self, cfg: dict[str, Any]) -> fm.PlantParameters:
-        scale = cfg["mass_scale"]
+    def _plant_parameters(self, scale, plant_seed, payload_mass: float, damping: float,
+                          friction: float, armature: float) -> fm.PlantParameters:
         if np.ndim(scale) == 0:
             factors = np.full(9, float(scale))
         else:
@@ -560,16 +577,16 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
                 ) from None
             if not (0 < lo <= hi):
                 raise ValueError(f"mass_scale must be a float > 0 or (low, high), got {scale}")
-            factors = np.random.default_rng(int(cfg["plant_seed"])).uniform(lo, hi, 9)
+            factors = np.random.default_rng(int(plant_seed)).uniform(lo, hi, 9)
             factors[8] = factors[7]  # the two fingers alike
         if not np.all(factors > 0):
             raise ValueError(f"mass_scale must be > 0, got {scale}")
         return fm.PlantParameters(
             mass_scale=factors,
-            payload_mass=float(cfg["payload_mass"]),
-            damping=np.full(7, float(cfg["damping"])),
-            frictionloss=np.full(7, float(cfg["friction"])),
-            armature=np.full(7, float(cfg["armature"])),
+            payload_mass=float(payload_mass),
+            damping=np.full(7, float(damping)),
+            frictionloss=np.full(7, float(friction)),
+            armature=np.full(7, float(armature)),
         )
 
     def _initialize_simulation(self):

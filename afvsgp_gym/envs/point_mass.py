@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import gymnasium as gym
@@ -14,7 +15,8 @@ from afvsgp_gym.envs.base import (
     NOMINAL_MODELS,
     SCENARIOS,
     ObstacleTask,
-    read_kwargs,
+    keyword_defaults,
+    named_arguments,
 )
 from afvsgp_gym.envs.scenario import (
     CyclicReference,
@@ -136,65 +138,70 @@ class PointMassObstacleEnv(ObstacleTask, gym.Env):
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 100}
 
-    _DEFAULTS: dict[str, Any] = dict(
-        dim=2,
-        dt=0.01,
-        mass=1.5,
-        drag=0.8,
-        nominal_model="zero",
-        nominal_mass=1.0,
-        nominal_drag=0.0,
-        max_force=5.0,
-        agent_radius=0.05,
-        obstacles=None,
-        obstacle_speed=0.3,
-        switch_time=None,
-        warmup_steps=300,
-        tracking_weight=1.0,
-        control_weight=0.01,
-        reset_noise=0.01,
-        brake_gain=2.0,
-        render_mode=None,
-    )
     workspace_limit = 5.0
 
-    def __init__(self, scenario: str = "static", **kwargs: Any) -> None:
-        cfg = read_kwargs(self._DEFAULTS, kwargs)
+    @named_arguments
+    def __init__(
+        self,
+        scenario: str = "static",
+        *,
+        dim: int = 2,
+        dt: float = 0.01,
+        mass: float = 1.5,
+        drag: float = 0.8,
+        nominal_model: str = "zero",
+        nominal_mass: float = 1.0,
+        nominal_drag: float = 0.0,
+        max_force: float = 5.0,
+        agent_radius: float = 0.05,
+        obstacles: Sequence[dict] | None = None,
+        obstacle_speed: float = 0.3,
+        switch_time: float | None = None,
+        warmup_steps: int = 300,
+        tracking_weight: float = 1.0,
+        control_weight: float = 0.01,
+        reset_noise: float = 0.01,
+        brake_gain: float = 2.0,
+        render_mode: str | None = None,
+    ) -> None:
         self.scenario = check_choice("scenario", scenario, SCENARIOS)
-        self.nominal_model = check_choice("nominal_model", cfg["nominal_model"], NOMINAL_MODELS)
-        self.dim = int(cfg["dim"])
+        self.nominal_model = check_choice("nominal_model", nominal_model, NOMINAL_MODELS)
+        self.dim = int(dim)
         if self.dim not in (2, 3):
-            raise ValueError(f"dim must be 2 or 3, got {cfg['dim']}")
-        for name in ("dt", "mass", "nominal_mass", "max_force", "agent_radius", "obstacle_speed"):
-            cfg[name] = check_real(cfg[name], name, low=0.0, low_open=True)
-        for name in ("drag", "nominal_drag", "tracking_weight", "control_weight", "reset_noise"):
-            cfg[name] = check_real(cfg[name], name, low=0.0)
-        self.dt = float(cfg["dt"])
-        self.mass, self.drag = float(cfg["mass"]), float(cfg["drag"])
-        self.nominal_mass, self.nominal_drag = (
-            float(cfg["nominal_mass"]),
-            float(cfg["nominal_drag"]),
-        )
-        self.max_force = float(cfg["max_force"])
-        self.brake_gain = check_real(cfg["brake_gain"], "brake_gain", low=0.0)
-        self.agent_radius = self.tracking_radius = float(cfg["agent_radius"])
-        self.obstacle_speed = float(cfg["obstacle_speed"])
-        self.warmup_steps = int(cfg["warmup_steps"])
+            raise ValueError(f"dim must be 2 or 3, got {dim}")
+        dt = check_real(dt, "dt", low=0.0, low_open=True)
+        mass = check_real(mass, "mass", low=0.0, low_open=True)
+        nominal_mass = check_real(nominal_mass, "nominal_mass", low=0.0, low_open=True)
+        max_force = check_real(max_force, "max_force", low=0.0, low_open=True)
+        agent_radius = check_real(agent_radius, "agent_radius", low=0.0, low_open=True)
+        obstacle_speed = check_real(obstacle_speed, "obstacle_speed", low=0.0, low_open=True)
+        drag = check_real(drag, "drag", low=0.0)
+        nominal_drag = check_real(nominal_drag, "nominal_drag", low=0.0)
+        tracking_weight = check_real(tracking_weight, "tracking_weight", low=0.0)
+        control_weight = check_real(control_weight, "control_weight", low=0.0)
+        reset_noise = check_real(reset_noise, "reset_noise", low=0.0)
+        self.dt = float(dt)
+        self.mass, self.drag = float(mass), float(drag)
+        self.nominal_mass, self.nominal_drag = float(nominal_mass), float(nominal_drag)
+        self.max_force = float(max_force)
+        self.brake_gain = check_real(brake_gain, "brake_gain", low=0.0)
+        self.agent_radius = self.tracking_radius = float(agent_radius)
+        self.obstacle_speed = float(obstacle_speed)
+        self.warmup_steps = int(warmup_steps)
         if self.warmup_steps < 0:
-            raise ValueError(f"warmup_steps must be >= 0, got {cfg['warmup_steps']}")
-        st = cfg["switch_time"]
+            raise ValueError(f"warmup_steps must be >= 0, got {warmup_steps}")
+        st = switch_time
         if st is not None and not (float(st) > 0):
             raise ValueError(f"switch_time must be > 0 or None, got {st}")
         self._switch_time_arg = None if st is None else float(st)
-        self.tracking_weight = float(cfg["tracking_weight"])
-        self.control_weight = float(cfg["control_weight"])
-        self.reset_noise = float(cfg["reset_noise"])
+        self.tracking_weight = float(tracking_weight)
+        self.control_weight = float(control_weight)
+        self.reset_noise = float(reset_noise)
         self._user_obstacles = (
             None
-            if cfg["obstacles"] is None
-            else parse_obstacles(cfg["obstacles"], self.dim, self.warmup_steps * self.dt)
+            if obstacles is None
+            else parse_obstacles(obstacles, self.dim, self.warmup_steps * self.dt)
         )
-        render_mode = cfg["render_mode"]
         if render_mode is not None:
             check_choice("render_mode", render_mode, self.metadata["render_modes"])
         self.render_mode = render_mode
@@ -217,6 +224,10 @@ class PointMassObstacleEnv(ObstacleTask, gym.Env):
         self._v = np.zeros(d)
         self._steps = 0
         self._after_state_change()
+
+    #: The keyword arguments and their defaults (from the signature; the ``## Arguments``
+    #: table is tested against them).
+    _DEFAULTS: dict[str, Any] = keyword_defaults(__init__)
 
     # ------------------------------------------------------------------ scenario
     def _build_scenario(self, rng: np.random.Generator | None) -> None:

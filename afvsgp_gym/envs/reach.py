@@ -11,7 +11,7 @@ import mujoco
 import numpy as np
 from gymnasium import spaces
 
-from afvsgp_gym.envs.base import NOMINAL_MODELS, read_kwargs
+from afvsgp_gym.envs.base import NOMINAL_MODELS, keyword_defaults, named_arguments
 from afvsgp_gym.envs.franka import FrankaObstacleEnv
 from afvsgp_gym.envs.scenario import ObstacleSpec
 from afvsgp_gym.envs.task_velocity import TaskVelocityLoop, compose_affine
@@ -19,6 +19,9 @@ from afvsgp_gym.types import BarrierSet
 from afvsgp_gym.validation import check_choice, check_count, check_real
 
 __all__ = ["FrankaObstacleReachEnv"]
+
+#: The obstacle envs' defaults, which the reach task keeps for the plant and the physics.
+_FRANKA = FrankaObstacleEnv._DEFAULTS
 
 #: Shoulder (joint 2 axis) position of the Panda base (m), for the reachability check.
 _SHOULDER = np.array([0.0, 0.0, 0.333])
@@ -134,27 +137,6 @@ class FrankaObstacleReachEnv(FrankaObstacleEnv):
     * v0: initial version.
     """
 
-    _REACH_DEFAULTS: dict[str, Any] = dict(
-        n_obstacles=1,
-        nominal_model="zero",
-        safety_spheres="arm",
-        max_speed=0.3,
-        task_damping=200.0,
-        goal_tolerance=0.05,
-        start_clearance=0.22,
-        progress_weight=10.0,
-        time_penalty=4e-4,
-        control_weight=1e-4,
-        cost_weight=0.2,
-        success_bonus=1.0,
-        warmup_steps=76,
-        action_repeat=10,
-        reset_noise=0.02,
-        # the plant, the physics and rendering as every Franka env
-        **{key: FrankaObstacleEnv._DEFAULTS[key] for key in (
-            "payload_mass", "mass_scale", "damping", "friction", "armature", "plant_seed",
-            "physics_dt", "frame_skip", "render_mode", "width", "height")},
-    )
     #: Obstacle radius range (m) and the goal's workspace box (m).
     RADIUS_RANGE = (0.04, 0.07)
     GOAL_BOX = (np.array([0.25, -0.65, 0.15]), np.array([0.65, 0.65, 0.6]))
@@ -167,29 +149,63 @@ class FrankaObstacleReachEnv(FrankaObstacleEnv):
     #: scenarios' whole-arm M = 30, P = 500 are not measured on this task)
     ARM_LEARNER_DEFAULTS: dict[str, dict[str, Any]] = {}
 
-    def __init__(self, **kwargs: Any) -> None:
-        cfg = read_kwargs(self._REACH_DEFAULTS, kwargs)
-        n_obs = check_count(cfg["n_obstacles"], "n_obstacles")
-        check_choice("nominal_model", cfg["nominal_model"], NOMINAL_MODELS)
+    @named_arguments
+    def __init__(
+        self,
+        *,
+        n_obstacles: int = 1,
+        nominal_model: str = "zero",
+        safety_spheres: str | Sequence = "arm",
+        max_speed: float = 0.3,
+        task_damping: float = 200.0,
+        goal_tolerance: float = 0.05,
+        start_clearance: float = 0.22,
+        progress_weight: float = 10.0,
+        time_penalty: float = 4e-4,
+        control_weight: float = 1e-4,
+        cost_weight: float = 0.2,
+        success_bonus: float = 1.0,
+        warmup_steps: int = 76,
+        action_repeat: int = 10,
+        reset_noise: float = 0.02,
+        # the plant, the physics and rendering as every Franka env
+        payload_mass: float = _FRANKA["payload_mass"],
+        mass_scale: float | tuple[float, float] = _FRANKA["mass_scale"],
+        damping: float = _FRANKA["damping"],
+        friction: float = _FRANKA["friction"],
+        armature: float = _FRANKA["armature"],
+        plant_seed: int = _FRANKA["plant_seed"],
+        physics_dt: float = _FRANKA["physics_dt"],
+        frame_skip: int = _FRANKA["frame_skip"],
+        render_mode: str | None = _FRANKA["render_mode"],
+        width: int = _FRANKA["width"],
+        height: int = _FRANKA["height"],
+    ) -> None:
+        n_obs = check_count(n_obstacles, "n_obstacles")
+        check_choice("nominal_model", nominal_model, NOMINAL_MODELS)
         self.loop = TaskVelocityLoop(
-            max_speed=check_real(cfg["max_speed"], "max_speed", low=0.0, low_open=True),
-            damping=check_real(cfg["task_damping"], "task_damping", low=0.0, low_open=True),
+            max_speed=check_real(max_speed, "max_speed", low=0.0, low_open=True),
+            damping=check_real(task_damping, "task_damping", low=0.0, low_open=True),
         )
-        self.goal_tolerance = check_real(cfg["goal_tolerance"], "goal_tolerance", low=0.0,
+        self.goal_tolerance = check_real(goal_tolerance, "goal_tolerance", low=0.0,
                                          low_open=True)
-        self.start_clearance = check_real(cfg["start_clearance"], "start_clearance", low=0.0)
-        self.progress_weight = check_real(cfg["progress_weight"], "progress_weight", low=0.0)
-        self.time_penalty = check_real(cfg["time_penalty"], "time_penalty", low=0.0)
-        self.cost_weight = check_real(cfg["cost_weight"], "cost_weight", low=0.0)
-        self.success_bonus = check_real(cfg["success_bonus"], "success_bonus")
-        self.action_repeat = check_count(cfg["action_repeat"], "action_repeat")
-        check_real(cfg["control_weight"], "control_weight", low=0.0)
+        self.start_clearance = check_real(start_clearance, "start_clearance", low=0.0)
+        self.progress_weight = check_real(progress_weight, "progress_weight", low=0.0)
+        self.time_penalty = check_real(time_penalty, "time_penalty", low=0.0)
+        self.cost_weight = check_real(cost_weight, "cost_weight", low=0.0)
+        self.success_bonus = check_real(success_bonus, "success_bonus")
+        self.action_repeat = check_count(action_repeat, "action_repeat")
+        check_real(control_weight, "control_weight", low=0.0)
         r_max = self.RADIUS_RANGE[1]
         parked = [{"position": [2.0 + i, 2.0, 0.0], "radius": r_max} for i in range(n_obs)]
-        parent = {k: cfg[k] for k in FrankaObstacleEnv._DEFAULTS if k in cfg}
-        parent.update(obstacles=parked, normalize_action=True)
         self._task_ready = False
-        super().__init__("static", **parent)
+        super().__init__(
+            "static", nominal_model=nominal_model, safety_spheres=safety_spheres,
+            payload_mass=payload_mass, mass_scale=mass_scale, damping=damping,
+            friction=friction, armature=armature, plant_seed=plant_seed, physics_dt=physics_dt,
+            frame_skip=frame_skip, obstacles=parked, warmup_steps=warmup_steps,
+            control_weight=control_weight, reset_noise=reset_noise, normalize_action=True,
+            render_mode=render_mode, width=width, height=height)
         # the parent's barrier terms are computed per Nm of joint torque and composed here
         self.action_scale = np.ones(7)
         self._ctrl_per_action = 1.0 / self._gear
@@ -206,6 +222,9 @@ class FrankaObstacleReachEnv(FrankaObstacleEnv):
         self._ik_data = mujoco.MjData(self.model)
         self._task_ready = True
         self._after_state_change()
+
+    #: The keyword arguments and their defaults (from the signature).
+    _DEFAULTS: dict[str, Any] = keyword_defaults(__init__)
 
     # ------------------------------------------------------------------ task
     @property

@@ -10,9 +10,11 @@
  * cython_blas), the prediction's triangular solves by forward substitution here (at these
  * sizes, tens of right-hand sides of order Mp, BLAS's dtrsm spends its time on packing), the
  * exponentials by vexp here (numpy.exp runs libm's scalar exp on a CPU without AVX-512, at
- * 5-11 ns each). Every array is C-ordered float64 (int64 for indices) with the bank's shapes;
- * a return code other than 0 leaves the call to the numpy methods, and when it does the bank
- * was left unchanged (update) or its posterior cache only refreshed (predict).
+ * 5-11 ns each). The bank's arrays are taken once, into a State (state()), which the entry
+ * points take in place of them; every array is C-ordered float64 (int64 for indices, bool
+ * for flags) with the bank's shapes; a return code other than 0 leaves the call to the numpy
+ * methods, and when it does the bank was left unchanged (update) or its posterior cache only
+ * refreshed (predict).
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -229,6 +231,103 @@ static inline void prefetch_learner(const Dims *D, int k, int slot, const double
         __builtin_prefetch(wubt + (k * c + i) * P + (size_t)slot, 1, 3);
 }
 
+/* ------------------------------------------------------------------ the bank's state */
+
+/* The arrays of an AFVSGPBank the entry points read and write (its attributes, see
+ * AFVSGPBank._core_state), taken once: the State holds their buffers while it lives, their
+ * sizes checked against the dims when it is made, and the bank's constant settings. update,
+ * predict, candidate and install take it in place of the arrays; the bank makes a new one
+ * whenever it allocates new arrays (never in a step). */
+enum { S_INDXT, S_LOGVAR, S_IL2, S_UBT, S_VAR, S_KOOINV, S_STATS, S_SCALE, S_WK, S_WZ, S_WXT,
+       S_WUBT, S_KNEW, S_KSS, S_RESID, S_WORK, S_HEAD, S_COUNT, S_SEEN, S_FRESH, S_SINCE,
+       S_NOISE, S_LOO, S_LSL, S_WHITE, S_LD, S_CVEC, S_INDUB, S_KOO, S_NADD, S_NREM, S_POWREV,
+       S_N };
+
+static const Spec state_spec[S_N] = {
+    {"ind_xit", 'd', 1},  {"log_var", 'd', 0},   {"inv_ls2", 'd', 0}, {"ubt", 'd', 1},
+    {"var", 'd', 0},      {"koo_inv", 'd', 1},   {"stats", 'd', 1},   {"scale", 'd', 1},
+    {"wk", 'd', 1},       {"wz", 'd', 1},        {"wxt", 'd', 1},     {"wubt", 'd', 1},
+    {"k_new", 'd', 1},    {"kss", 'd', 1},       {"resid", 'd', 1},   {"work", 'd', 1},
+    {"head", 'q', 1},     {"count", 'q', 1},     {"n_seen", 'q', 1},  {"fresh", '?', 1},
+    {"since", 'q', 1},    {"noise_variance", 'd', 0}, {"l_oo", 'd', 1}, {"lsl", 'd', 1},
+    {"white", '?', 1},    {"l_d", 'd', 1},       {"cvec", 'd', 1},    {"ind_ub", 'd', 1},
+    {"koo", 'd', 1},      {"n_added", 'q', 1},   {"n_removed", 'q', 1}, {"pow_rev", 'd', 0}};
+
+typedef struct {
+    PyObject_HEAD
+    Dims D;
+    double inv_phi, phi_p, add_floor, swap_margin; /* 1/phi, phi^P, eq. 27's floor, eq. 28 */
+    long long refresh_every;
+    int held; /* the buffers are taken */
+    Py_buffer bf[S_N];
+} State;
+
+static void state_dealloc(State *st)
+{
+    if (st->held)
+        release_all(st->bf, S_N);
+    Py_TYPE(st)->tp_free((PyObject *)st);
+}
+
+static PyTypeObject StateType = {
+    PyVarObject_HEAD_INIT(NULL, 0).tp_name = "afvsgp_gym.gp._bank.State",
+    .tp_basicsize = sizeof(State),
+    .tp_dealloc = (destructor)state_dealloc,
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "An AFVSGPBank's arrays and settings, taken once (made by state())."};
+
+/* state(dims, arrays, (inv_phi, phi_p, add_floor, swap_margin, refresh_every)) -> State:
+ * arrays maps the names of state_spec to the bank's arrays (each C-contiguous, of its dtype
+ * and size; ValueError naming the first that is not, or a name missing or unknown). */
+static PyObject *py_state(PyObject *self, PyObject *args)
+{
+    Dims D;
+    PyObject *arrays;
+    double inv_phi, phi_p, add_floor, swap_margin;
+    long long refresh_every;
+    if (!PyArg_ParseTuple(args, "(iiiii)O!(ddddL)", &D.K, &D.b, &D.c, &D.mp, &D.P, &PyDict_Type,
+                          &arrays, &inv_phi, &phi_p, &add_floor, &swap_margin, &refresh_every))
+        return NULL;
+    const Py_ssize_t K = D.K, b = D.b, c = D.c, mp = D.mp, P = D.P;
+    if (K < 1 || b < 1 || b > MAXB || c < 1 || mp < 1 || mp + c + 1 > MAXW || P < 1) {
+        PyErr_SetString(PyExc_ValueError, "dims must be positive (b <= 1024, Mp + c < 4096)");
+        return NULL;
+    }
+    if (PyDict_Size(arrays) != S_N) {
+        PyErr_Format(PyExc_ValueError, "arrays must hold the %d arrays of the bank's state. "
+                     "Got: %zd", S_N, PyDict_Size(arrays));
+        return NULL;
+    }
+    const Py_ssize_t size[S_N] = {
+        K * b * mp, K * c, K * c * b, K * c * mp, K * c, K * mp * mp, K * mp * (mp + 1), K,
+        K * P * mp, K * P, K * b * P, K * c * P, K * mp, K, K, work_size(&D), K, K, K, K, K,
+        K, K * mp * mp, K * mp * mp, K, K * mp * mp, K * mp, K * mp * c, K * mp * mp, K, K, P};
+    PyObject *o[S_N];
+    for (int i = 0; i < S_N; i++) {
+        o[i] = PyDict_GetItemString(arrays, state_spec[i].name); /* borrowed */
+        if (o[i] == NULL) {
+            PyErr_Format(PyExc_ValueError, "arrays has no %s", state_spec[i].name);
+            return NULL;
+        }
+    }
+    State *st = PyObject_New(State, &StateType);
+    if (st == NULL)
+        return NULL;
+    st->held = 0;
+    if (take_all(o, st->bf, state_spec, size, S_N) < 0) {
+        Py_DECREF(st);
+        return NULL;
+    }
+    st->held = 1;
+    st->D = D;
+    st->inv_phi = inv_phi;
+    st->phi_p = phi_p;
+    st->add_floor = add_floor;
+    st->swap_margin = swap_margin;
+    st->refresh_every = refresh_every;
+    return (PyObject *)st;
+}
+
 /* The window step of every learner, all at one ring position (eqs. 24-26), for finite
  * samples: with kt of the new sample, k_new = ubar' Kt, k_ss = s . ubar^2; scale <- scale /
  * phi; [r, S] += scale (k_new [z, k_new'] - phi^P k_old [z_old, k_old']) (k_old, z_old the
@@ -243,52 +342,36 @@ static inline void prefetch_learner(const Dims *D, int k, int slot, const double
  * Code NOT_FINITE or OVERFLOW: nothing changed. */
 static PyObject *py_update(PyObject *self, PyObject *args)
 {
-    enum { INDXI, LOGVAR, IL2, UBT, VAR, KOOINV, STATS, SCALE, WK, WZ, WXT, WUBT, XI, UB, Z,
-           KNEW, KSS, RESID, WORK, HEAD, COUNT, SEEN, FRESH, SINCE, NOISE, LOO, LSL, WHITE, N };
-    static const Spec spec[N] = {
-        {"ind_xit", 'd', 0}, {"log_var", 'd', 0}, {"inv_ls2", 'd', 0}, {"ubt", 'd', 0},
-        {"var", 'd', 0},   {"koo_inv", 'd', 0}, {"stats", 'd', 1}, {"scale", 'd', 1},   {"wk", 'd', 1},
-        {"wz", 'd', 1},    {"wxt", 'd', 1},     {"wubt", 'd', 1},    {"xi", 'd', 0},
-        {"ub", 'd', 0},    {"z", 'd', 0},       {"k_new", 'd', 1},   {"kss", 'd', 1},
-        {"resid", 'd', 1},  {"work", 'd', 1},      {"head", 'q', 1},   {"count", 'q', 1},
-        {"n_seen", 'q', 1}, {"fresh", '?', 1},     {"since", 'q', 1},  {"noise_variance", 'd', 0},
-        {"l_oo", 'd', 0},   {"lsl", 'd', 1},       {"white", '?', 1}};
+    enum { XI, UB, Z, N };
+    static const Spec spec[N] = {{"xi", 'd', 0}, {"ub", 'd', 0}, {"z", 'd', 0}};
     PyObject *o[N];
     Py_buffer bf[N];
-    Dims D;
-    double inv_phi, phi_p, add_floor;
-    long long refresh_every;
-    if (!PyArg_ParseTuple(args, "(iiiii)OOOOOOOOOOOOOOOOOOOOOOOOOdddLOOO", &D.K, &D.b, &D.c,
-                          &D.mp, &D.P, &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6], &o[7],
-                          &o[8], &o[9], &o[10], &o[11], &o[12], &o[13], &o[14], &o[15], &o[16],
-                          &o[17], &o[18], &o[19], &o[20], &o[21], &o[22], &o[23], &o[24],
-                          &inv_phi, &phi_p, &add_floor, &refresh_every, &o[25], &o[26], &o[27]))
+    State *state;
+    if (!PyArg_ParseTuple(args, "O!OOO", &StateType, &state, &o[0], &o[1], &o[2]))
         return NULL;
+    const Dims D = state->D;
     const Py_ssize_t K = D.K, b = D.b, c = D.c, mp = D.mp, P = D.P;
-    if (K < 1 || b < 1 || b > MAXB || c < 1 || mp < 1 || mp > MAXW || P < 1) {
-        PyErr_SetString(PyExc_ValueError, "dims must be positive");
-        return NULL;
-    }
-    const Py_ssize_t size[N] = {K * mp * b, K * c, K * c * b, K * c * mp, K * c,
-                                K * mp * mp, K * mp * (mp + 1), K, K * P * mp, K * P,
-                                K * b * P, K * c * P, K * b, c, K, K * mp, K, K,
-                                work_size(&D), K, K, K, K, K, K, K * mp * mp, K * mp * mp, K};
+    const double inv_phi = state->inv_phi, phi_p = state->phi_p, add_floor = state->add_floor;
+    const long long refresh_every = state->refresh_every;
+    const Py_ssize_t size[N] = {K * b, c, K};
     if (take_all(o, bf, spec, size, N) < 0)
         return NULL;
-    const double *oxt = bf[INDXI].buf, *lvar = bf[LOGVAR].buf, *il2 = bf[IL2].buf;
-    const double *ubt = bf[UBT].buf, *var = bf[VAR].buf, *kinv = bf[KOOINV].buf;
-    const double *loo = bf[LOO].buf;
-    double *lsl = bf[LSL].buf;
-    char *white = bf[WHITE].buf;
+    Py_buffer *sb = state->bf;
+    const double *oxt = sb[S_INDXT].buf, *lvar = sb[S_LOGVAR].buf, *il2 = sb[S_IL2].buf;
+    const double *ubt = sb[S_UBT].buf, *var = sb[S_VAR].buf, *kinv = sb[S_KOOINV].buf;
+    const double *loo = sb[S_LOO].buf;
+    double *lsl = sb[S_LSL].buf;
+    char *white = sb[S_WHITE].buf;
     const double *xi = bf[XI].buf;
     const double *ub = bf[UB].buf, *z = bf[Z].buf;
-    double *stats = bf[STATS].buf, *scale = bf[SCALE].buf, *wk = bf[WK].buf, *wz = bf[WZ].buf;
-    double *wxt = bf[WXT].buf, *wubt = bf[WUBT].buf;
-    double *knew = bf[KNEW].buf, *kss = bf[KSS].buf, *resid = bf[RESID].buf, *E = bf[WORK].buf;
-    long long *head = bf[HEAD].buf, *count = bf[COUNT].buf, *seen = bf[SEEN].buf;
-    long long *since = bf[SINCE].buf;
-    char *fresh = bf[FRESH].buf;
-    const double *noise = bf[NOISE].buf;
+    double *stats = sb[S_STATS].buf, *scale = sb[S_SCALE].buf, *wk = sb[S_WK].buf;
+    double *wz = sb[S_WZ].buf, *wxt = sb[S_WXT].buf, *wubt = sb[S_WUBT].buf;
+    double *knew = sb[S_KNEW].buf, *kss = sb[S_KSS].buf, *resid = sb[S_RESID].buf;
+    double *E = sb[S_WORK].buf;
+    long long *head = sb[S_HEAD].buf, *count = sb[S_COUNT].buf, *seen = sb[S_SEEN].buf;
+    long long *since = sb[S_SINCE].buf;
+    char *fresh = sb[S_FRESH].buf;
+    const double *noise = sb[S_NOISE].buf;
     int rc = 0, n_cand = 0, best = -1, refresh_due = 0, renorm_due = 0;
     double total = 0.0, best_rel = 0.0;
     for (Py_ssize_t i = 0; i < K * b; i++)
@@ -385,44 +468,36 @@ static PyObject *py_update(PyObject *self, PyObject *args)
  * (stored in cvec); b = H' cv, Sigma = diag(s) - G'G + H'H. */
 static PyObject *py_predict(PyObject *self, PyObject *args)
 {
-    enum { INDXI, LOGVAR, IL2, UBT, VAR, LOO, STATS, SCALE, NOISE, LD, CVEC, FRESH, ROWS, XI,
-           BOUT, SOUT, WORK, LSL, WHITE, N };
+    enum { ROWS, XI, BOUT, SOUT, N };
     static const Spec spec[N] = {
-        {"ind_xit", 'd', 0}, {"log_var", 'd', 0}, {"inv_ls2", 'd', 0}, {"ubt", 'd', 0},
-        {"var", 'd', 0},   {"l_oo", 'd', 0},  {"stats", 'd', 0},   {"scale", 'd', 0}, {"noise_variance", 'd', 0},
-        {"l_d", 'd', 1},   {"cvec", 'd', 1},    {"fresh", '?', 1}, {"rows", 'q', 0},
-        {"xi", 'd', 0},    {"b_out", 'd', 1},   {"sigma_out", 'd', 1}, {"work", 'd', 1},
-        {"lsl", 'd', 1},   {"white", '?', 1}};
+        {"rows", 'q', 0}, {"xi", 'd', 0}, {"b_out", 'd', 1}, {"sigma_out", 'd', 1}};
     PyObject *o[N];
     Py_buffer bf[N];
-    Dims D;
+    State *state;
     Py_ssize_t n;
-    if (!PyArg_ParseTuple(args, "(iiiii)nOOOOOOOOOOOOOOOOOOO", &D.K, &D.b, &D.c, &D.mp, &D.P,
-                          &n, &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6], &o[7], &o[8],
-                          &o[9], &o[10], &o[11], &o[12], &o[13], &o[14], &o[15], &o[16],
-                          &o[17], &o[18]))
+    if (!PyArg_ParseTuple(args, "O!nOOOO", &StateType, &state, &n, &o[0], &o[1], &o[2], &o[3]))
         return NULL;
+    const Dims D = state->D;
     const Py_ssize_t K = D.K, b = D.b, c = D.c, mp = D.mp;
-    if (K < 1 || b < 1 || b > MAXB || c < 1 || mp < 1 || D.P < 1 || n < 0 ||
-        mp + c + 1 > MAXW) {
-        PyErr_SetString(PyExc_ValueError, "dims must be positive (n >= 0)");
+    if (n < 0) {
+        PyErr_SetString(PyExc_ValueError, "n must be >= 0");
         return NULL;
     }
-    const Py_ssize_t size[N] = {K * mp * b, K * c, K * c * b, K * c * mp, K * c,
-                                K * mp * mp, K * mp * (mp + 1), K, K, K * mp * mp, K * mp, K,
-                                n, n * b, n * c, n * c * c, work_size(&D), K * mp * mp, K};
+    const Py_ssize_t size[N] = {n, n * b, n * c, n * c * c};
     if (n * c * mp > work_size(&D))
         return PyLong_FromLong(TOO_MANY_ROWS);
     if (take_all(o, bf, spec, size, N) < 0)
         return NULL;
-    const double *oxt = bf[INDXI].buf, *lvar = bf[LOGVAR].buf, *il2 = bf[IL2].buf;
-    const double *ubt = bf[UBT].buf, *var = bf[VAR].buf, *loo = bf[LOO].buf;
-    const double *stats = bf[STATS].buf;
-    const double *scale = bf[SCALE].buf, *noise = bf[NOISE].buf, *xi = bf[XI].buf;
+    Py_buffer *sb = state->bf;
+    const double *oxt = sb[S_INDXT].buf, *lvar = sb[S_LOGVAR].buf, *il2 = sb[S_IL2].buf;
+    const double *ubt = sb[S_UBT].buf, *var = sb[S_VAR].buf, *loo = sb[S_LOO].buf;
+    const double *stats = sb[S_STATS].buf;
+    const double *scale = sb[S_SCALE].buf, *noise = sb[S_NOISE].buf, *xi = bf[XI].buf;
     const long long *rows = bf[ROWS].buf;
-    double *ld = bf[LD].buf, *cvec = bf[CVEC].buf, *bout = bf[BOUT].buf, *sout = bf[SOUT].buf;
-    char *fresh = bf[FRESH].buf, *white = bf[WHITE].buf;
-    double *lsl = bf[LSL].buf;
+    double *ld = sb[S_LD].buf, *cvec = sb[S_CVEC].buf, *bout = bf[BOUT].buf;
+    double *sout = bf[SOUT].buf;
+    char *fresh = sb[S_FRESH].buf, *white = sb[S_WHITE].buf;
+    double *lsl = sb[S_LSL].buf;
     for (Py_ssize_t j = 0; j < n; j++) {
         if (rows[j] < 0 || rows[j] >= K) {
             release_all(bf, N);
@@ -437,7 +512,7 @@ static PyObject *py_predict(PyObject *self, PyObject *args)
         release_all(bf, N);
         return PyErr_NoMemory();
     }
-    double *gg = work + mp * ncol + mp * mp, *E = bf[WORK].buf;
+    double *gg = work + mp * ncol + mp * mp, *E = sb[S_WORK].buf;
     double *sq = gg + c * c + (c + 1) * (c + 1);
     int m_ = (int)mp, info = 0, rc = 0;
     char L = 'L';
@@ -529,46 +604,40 @@ static PyObject *py_predict(PyObject *self, PyObject *args)
  * s_dd, r_new): code 1 append, 2 replace point drop, 0 no change; dd = d + jitter. */
 static PyObject *py_candidate(PyObject *self, PyObject *args)
 {
-    enum { LOO, KOOINV, STATS, SCALE, WK, WZ, WXT, WUBT, IL2, LOGVAR, POWREV, XI, UB, KNEW,
-           LVEC, COL, SROW, WORK, N };
-    static const Spec spec[N] = {
-        {"l_oo", 'd', 0},    {"koo_inv", 'd', 0}, {"stats", 'd', 1},   {"scale", 'd', 1},
-        {"wk", 'd', 0},      {"wz", 'd', 0},      {"wxt", 'd', 0},     {"wubt", 'd', 0},
-        {"inv_ls2", 'd', 0}, {"log_var", 'd', 0}, {"pow_rev", 'd', 0}, {"xi", 'd', 0},
-        {"ub", 'd', 0},      {"k_new", 'd', 0},   {"lvec", 'd', 1},    {"col", 'd', 1},
-        {"srow", 'd', 1},    {"work", 'd', 1}};
+    enum { XI, UB, KNEW, LVEC, COL, SROW, N };
+    static const Spec spec[N] = {{"xi", 'd', 0},   {"ub", 'd', 0},  {"k_new", 'd', 0},
+                                 {"lvec", 'd', 1}, {"col", 'd', 1}, {"srow", 'd', 1}};
     PyObject *o[N];
     Py_buffer bf[N];
-    Dims D;
+    State *state;
     int k, m, head, cnt;
-    double kss, jitter, swap_margin;
-    if (!PyArg_ParseTuple(args, "(iiiii)iiiidddOOOOOOOOOOOOOOOOOO", &D.K, &D.b, &D.c, &D.mp,
-                          &D.P, &k, &m, &head, &cnt, &kss, &jitter, &swap_margin, &o[0], &o[1],
-                          &o[2], &o[3], &o[4], &o[5], &o[6], &o[7], &o[8], &o[9], &o[10],
-                          &o[11], &o[12], &o[13], &o[14], &o[15], &o[16], &o[17]))
+    double kss, jitter;
+    if (!PyArg_ParseTuple(args, "O!iiiiddOOOOOO", &StateType, &state, &k, &m, &head, &cnt, &kss,
+                          &jitter, &o[0], &o[1], &o[2], &o[3], &o[4], &o[5]))
         return NULL;
+    const Dims D = state->D;
     const Py_ssize_t K = D.K, b = D.b, c = D.c, mp = D.mp, P = D.P;
-    if (K < 1 || b < 1 || c < 1 || mp < 1 || mp > MAXW || P < 1 || k < 0 || k >= K || m < 1 ||
-        m > mp || cnt < 1 || cnt > P || head < 0 || head >= cnt) {
-        PyErr_SetString(PyExc_ValueError, "dims, k, m, head or count out of range");
+    const double swap_margin = state->swap_margin;
+    if (k < 0 || k >= K || m < 1 || m > mp || cnt < 1 || cnt > P || head < 0 || head >= cnt) {
+        PyErr_SetString(PyExc_ValueError, "k, m, head or count out of range");
         return NULL;
     }
-    const Py_ssize_t size[N] = {K * mp * mp, K * mp * mp, K * mp * (mp + 1), K, K * P * mp,
-                                K * P, K * b * P, K * c * P, K * c * b, K * c, P, b, c, mp,
-                                mp, P, mp, work_size(&D)};
+    const Py_ssize_t size[N] = {b, c, mp, mp, P, mp};
     if (take_all(o, bf, spec, size, N) < 0)
         return NULL;
-    const double *Lk = (const double *)bf[LOO].buf + (size_t)k * mp * mp;
-    const double *Ki = (const double *)bf[KOOINV].buf + (size_t)k * mp * mp;
-    double *st = (double *)bf[STATS].buf + (size_t)k * mp * (mp + 1);
-    double *scale = (double *)bf[SCALE].buf + k;
-    const double *wk = (const double *)bf[WK].buf + (size_t)k * P * mp;
-    const double *wz = (const double *)bf[WZ].buf + (size_t)k * P;
-    const double *wxt = (const double *)bf[WXT].buf + (size_t)k * b * P;
-    const double *wubt = (const double *)bf[WUBT].buf + (size_t)k * c * P;
-    const double *L2 = (const double *)bf[IL2].buf + (size_t)k * c * b;
-    const double *lv = (const double *)bf[LOGVAR].buf + (size_t)k * c;
-    const double *rev = bf[POWREV].buf, *x = bf[XI].buf, *ub = bf[UB].buf, *kn = bf[KNEW].buf;
+    Py_buffer *sb = state->bf;
+    const double *Lk = (const double *)sb[S_LOO].buf + (size_t)k * mp * mp;
+    const double *Ki = (const double *)sb[S_KOOINV].buf + (size_t)k * mp * mp;
+    double *st = (double *)sb[S_STATS].buf + (size_t)k * mp * (mp + 1);
+    double *scale = (double *)sb[S_SCALE].buf + k;
+    const double *wk = (const double *)sb[S_WK].buf + (size_t)k * P * mp;
+    const double *wz = (const double *)sb[S_WZ].buf + (size_t)k * P;
+    const double *wxt = (const double *)sb[S_WXT].buf + (size_t)k * b * P;
+    const double *wubt = (const double *)sb[S_WUBT].buf + (size_t)k * c * P;
+    const double *L2 = (const double *)sb[S_IL2].buf + (size_t)k * c * b;
+    const double *lv = (const double *)sb[S_LOGVAR].buf + (size_t)k * c;
+    const double *rev = sb[S_POWREV].buf, *x = bf[XI].buf, *ub = bf[UB].buf;
+    const double *kn = bf[KNEW].buf;
     double *lvec = bf[LVEC].buf, *col = bf[COL].buf, *srow = bf[SROW].buf;
     int code = 0, drop = -1;
     double d = 0.0, dd = 0.0, sdd = 0.0, rnew = 0.0;
@@ -597,7 +666,7 @@ static PyObject *py_candidate(PyObject *self, PyObject *args)
         goto done;
     }
     /* the window column k(x, (xi_t, ub_t)) from the differences: exponents (c, cnt) */
-    double *E = bf[WORK].buf;
+    double *E = sb[S_WORK].buf;
     for (int i = 0; i < c; i++)
         simd->window_exponents(E + (size_t)i * cnt, L2 + i * b, lv[i], x, wxt, (int)b, (int)P,
                                cnt);
@@ -757,47 +826,40 @@ static PyObject *py_factor_inverse(PyObject *self, PyObject *args)
  * and inverse unchanged: the caller refactors with jitter). */
 static PyObject *py_install(PyObject *self, PyObject *args)
 {
-    enum { XI, UB, KNEW, SROW, COL, LVEC, INDXT, INDUB, UBT, KOO, STATS, WK, LOO, KINV, FRESH,
-           NADD, NREM, N };
-    static const Spec spec[N] = {
-        {"xi", 'd', 0},      {"ub", 'd', 0},       {"k_new", 'd', 0},   {"srow", 'd', 0},
-        {"col", 'd', 0},     {"lvec", 'd', 0},     {"ind_xit", 'd', 1}, {"ind_ub", 'd', 1},
-        {"ubt", 'd', 1},     {"koo", 'd', 1},      {"stats", 'd', 1},   {"wk", 'd', 1},
-        {"l_oo", 'd', 1},    {"koo_inv", 'd', 1},  {"fresh", '?', 1},   {"n_added", 'q', 1},
-        {"n_removed", 'q', 1}};
+    enum { XI, UB, KNEW, SROW, COL, LVEC, N };
+    static const Spec spec[N] = {{"xi", 'd', 0},   {"ub", 'd', 0},  {"k_new", 'd', 0},
+                                 {"srow", 'd', 0}, {"col", 'd', 0}, {"lvec", 'd', 0}};
     PyObject *o[N];
     Py_buffer bf[N];
-    Dims D;
+    State *state;
     int k, m, pos, replace, cnt;
     double kss_jit, sdd, rnew, dd;
-    if (!PyArg_ParseTuple(args, "(iiiii)iiipiddddOOOOOOOOOOOOOOOOO", &D.K, &D.b, &D.c, &D.mp,
-                          &D.P, &k, &m, &pos, &replace, &cnt, &kss_jit, &sdd, &rnew, &dd,
-                          &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6], &o[7], &o[8],
-                          &o[9], &o[10], &o[11], &o[12], &o[13], &o[14], &o[15], &o[16]))
+    if (!PyArg_ParseTuple(args, "O!iiipiddddOOOOOO", &StateType, &state, &k, &m, &pos,
+                          &replace, &cnt, &kss_jit, &sdd, &rnew, &dd, &o[0], &o[1], &o[2],
+                          &o[3], &o[4], &o[5]))
         return NULL;
+    const Dims D = state->D;
     const Py_ssize_t K = D.K, b = D.b, c = D.c, mp = D.mp, P = D.P;
-    if (K < 1 || b < 1 || c < 1 || mp < 1 || mp > MAXW || P < 1 || k < 0 || k >= K || m < 0 ||
-        m > mp || cnt < 1 || cnt > P || (replace ? pos < 0 || pos >= m : pos != m || m >= mp)) {
-        PyErr_SetString(PyExc_ValueError, "dims, k, m, pos or count out of range");
+    if (k < 0 || k >= K || m < 0 || m > mp || cnt < 1 || cnt > P ||
+        (replace ? pos < 0 || pos >= m : pos != m || m >= mp)) {
+        PyErr_SetString(PyExc_ValueError, "k, m, pos or count out of range");
         return NULL;
     }
     const int mm = replace ? m : m + 1;
-    const Py_ssize_t size[N] = {b,           c,           mp,     m,           cnt,
-                                m,           K * b * mp,  K * mp * c, K * c * mp, K * mp * mp,
-                                K * mp * (mp + 1), K * P * mp, K * mp * mp, K * mp * mp, K,
-                                K,           K};
+    const Py_ssize_t size[N] = {b, c, mp, m, cnt, m};
     if (take_all(o, bf, spec, size, N) < 0)
         return NULL;
+    Py_buffer *sb = state->bf;
     const double *xi = bf[XI].buf, *ub = bf[UB].buf, *kn = bf[KNEW].buf, *srow = bf[SROW].buf;
     const double *col = bf[COL].buf, *lvec = bf[LVEC].buf;
-    double *xt = (double *)bf[INDXT].buf + (size_t)k * b * mp;
-    double *iu = (double *)bf[INDUB].buf + (size_t)k * mp * c;
-    double *U = (double *)bf[UBT].buf + (size_t)k * c * mp;
-    double *koo = (double *)bf[KOO].buf + (size_t)k * mp * mp;
-    double *st = (double *)bf[STATS].buf + (size_t)k * mp * (mp + 1);
-    double *wk = (double *)bf[WK].buf + (size_t)k * P * mp;
-    double *lo = (double *)bf[LOO].buf + (size_t)k * mp * mp;
-    long long *nadd = bf[NADD].buf, *nrem = bf[NREM].buf;
+    double *xt = (double *)sb[S_INDXT].buf + (size_t)k * b * mp;
+    double *iu = (double *)sb[S_INDUB].buf + (size_t)k * mp * c;
+    double *U = (double *)sb[S_UBT].buf + (size_t)k * c * mp;
+    double *koo = (double *)sb[S_KOO].buf + (size_t)k * mp * mp;
+    double *st = (double *)sb[S_STATS].buf + (size_t)k * mp * (mp + 1);
+    double *wk = (double *)sb[S_WK].buf + (size_t)k * P * mp;
+    double *lo = (double *)sb[S_LOO].buf + (size_t)k * mp * mp;
+    long long *nadd = sb[S_NADD].buf, *nrem = sb[S_NREM].buf;
     nadd[k] += 1;
     if (replace)
         nrem[k] += 1;
@@ -823,7 +885,7 @@ static PyObject *py_install(PyObject *self, PyObject *args)
         lo[(size_t)pos * mp + pos] = sqrt(dd);
     }
     const int rc = factor_inverse_k(mp, k, mm, replace, koo - (size_t)k * mp * mp,
-                                    bf[LOO].buf, bf[KINV].buf, bf[FRESH].buf);
+                                    sb[S_LOO].buf, sb[S_KOOINV].buf, sb[S_FRESH].buf);
     release_all(bf, N);
     if (rc == NO_MEMORY)
         return PyErr_NoMemory();
@@ -901,28 +963,29 @@ static void *capi(const char *module, const char *name)
 }
 
 static PyMethodDef methods[] = {
+    {"state", py_state, METH_VARARGS,
+     "state(dims, arrays, (inv_phi, phi_p, add_floor, swap_margin, refresh_every)) -> State: "
+     "the bank's arrays (a dict by name: ind_xit, log_var, inv_ls2, ubt, var, koo_inv, stats, "
+     "scale, wk, wz, wxt, wubt, k_new, kss, resid, work, head, count, n_seen, fresh, since, "
+     "noise_variance, l_oo, lsl, white, l_d, cvec, ind_ub, koo, n_added, n_removed, pow_rev) "
+     "taken once, and its settings."},
     {"update", py_update, METH_VARARGS,
-     "update(dims, ind_xit, log_var, inv_ls2, ubt, var, koo_inv, stats, scale, wk, wz, wxt, wubt, xi, ub, "
-     "z, k_new, kss, resid, work, head, count, n_seen, fresh, since, noise_variance, inv_phi, "
-     "phi_p, add_floor, refresh_every, l_oo, lsl, white) -> (code, candidates, best candidate, refresh due, "
-     "renormalisation due): the window step of every learner at their shared ring position (code 0), or a "
-     "negative code (nothing changed)."},
+     "update(state, xi, ub, z) -> (code, candidates, best candidate, refresh due, "
+     "renormalisation due): the window step of every learner at their shared ring position "
+     "(code 0), or a negative code (nothing changed)."},
     {"predict", py_predict, METH_VARARGS,
-     "predict(dims, n, ind_xit, log_var, inv_ls2, ubt, var, l_oo, stats, scale, noise_variance, l_d, "
-     "cvec, fresh, rows, xi, b_out, sigma_out, work, lsl, white) -> int: eq. 20 for learners rows (0), or a "
-     "negative code (the numpy method takes over)."},
+     "predict(state, n, rows, xi, b_out, sigma_out) -> int: eq. 20 for learners rows (0), or "
+     "a negative code (the numpy method takes over)."},
     {"candidate", py_candidate, METH_VARARGS,
-     "candidate(dims, k, m, head, count, kss, jitter, swap_margin, l_oo, koo_inv, stats, scale, "
-     "wk, wz, wxt, wubt, inv_ls2, log_var, pow_rev, xi, ub, k_new, lvec, col, srow) -> (code, "
-     "drop, dd, s_dd, r_new): the eqs. 27-28 decision on a new inducing point."},
+     "candidate(state, k, m, head, count, kss, jitter, xi, ub, k_new, lvec, col, srow) -> "
+     "(code, drop, dd, s_dd, r_new): the eqs. 27-28 decision on a new inducing point."},
     {"factor_inverse", py_factor_inverse, METH_VARARGS,
      "factor_inverse(dims, k, m, refactor, koo, l_oo, koo_inv, fresh) -> int: L = "
      "chol(K_oo) of learner k into l_oo (with refactor) and K_oo^-1 into koo_inv (0), or "
      "NOT_PD (nothing changed)."},
     {"install", py_install, METH_VARARGS,
-     "install(dims, k, m, pos, replace, count, kss_jit, s_dd, r_new, dd, xi, ub, k_new, srow, "
-     "col, lvec, ind_xit, ind_ub, ubt, koo, stats, wk, l_oo, koo_inv, fresh, n_added, "
-     "n_removed) -> int: learner k's new inducing point in slot pos and K_oo^-1 (0), or "
+     "install(state, k, m, pos, replace, count, kss_jit, s_dd, r_new, dd, xi, ub, k_new, srow, "
+     "col, lvec) -> int: learner k's new inducing point in slot pos and K_oo^-1 (0), or "
      "NOT_PD (the copies made, the factor and inverse unchanged)."},
     {"vexp", py_vexp, METH_VARARGS,
      "vexp(x) -> None: x <- exp(x) in place (a C-contiguous, writable float64 array), as the "
@@ -948,14 +1011,29 @@ PyMODINIT_FUNC PyInit__bank(void)
     for (int i = N_SIMD - 1; i >= 0; i--)
         if (simd_runs(simd_tables[i]))
             simd = simd_tables[i];
+    if (PyType_Ready(&StateType) < 0)
+        return NULL;
     PyObject *m = PyModule_Create(&module);
+    if (m == NULL)
+        return NULL;
+    Py_INCREF(&StateType);
+    if (PyModule_AddObject(m, "State", (PyObject *)&StateType) < 0) {
+        Py_DECREF(&StateType);
+        Py_DECREF(m);
+        return NULL;
+    }
     /* how update and predict take the inducing inputs: (K, b, Mp), by dimension */
     if (m != NULL && PyModule_AddStringConstant(m, "INDUCING_INPUTS", "by dimension") < 0) {
         Py_DECREF(m);
         return NULL;
     }
-    /* update and predict keep the whitened statistics (their last arguments lsl, white) */
+    /* update and predict keep the whitened statistics (the state's lsl, white) */
     if (m != NULL && PyModule_AddIntConstant(m, "WHITENED_STATISTICS", 1) < 0) {
+        Py_DECREF(m);
+        return NULL;
+    }
+    /* the calling convention afvsgp_gym._compiled expects: 2, the bank's arrays in a State */
+    if (PyModule_AddIntConstant(m, "ABI", 2) < 0) {
         Py_DECREF(m);
         return NULL;
     }

@@ -21,15 +21,16 @@ columns), which leaves every posterior quantity unchanged. The rare inducing-set
 learners whose prediction is needed (e.g. the barriers near an obstacle).
 
 The per-step arithmetic (the window step of every learner, the predictions, the eqs. 27-28
-decision on a new inducing point) runs compiled when ``afvsgp_gym.gp._bank`` is built
-(:data:`COMPILED`; the same formulas in C with scipy's BLAS and LAPACK, one call each in place
-of tens of numpy calls; the kernel's exponent from the differences to the inducing points,
-its exponential by the core's own vectorised exp, within 1.5 ulp; for a learner predicted at
-consecutive steps the update carries its whitened statistics ``A = L^-1 S L^-T``, ``A +=
-scale (l l' - phi^P l_old l_old')`` with ``l = L^-1 k_new``, so that its prediction factors
-``I + A / s2`` without solving ``A`` afresh),
-else, or with ``compiled=False``, in numpy; the installation of a new inducing point and the
-rare cases (skipped samples, a failed factorisation) always run in numpy.
+decision on a new inducing point, the installation of a new inducing point with its factor
+and inverse of ``K_oo``) runs compiled when ``afvsgp_gym.gp._bank`` is built (the backend
+``"auto"`` or ``"compiled"``, see :mod:`afvsgp_gym._compiled`; the same formulas in C with
+scipy's BLAS and LAPACK, one call each in place of tens of numpy calls; the kernel's exponent
+from the differences to the inducing points, its exponential by the core's own vectorised
+exp, within 1.5 ulp; for a learner predicted at consecutive steps the update carries its
+whitened statistics ``A = L^-1 S L^-T``, ``A += scale (l l' - phi^P l_old l_old')`` with
+``l = L^-1 k_new``, so that its prediction factors ``I + A / s2`` without solving ``A``
+afresh), else, or with the backend ``"numpy"``, in numpy; the rare cases (skipped samples,
+a kernel exponent that overflows, a failed factorisation) always run in numpy.
 """
 
 from __future__ import annotations
@@ -43,18 +44,13 @@ import numpy as np
 from scipy.linalg.blas import dtrsm
 from scipy.linalg.lapack import dpotrf, dtrtri
 
+from afvsgp_gym import _compiled
 from afvsgp_gym.gp._linalg import jittered_cholesky
 from afvsgp_gym.gp.kernels import ADPKernel
 
-try:
-    from afvsgp_gym.gp import _bank as _core
-except ImportError:  # built without a C compiler
-    _core = None
+__all__ = ["AFVSGPBank", "BankSettings", "FittedState"]
 
-__all__ = ["COMPILED", "AFVSGPBank", "BankSettings", "FittedState"]
-
-#: True when the compiled core (``afvsgp_gym.gp._bank``) is importable.
-COMPILED = _core is not None
+_core = _compiled.extension("bank")
 
 
 @dataclass(frozen=True)
@@ -99,6 +95,18 @@ class _Candidate(NamedTuple):
     r_new: float
 
 
+#: The arrays the compiled core holds in its state (its names -> the bank's attributes; the
+#: per-step outputs k_new, kss, resid are the bank's ``_step_out``).
+_CORE_ARRAYS = (("ind_xit", "_ind_xit"), ("log_var", "log_var"), ("inv_ls2", "inv_ls2"),
+                ("ubt", "_ubt"), ("var", "var"), ("koo_inv", "_koo_inv"), ("stats", "_stats"),
+                ("scale", "_scale"), ("wk", "_wk"), ("wz", "_wz"), ("wxt", "_wxt"),
+                ("wubt", "_wubt"), ("work", "_work"), ("head", "_head"), ("count", "_count"),
+                ("n_seen", "n_seen_"), ("fresh", "_fresh"), ("since", "_since_refresh"),
+                ("noise_variance", "noise_variance"), ("l_oo", "_l_oo"), ("lsl", "_lsl"),
+                ("white", "_white"), ("l_d", "_l_d"), ("cvec", "_cvec"), ("ind_ub", "_ind_ub"),
+                ("koo", "_koo"), ("n_added", "n_added_"), ("n_removed", "n_removed_"),
+                ("pow_rev", "_pow_rev"))
+
 #: Per-learner arrays (leading axis K), concatenated by :meth:`AFVSGPBank.stack`.
 _STACKED = ("inv_ls2", "var", "_var_diag", "log_var", "noise_variance", "jitter", "n_inducing_",
             "_ind_xit", "_ind_ub", "_amat", "_ubt", "_koo", "_l_oo", "_koo_inv", "_stats",
@@ -120,12 +128,16 @@ class AFVSGPBank:
         27 residual go first, the others are considered again with their next samples): it
         bounds the worst-case step time. None examines every candidate, exactly as K
         separate learners do.
-    compiled : bool or None
-        Run the per-step arithmetic in the compiled core (None: when it is built; True
-        without it raises ``ImportError``), or in numpy (False). Settable later.
+    backend : str or Backend
+        Where the per-step arithmetic runs: ``"auto"`` (default) in the compiled core when it
+        is built, ``"numpy"`` in numpy, ``"compiled"`` in the compiled core (``ImportError``
+        when it was not built), or as a resolved ``Backend`` says (the filter's); see
+        :mod:`afvsgp_gym._compiled`. Settable later.
 
     Attributes
     ----------
+    compiled : bool
+        True when the per-step arithmetic runs in the compiled core.
     n_learners : int
     n_inducing_ : ndarray of int, shape (K,)
         Current inducing-set sizes.
@@ -133,11 +145,11 @@ class AFVSGPBank:
     """
 
     def __init__(self, settings: BankSettings, states: Sequence[FittedState],
-                 max_inducing_candidates: int | None = None, compiled: bool | None = None):
+                 max_inducing_candidates: int | None = None, backend="auto"):
         if not states:
             raise ValueError("states must hold at least one fitted learner state")
         self._set_settings(settings, states[0].kernel, max_inducing_candidates)
-        self.compiled = compiled
+        self.backend = backend
         K, P, b, c, mp = len(states), self.window, self.input_dim, self._c, self._mp
         self.n_learners = K
         for k, st in enumerate(states):
@@ -226,20 +238,22 @@ class AFVSGPBank:
         self._since_refresh = (np.arange(K) * self._refresh_every) // K
         self._synced = bool((self._head == self._head[0]).all()
                             and (self._count == self._count[0]).all())
+        self._cstate = None  # the arrays are new: the core takes them again
 
     @property
     def compiled(self) -> bool:
         """True when the per-step arithmetic runs in the compiled core."""
         return self._compiled
 
-    @compiled.setter
-    def compiled(self, value: bool | None) -> None:
-        if value is not None and not isinstance(value, bool | np.bool_):
-            raise ValueError(f"compiled must be None, True or False. Got: {value!r}")
-        if value and _core is None:
-            raise ImportError("compiled=True needs afvsgp_gym.gp._bank, which was not built "
-                              "(install the package where a C compiler is available)")
-        self._compiled = COMPILED if value is None else bool(value)
+    @property
+    def backend(self) -> str:
+        """``"auto"``, ``"numpy"`` or ``"compiled"`` (see the class docstring); settable."""
+        return self._backend
+
+    @backend.setter
+    def backend(self, value) -> None:
+        resolved = _compiled.resolve(value, ("bank",))
+        self._backend, self._compiled = resolved.name, resolved.bank
 
     @property
     def _ind_xi(self) -> np.ndarray:
@@ -258,24 +272,46 @@ class AFVSGPBank:
         (K,) flags of the learners whose ``A`` is current (none)."""
         return np.zeros((K, self._mp, self._mp)), np.zeros(K, dtype=bool)
 
+    def _core_state(self):
+        """The compiled core's state of this bank: its arrays, taken once (on the first call
+        after they were allocated) and held by the core (see ``_bank.state``)."""
+        state = self._cstate
+        if state is None:
+            arrays = {name: getattr(self, attr) for name, attr in _CORE_ARRAYS}
+            arrays["k_new"], arrays["kss"], arrays["resid"] = self._step_out
+            state = self._cstate = _core.state(
+                self._dims, arrays, (self._inv_phi, self._phi_p, self._add_floor,
+                                     self.swap_margin, self._refresh_every))
+        return state
+
+    def __getstate__(self) -> dict:
+        """Pickle (and deepcopy) without the compiled core's state (it holds the arrays'
+        buffers; a copy takes its own arrays again)."""
+        state = dict(self.__dict__)
+        state["_cstate"] = None
+        return state
+
     def __setstate__(self, state: dict) -> None:
         """Unpickle; a bank pickled where the core was built runs numpy where it is not."""
         self.__dict__.update(state)
+        self._cstate = None
         if "_ind_xi" in state:  # pickled when the inducing inputs were stored by point
             self._ind_xit = np.ascontiguousarray(self.__dict__.pop("_ind_xi").transpose(0, 2, 1))
         if "_step_out" not in state:  # pickled before the per-step outputs were kept
             self._step_out = self._new_step_out()
         if "_lsl" not in state:  # pickled before the whitened statistics were kept
             self._lsl, self._white = self._new_whitened(self.n_learners)
+        if "_backend" not in state:  # pickled when the switch was compiled=None/True/False
+            self._backend = "auto" if self._compiled else "numpy"
         if _core is None:
             self._compiled = False
 
     @classmethod
     def stack(cls, banks: Sequence[AFVSGPBank],
               max_inducing_candidates: int | None = None,
-              compiled: bool | None = None) -> AFVSGPBank:
+              backend="auto") -> AFVSGPBank:
         """One bank holding copies of the learners of ``banks`` (equal settings), in order
-        (``compiled``: see the class docstring)."""
+        (``backend``: see the class docstring)."""
         if not banks:
             raise ValueError("banks must hold at least one AFVSGPBank")
         first = banks[0]
@@ -287,7 +323,7 @@ class AFVSGPBank:
                 raise ValueError(f"banks[{i}] has other input/action dimensions")
         out = cls.__new__(cls)
         out._set_settings(first.settings, first.kernels[0], max_inducing_candidates)
-        out.compiled = compiled
+        out.backend = backend
         for name in _STACKED:
             setattr(out, name, np.concatenate([getattr(bk, name) for bk in banks]))
         out.kernels = [k.clone() for bk in banks for k in bk.kernels]
@@ -297,7 +333,7 @@ class AFVSGPBank:
 
     @classmethod
     def from_learners(cls, learners: Sequence, max_inducing_candidates: int | None = None,
-                      compiled: bool | None = None) -> AFVSGPBank:
+                      backend="auto") -> AFVSGPBank:
         """One bank holding copies of the state of fitted :class:`~afvsgp_gym.gp.AFVSGP`
         ``learners`` (each a bank of one; equal settings; see ``max_inducing_candidates`` in
         the class docstring)."""
@@ -307,7 +343,7 @@ class AFVSGPBank:
             if not isinstance(getattr(lr, "_bank", None), AFVSGPBank):
                 raise ValueError(f"learners[{k}] must be a fitted AFVSGP")
         try:
-            return cls.stack([lr._bank for lr in learners], max_inducing_candidates, compiled)
+            return cls.stack([lr._bank for lr in learners], max_inducing_candidates, backend)
         except ValueError as exc:
             raise ValueError(f"learners: {exc}") from None
 
@@ -472,12 +508,8 @@ class AFVSGPBank:
         n = len(idx)
         if self._compiled:
             bvec, sig = np.empty((n, c)), np.empty((n, c, c))
-            rc = _core.predict(self._dims, n, self._ind_xit, self.log_var, self.inv_ls2,
-                               self._ubt, self.var,
-                               self._l_oo, self._stats, self._scale, self.noise_variance,
-                               self._l_d, self._cvec, self._fresh, np.ascontiguousarray(idx),
-                               np.ascontiguousarray(xi), bvec, sig, self._work, self._lsl,
-                               self._white)
+            rc = _core.predict(self._core_state(), n, np.ascontiguousarray(idx),
+                               np.ascontiguousarray(xi), bvec, sig)
             if rc == 0:
                 return bvec, sig
         kt = self._kt(rows, xi)
@@ -589,13 +621,7 @@ class AFVSGPBank:
         ub[1:] = u
         xi, z = np.ascontiguousarray(xi), np.ascontiguousarray(z)
         k_new, kss, resid = self._step_out
-        rc, n_cand, best, refresh, renormalise = _core.update(
-            self._dims, self._ind_xit, self.log_var, self.inv_ls2, self._ubt, self.var,
-            self._koo_inv,
-            self._stats, self._scale, self._wk, self._wz, self._wxt, self._wubt, xi, ub, z,
-            k_new, kss, resid, self._work, self._head, self._count, self.n_seen_, self._fresh,
-            self._since_refresh, self.noise_variance, self._inv_phi, self._phi_p,
-            self._add_floor, self._refresh_every, self._l_oo, self._lsl, self._white)
+        rc, n_cand, best, refresh, renormalise = _core.update(self._core_state(), xi, ub, z)
         if rc != 0:
             return None
         if refresh:
@@ -770,10 +796,9 @@ class AFVSGPBank:
         m, cnt = int(self.n_inducing_[k]), int(self._count[k])
         lvec, col, srow = np.empty(self._mp), np.empty(self.window), np.empty(self._mp)
         code, drop, dd, sdiag, r_new = _core.candidate(
-            self._dims, k, m, int(self._head[k]), cnt, float(kss), float(self.jitter[k]),
-            self.swap_margin, self._l_oo, self._koo_inv, self._stats, self._scale, self._wk,
-            self._wz, self._wxt, self._wubt, self.inv_ls2, self.log_var, self._pow_rev,
-            np.ascontiguousarray(xi), ub, np.ascontiguousarray(k_new), lvec, col, srow, self._work)
+            self._core_state(), k, m, int(self._head[k]), cnt, float(kss),
+            float(self.jitter[k]), np.ascontiguousarray(xi), ub, np.ascontiguousarray(k_new),
+            lvec, col, srow)
         if code == 0:
             return None
         return _Candidate(drop if code == 2 else None, lvec[:m], col[:cnt], srow[:m], dd,
@@ -792,12 +817,10 @@ class AFVSGPBank:
         self._set_exponent_rows(k, pos, xi)
         kss_jit = kss + self.jitter[k]
         if self._compiled:
-            if _core.install(self._dims, k, m, pos, drop is not None, int(self._count[k]),
-                             float(kss_jit), float(cand.sdiag), float(cand.r_new),
-                             float(cand.dd), xi, ub, k_new, cand.srow, cand.col, cand.lvec,
-                             self._ind_xit, self._ind_ub, self._ubt, self._koo, self._stats,
-                             self._wk, self._l_oo, self._koo_inv, self._fresh, self.n_added_,
-                             self.n_removed_) == 0:
+            if _core.install(self._core_state(), k, m, pos, drop is not None,
+                             int(self._count[k]), float(kss_jit), float(cand.sdiag),
+                             float(cand.r_new), float(cand.dd), xi, ub, k_new, cand.srow,
+                             cand.col, cand.lvec) == 0:
                 self.n_inducing_[k] = mm
                 return
         else:

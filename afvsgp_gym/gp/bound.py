@@ -46,7 +46,8 @@ Gradient (reverse mode through the two factorisations)::
 non-negative terms.) The relative jitter of the fit (:func:`jitter_for`) adds
 ``tr(dF/dK_oo) d eps / d theta``.
 
-The relation to GPyTorch's ``SGPR`` and GPflow's ``SGPR`` is in benchmarks/gp.md ("Conventions").
+The relation to GPyTorch's ``SGPR`` and GPflow's ``SGPR`` is in docs/learners.md ("Conventions
+against GPyTorch and GPflow").
 """
 
 from __future__ import annotations

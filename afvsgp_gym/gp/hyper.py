@@ -6,8 +6,8 @@ marginal likelihood for the exact GP) plus :class:`LogNormalPrior`'s log density
 centred at the initial kernel (the caller's, or ``ADPKernel.from_data``): parameters the data
 determine stay where the data put them, while the flat directions of the evidence (a lengthscale
 far beyond the data's extent, a variance traded against a lengthscale) are held near the initial
-scale instead of drifting to the edge of the box. Choice and evidence: benchmarks/gp.md,
-"Hyperparameter fit".
+scale instead of drifting to the edge of the box. Choice and evidence: docs/learners.md,
+"The hyperparameter fit".
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ THETA_BOX = 8.0
 #: is GPyTorch's default lower bound on the likelihood noise (1e-4, there on standardised
 #: targets): simulated measurements are nearly noise-free, the evidence then drives the noise
 #: to the floor, and a floor of 1e-6 let the posterior nearly interpolate and extrapolate
-#: wildly after an inducing-point swap (benchmarks/gp.md, "Noise floor").
+#: wildly after an inducing-point swap (docs/learners.md, "The hyperparameter fit").
 NOISE_MIN, NOISE_MAX = 1e-4, 10.0 * np.e
 
 #: L-BFGS-B stops when an iteration improves the objective by less than this fraction.
@@ -67,7 +67,7 @@ class LogNormalPrior:
 
 #: The prior every learner uses unless told otherwise (``prior=None`` fits without one); the
 #: choice of 1.5 for both standard deviations, against none, variances only, 1.0 and 3.0, is in
-#: benchmarks/gp.md ("Hyperparameter fit").
+#: docs/learners.md ("The hyperparameter fit").
 DEFAULT_PRIOR = LogNormalPrior()
 
 

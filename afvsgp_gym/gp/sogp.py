@@ -229,7 +229,7 @@ class SOGP(BaseLearner):
     batch_size : int
         ``update`` buffers samples and runs one streaming step when this many are buffered.
         Buffered samples do not affect predictions until then (``flush`` forces a step).
-        Default 1 (a step per sample; benchmarks/gp.md has the effect of larger batches).
+        Default 1 (a step per sample, as the filter runs its learners; docs/learners.md).
     optimise_online : bool
         Re-optimise kernel and noise on Bui's online bound at every step (L-BFGS-B,
         ``online_maxiter`` iterations, analytic gradients; inducing set chosen first). Off by
@@ -271,7 +271,7 @@ class SOGP(BaseLearner):
     Cost per step with M inducing points, n batch samples, b features, m actions:
     O(n (M+n) (m+1) b) for the kernel (the old block K_aa is reused while the hyperparameters
     are unchanged) and O(M^2 (M+n)) for the algebra, independent of the stream length
-    (measured figures: benchmarks/gp.md).
+    (measured figures: ``afvsgp-gym bench --only gp``, docs/performance.md).
     """
 
     def __init__(self, kernel: ADPKernel | None = None, noise_variance: float | None = None,

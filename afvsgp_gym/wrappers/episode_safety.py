@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-import math
-from typing import Any
-
 import gymnasium as gym
+
+from afvsgp_gym.episode_counts import EpisodeCounter
 
 __all__ = ["EPISODE_SAFETY_FIELDS", "EpisodeSafetyStats"]
 
@@ -37,8 +36,10 @@ class EpisodeSafetyStats(gym.Wrapper, gym.utils.RecordConstructorArgs):
     :class:`~afvsgp_gym.wrappers.ActionRepeat`, so every filtered step is counted even when the
     agent acts less often.
 
+    The counts are :class:`~afvsgp_gym.episode_counts.EpisodeCounter`'s (the episode runner's):
+
     - ``cost_steps``: ``info["cost"] > 0``
-      (:data:`~afvsgp_gym.evaluation.COST_DEFINITION`); ``cost_steps_after_warmup`` those with
+      (:data:`~afvsgp_gym.episode_counts.COST_DEFINITION`); ``cost_steps_after_warmup`` those with
       ``info["warmup"]`` False (the filter's learners fitted; every step without a filter);
       ``violation_steps`` h < 0; ``contact_steps`` ``info["collision"]``; ``limit_steps``
       ``info["limit_violation"]``; ``min_h`` the smallest h.
@@ -68,44 +69,21 @@ class EpisodeSafetyStats(gym.Wrapper, gym.utils.RecordConstructorArgs):
     def __init__(self, env: gym.Env):
         gym.utils.RecordConstructorArgs.__init__(self)
         gym.Wrapper.__init__(self, env)
-        self._stats = self._fresh()
-
-    @staticmethod
-    def _fresh() -> dict[str, Any]:
-        stats: dict[str, Any] = dict.fromkeys(EPISODE_SAFETY_FIELDS, 0)
-        stats.update({"return": 0.0, "success": False, "min_h": math.inf})
-        return stats
+        self._counter = EpisodeCounter()
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
-        self._stats = self._fresh()
+        self._counter.reset()
         return self.env.reset(seed=seed, options=options)
 
     def step(self, action):
         obs, reward, terminated, truncated, info = self.env.step(action)
         if "episode_safety" in info:
             raise ValueError("info already has an 'episode_safety' key: wrapped twice?")
-        s = self._stats
-        s["steps"] += 1
-        s["return"] += float(reward)
-        s["success"] = s["success"] or bool(info.get("success", False))
-        warm = bool(info.get("warmup", False))
-        cost = float(info.get("cost", 0.0)) > 0.0
-        s["cost_steps"] += cost
-        s["cost_steps_after_warmup"] += cost and not warm
-        h = float(info.get("h", math.inf))
-        s["violation_steps"] += h < 0.0
-        s["min_h"] = min(s["min_h"], h)
-        s["contact_steps"] += bool(info.get("collision", False))
-        s["limit_steps"] += bool(info.get("limit_violation", False))
-        s["interventions"] += bool(info.get("filter_active", False))
-        status = str(info.get("filter_status", ""))
-        if not info.get("filter_feasible", True):
-            s["infeasible_steps"] += 1
-            s["relaxed_steps"] += status.startswith("relaxed")
-            s["backup_steps"] += status.startswith(("backup", "fallback"))
-        s["warmup_steps"] += warm
-        s["saturated_steps"] += bool(info.get("torque_saturated", False))
+        self._counter.update(reward, info)
         if terminated or truncated:
+            c = self._counter
             info = dict(info)
-            info["episode_safety"] = dict(s)
+            info["episode_safety"] = {
+                name: c.return_ if name == "return" else getattr(c, name)
+                for name in EPISODE_SAFETY_FIELDS}
         return obs, reward, terminated, truncated, info

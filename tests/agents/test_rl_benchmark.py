@@ -6,8 +6,7 @@ import math
 
 import numpy as np
 import pytest
-
-from afvsgp_gym.benchmarks import rl
+import rl_benchmark as rl  # benchmarks/rl_benchmark.py (pytest's pythonpath)
 
 
 def test_wilson_interval_against_the_formula():

@@ -3,18 +3,16 @@ references: its KKT system solved again in 50 digits (mpmath), shifted half-spac
 exact least-distance projection, whole programs against clarabel at a tight tolerance and
 SLSQP, nearly parallel cones; bad input to the compiled core; the filter's choice of path."""
 
-import shutil
-import sysconfig
-
 import mpmath
 import numpy as np
 import pytest
 from socp_reference import margins as _margins
 from socp_reference import slsqp
 
+from afvsgp_gym import _compiled
 from afvsgp_gym.cbf import SOCPFilter, binding_cones, fastpath
 
-needs_core = pytest.mark.skipif(not binding_cones.AVAILABLE,
+needs_core = pytest.mark.skipif(_compiled.extension("cones") is None,
                                 reason="afvsgp_gym.cbf._cones not built")
 
 
@@ -40,15 +38,6 @@ def _cones_instances(n, m=7, seed=0):
         if res.status == "certified:cones":
             found.append((low, high, u_nom, a0, a, G, res))
     return found
-
-
-def test_compiled_core_is_built_where_there_is_a_compiler():
-    """The package builds its C core wherever a C compiler is there (the filter's fast
-    several-cones path; without it the numpy paths run and this test is skipped)."""
-    cc = (sysconfig.get_config_var("CC") or "cc").split()[0]
-    if shutil.which(cc) is None:
-        pytest.skip(f"no C compiler ({cc})")
-    assert binding_cones.AVAILABLE
 
 
 @needs_core
@@ -216,11 +205,11 @@ def test_nearly_parallel_cones_give_the_programs_optimum(angle):
 
 @needs_core
 def test_compiled_and_numpy_paths_give_the_same_optimum():
-    """compiled=False takes the numpy paths (clarabel on working sets): the same optimum to
-    clarabel's accuracy, and the compiled path certifies programs the numpy one cannot."""
+    """The backend "numpy" takes the numpy paths (clarabel on working sets): the same optimum
+    to clarabel's accuracy, and the compiled path certifies programs the numpy one cannot."""
     taken = 0
     for low, high, u_nom, a0, a, G, res in _cones_instances(10, seed=50):
-        off = SOCPFilter(low, high, compiled=False).solve(u_nom, a0, a, G)
+        off = SOCPFilter(low, high, backend="numpy").solve(u_nom, a0, a, G)
         assert off.status != "certified:cones"
         np.testing.assert_allclose(res.u, off.u, atol=1e-4)
         taken += off.status in ("Solved", "AlmostSolved")
@@ -264,24 +253,13 @@ def test_bad_input_to_the_compiled_core_is_refused():
                                            np.zeros(m, dtype=bool)) is None
 
 
-def test_compiled_true_without_the_core_is_an_import_error(monkeypatch):
-    monkeypatch.setattr(binding_cones, "AVAILABLE", False)
-    with pytest.raises(ImportError, match="compiled=True"):
-        SOCPFilter(-np.ones(2), np.ones(2), compiled=True)
+def test_backend_compiled_without_the_core_is_an_import_error(without_extensions):
+    without_extensions("cones")
+    with pytest.raises(ImportError, match=r"backend='compiled' needs afvsgp_gym\.cbf\._cones"):
+        SOCPFilter(-np.ones(2), np.ones(2), backend="compiled")
     assert not SOCPFilter(-np.ones(2), np.ones(2)).compiled
-    with pytest.raises(ValueError, match="compiled"):
-        SOCPFilter(-np.ones(2), np.ones(2), compiled="no")
-
-
-def test_compiled_solver_option_reaches_the_solver():
-    from afvsgp_gym.cbf import FilterConfig, SafetyController
-
-    ctrl = SafetyController(-np.ones(2), np.ones(2), learner="none", compiled_solver=False)
-    assert ctrl.socp.compiled is False
-    assert SafetyController(-np.ones(2), np.ones(2), learner="none").socp.compiled is \
-        binding_cones.AVAILABLE
-    with pytest.raises(ValueError, match="compiled_solver"):
-        FilterConfig(compiled_solver="yes")
+    with pytest.raises(ValueError, match="backend must be one of"):
+        SOCPFilter(-np.ones(2), np.ones(2), backend="no")
 
 
 class _FixedTol:

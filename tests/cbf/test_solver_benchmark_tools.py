@@ -1,9 +1,10 @@
 """Tools of the solver benchmark: the sphere-arm constraints against finite differences of
-the simulated barrier, the 40-digit KKT reference against a closed form, and the recorded
-instances' file format."""
+the simulated barrier (afvsgp_gym.benchmarks.solver), the 40-digit KKT reference against a
+closed form and the recorded instances' file format (benchmarks/solver_instances.py)."""
 
 import numpy as np
 import pytest
+import solver_instances  # benchmarks/solver_instances.py (pytest's pythonpath)
 
 from afvsgp_gym.benchmarks import solver as bench
 
@@ -41,13 +42,14 @@ def test_kkt_reference_equals_lorentz_projection():
     u_nom = np.array([0.2, 1.0, -0.5])
     nx = np.linalg.norm(u_nom[1:])
     want = 0.5 * (u_nom[0] + nx) * np.concatenate([[1.0], u_nom[1:] / nx])
-    got = bench.refine_kkt_mp(want + 1e-8, u_nom, a0, a, G, low, high)
+    got = solver_instances.refine_kkt_mp(want + 1e-8, u_nom, a0, a, G, low, high)
     np.testing.assert_allclose(got, want, rtol=1e-15, atol=1e-15)
     # a guess with the wrong active set (the cone inactive there) gives no reference: the
     # refined point violates the constraint
-    assert bench.refine_kkt_mp(np.array([50.0, 0.0, 0.0]), u_nom, a0, a, G, low, high) is None
+    assert solver_instances.refine_kkt_mp(np.array([50.0, 0.0, 0.0]), u_nom, a0, a, G, low,
+                                          high) is None
     # a guess far off with the right active set converges all the same
-    far = bench.refine_kkt_mp(np.full(m, 50.0), u_nom, a0, a, G, low, high)
+    far = solver_instances.refine_kkt_mp(np.full(m, 50.0), u_nom, a0, a, G, low, high)
     np.testing.assert_allclose(far, want, rtol=1e-15, atol=1e-15)
 
 
@@ -59,8 +61,8 @@ def test_recorded_instances_round_trip(tmp_path):
         G = None if k == 3 else rng.normal(size=(k, m + 1, m + 1))
         inst.append((rng.normal(size=m), rng.normal(size=k), rng.normal(size=(k, m)), G))
     path = tmp_path / "inst.npz"
-    bench.save_instances(path, inst)
-    back = bench.load_instances(path)
+    solver_instances.save_instances(path, inst)
+    back = solver_instances.load_instances(path)
     assert len(back) == len(inst)
     for x, y in zip(inst, back, strict=True):
         for u, v in zip(x, y, strict=True):

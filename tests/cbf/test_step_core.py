@@ -5,7 +5,7 @@ cond 1e12, the exploration gate and scale in the cases that decide it, bad input
 import numpy as np
 import pytest
 
-from afvsgp_gym.cbf import controller, exploration
+from afvsgp_gym.cbf import exploration
 from afvsgp_gym.cbf.controller import cone_matrices
 from afvsgp_gym.cbf.exploration import exploration_scale
 
@@ -33,8 +33,8 @@ def test_cone_factors_have_cholesky_backward_error(cond):
     rng = np.random.default_rng(0)
     n, c, beta = 6, 8, 1.7
     sig = _covariances(rng, n, c, cond)
-    got = cone_matrices(sig, beta, compiled=True)
-    ref = cone_matrices(sig, beta, compiled=False)
+    got = cone_matrices(sig, beta, backend="compiled")
+    ref = cone_matrices(sig, beta, backend="numpy")
     sym = 0.5 * (sig + sig.transpose(0, 2, 1))
     gamma = (c + 1) * EPS / (1 - (c + 1) * EPS)
     for g, a in zip(got, sym, strict=True):
@@ -53,11 +53,11 @@ def test_cone_factors_not_positive_definite_take_the_numpy_path():
     rng = np.random.default_rng(1)
     sig = _covariances(rng, 3, 8, 1e3)
     sig[1] -= 0.01 * np.eye(8)  # eigenvalues down to -0.01
-    np.testing.assert_array_equal(cone_matrices(sig, 2.0, compiled=True),
-                                  cone_matrices(sig, 2.0, compiled=False))
+    np.testing.assert_array_equal(cone_matrices(sig, 2.0, backend="compiled"),
+                                  cone_matrices(sig, 2.0, backend="numpy"))
     sig[2, 3, 3] = np.nan
-    np.testing.assert_array_equal(cone_matrices(sig, 2.0, compiled=True),
-                                  cone_matrices(sig, 2.0, compiled=False))
+    np.testing.assert_array_equal(cone_matrices(sig, 2.0, backend="compiled"),
+                                  cone_matrices(sig, 2.0, backend="numpy"))
     assert np.isnan(cone_matrices(sig, 2.0)[2]).any()
 
 
@@ -81,8 +81,8 @@ def test_exploration_scale_agrees_with_numpy_and_the_formula():
     for _ in range(200):
         args = _gate_case(rng)
         thr, reach = rng.uniform(0, 6), rng.uniform(0, 4)
-        got = exploration_scale(*args, thr, reach, compiled=True)
-        ref = exploration_scale(*args, thr, reach, compiled=False)
+        got = exploration_scale(*args, thr, reach, backend="compiled")
+        ref = exploration_scale(*args, thr, reach, backend="numpy")
         sig, a0, a, u_nom, low, high, noise, h = args
         u = np.clip(u_nom, low, high)
         ub = np.concatenate([[1.0], u])
@@ -103,8 +103,8 @@ def test_exploration_scale_agrees_with_numpy_and_the_formula():
 
 
 @needs_core
-@pytest.mark.parametrize("compiled", [True, False])
-def test_exploration_scale_zero_gain(compiled):
+@pytest.mark.parametrize("backend", ["compiled", "numpy"])
+def test_exploration_scale_zero_gain(backend):
     """A gated barrier with a zero action gain: rho = inf (full noise); with a zero action
     covariance too, 0/0 = NaN, which the noise counts as full as well."""
     rng = np.random.default_rng(3)
@@ -113,10 +113,10 @@ def test_exploration_scale_zero_gain(compiled):
     noise[:] = 0.0  # uncertain wherever std > 0
     a[0] = 0.0
     args = (sig, a0, a, u_nom, low, high, noise, h, 1.0, 4.0)
-    assert exploration_scale(*args, compiled=compiled) == np.inf
+    assert exploration_scale(*args, backend=backend) == np.inf
     sig[0, 1:, :] = sig[0, :, 1:] = 0.0  # only the constant's variance left
     sig[1] = 0.0  # barrier 1 certain: not gated
-    assert np.isnan(exploration_scale(*args, compiled=compiled))
+    assert np.isnan(exploration_scale(*args, backend=backend))
 
 
 @needs_core
@@ -140,14 +140,13 @@ def test_bad_input_to_the_step_core_is_refused():
             _step.exploration_scale(n, m, *{**args, name: bad}.values(), 1.0, 2.0)
 
 
-def test_without_the_core_the_numpy_versions_run(monkeypatch):
+def test_without_the_core_the_numpy_versions_run(without_extensions):
     """Built without a C compiler (no _step), both functions give the numpy answers."""
     rng = np.random.default_rng(4)
     args = _gate_case(rng)
     sig = args[0]
-    want_g = cone_matrices(sig, 1.5, compiled=False)
-    want_s = exploration_scale(*args, 1.0, 4.0, compiled=False)
-    monkeypatch.setattr(controller, "_step", None)
-    monkeypatch.setattr(exploration, "_step", None)
+    want_g = cone_matrices(sig, 1.5, backend="numpy")
+    want_s = exploration_scale(*args, 1.0, 4.0, backend="numpy")
+    without_extensions("step")
     np.testing.assert_array_equal(cone_matrices(sig, 1.5), want_g)
     assert exploration_scale(*args, 1.0, 4.0) == want_s

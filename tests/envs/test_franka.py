@@ -335,7 +335,7 @@ def test_warmup_clear_then_obstacle_in_the_way(scenario, seed):
 @pytest.mark.parametrize(("scenario", "seed"), [("static", 0), ("dynamic", 0), ("random", 2)])
 def test_solvable_with_exact_model(scenario, seed):
     """With the true barrier terms the filter keeps every barrier h >= 0 with no arm contact
-    (benchmarks/filter.md checks many more seeds)."""
+    (docs/safety.md counts many more seeds)."""
     from afvsgp_gym.wrappers import SafetyFilter
 
     env = SafetyFilter(gym.make(IDS[scenario]), learner="oracle")

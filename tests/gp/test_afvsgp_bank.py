@@ -162,7 +162,7 @@ def test_shared_ring_step_equals_the_per_learner_step():
     n = 4 * P
     streams = _streams(n)
     u = streams[0][1]
-    bank = AFVSGPBank.from_learners(_learners(streams, u), compiled=False)
+    bank = AFVSGPBank.from_learners(_learners(streams, u), backend="numpy")
     bank._count[:], bank._head[:] = 10, 9  # windows part filled: filling, then wrapping
     bank._stagger()
     assert bank._synced

@@ -4,8 +4,6 @@ changes, the rare cases it hands back to numpy, and bad input."""
 
 import copy
 import pickle
-import shutil
-import sysconfig
 
 import numpy as np
 import pytest
@@ -17,21 +15,13 @@ from afvsgp_gym.gp import AFVSGP, ADPKernel, afvsgp_bank
 from afvsgp_gym.gp.afvsgp_bank import AFVSGPBank
 
 EPS = np.finfo(np.float64).eps
-needs_core = pytest.mark.skipif(not afvsgp_bank.COMPILED, reason="compiled core not built")
-
-
-def test_compiled_core_is_built_where_there_is_a_compiler():
-    """The package builds the learners' C core wherever a C compiler is there."""
-    cc = (sysconfig.get_config_var("CC") or "cc").split()[0]
-    if shutil.which(cc) is None:
-        pytest.skip(f"no C compiler ({cc})")
-    assert afvsgp_bank.COMPILED
+needs_core = pytest.mark.skipif(afvsgp_bank._core is None, reason="compiled core not built")
 
 
 def _pair(streams, u, **kw):
     learners = _learners(streams, u, **kw)
-    return (AFVSGPBank.from_learners(learners, compiled=True),
-            AFVSGPBank.from_learners(learners, compiled=False))
+    return (AFVSGPBank.from_learners(learners, backend="compiled"),
+            AFVSGPBank.from_learners(learners, backend="numpy"))
 
 
 def _rel(a, b):
@@ -125,8 +115,8 @@ def test_compiled_equals_numpy_at_the_vector_paths_shapes(b, m, num_inducing):
     8 and 9 columns) the compiled bank makes the numpy methods' inducing-set decisions and
     predicts their moments, to the conditioning tolerance of the test above."""
     streams, u, learners, window = _vector_path_learners(b, m, num_inducing)
-    comp = AFVSGPBank.from_learners(learners, compiled=True)
-    ref = AFVSGPBank.from_learners(learners, compiled=False)
+    comp = AFVSGPBank.from_learners(learners, backend="compiled")
+    ref = AFVSGPBank.from_learners(learners, backend="numpy")
     worst, cond = _stream_side_by_side(comp, ref, streams, u, range(window, len(u)), every=3,
                                        seed=b * 100 + num_inducing)
     assert comp.n_added_.min() > 0
@@ -151,7 +141,7 @@ def test_every_copy_of_the_hot_loops_gives_the_same_digits(b, m, num_inducing, r
     results = {}
     for name in copies:
         assert core.simd(name)[0] == name
-        bank = AFVSGPBank.from_learners(learners, compiled=True)
+        bank = AFVSGPBank.from_learners(learners, backend="compiled")
         moments = []
         for i in range(window, len(u)):
             xi, z = _rows(streams, i)
@@ -204,7 +194,7 @@ def test_indefinite_swap_takes_the_jittered_cholesky_on_both_paths():
     n = P + 10 * P
     streams = _streams(n)
     u = streams[0][1]
-    bank = AFVSGPBank.from_learners(_learners(streams, u), compiled=True)
+    bank = AFVSGPBank.from_learners(_learners(streams, u), backend="compiled")
     state, (k, xi, ub, kss, k_new, cand) = _before_first_swap(bank, streams, u, n)
     m = int(state.n_inducing_[k])
     keep = np.delete(np.arange(m), cand.drop)
@@ -259,40 +249,77 @@ def test_compiled_step_hands_skipped_samples_and_huge_inputs_to_numpy():
     np.testing.assert_allclose(sc[3], np.diag(comp.var[3]), rtol=1e-12, atol=0)
 
 
+def _state_arrays(bank):
+    """The arguments of the core's ``state`` for ``bank``, as the bank passes them."""
+    arrays = {name: getattr(bank, attr) for name, attr in afvsgp_bank._CORE_ARRAYS}
+    arrays["k_new"], arrays["kss"], arrays["resid"] = bank._step_out
+    return bank._dims, arrays, (bank._inv_phi, bank._phi_p, bank._add_floor,
+                                bank.swap_margin, bank._refresh_every)
+
+
+@needs_core
+def test_the_core_takes_the_banks_arrays_once_and_checks_them():
+    """The core's state holds the bank's arrays (built on first use, again after new arrays
+    are allocated, never pickled); a state of wrong sizes, dtypes, layouts or names is
+    refused with a ValueError naming the array, before anything is taken."""
+    streams = _streams(P + 5)
+    u = streams[0][1]
+    bank = AFVSGPBank.from_learners(_learners(streams, u), backend="compiled")
+    core = afvsgp_bank._core
+    state = bank._core_state()
+    assert isinstance(state, core.State) and bank._core_state() is state
+    assert pickle.loads(pickle.dumps(bank))._cstate is None
+    assert copy.deepcopy(bank)._core_state() is not state
+    dims, arrays, settings = _state_arrays(bank)
+    for name, bad, message in [
+            ("ind_xit", bank._ind_xi, "ind_xit must be a C-contiguous"),  # the (K, Mp, b) view
+            ("stats", bank._stats[:, :, 1:].copy(), "stats must hold"),
+            ("head", bank._head.astype(np.int32), "head must be of dtype int64"),
+            ("fresh", bank._fresh.astype(np.int64), "fresh must be of dtype bool"),
+            ("log_var", np.zeros(3), "log_var must hold 12 elements. Got: 3")]:
+        with pytest.raises(ValueError, match=message):
+            core.state(dims, {**arrays, name: bad}, settings)
+    with pytest.raises(ValueError, match="arrays has no stats"):
+        core.state(dims, {**{k: v for k, v in arrays.items() if k != "stats"}, "x": None},
+                   settings)
+    with pytest.raises(ValueError, match="must hold the 32 arrays"):
+        core.state(dims, {**arrays, "x": None}, settings)
+    with pytest.raises(ValueError, match="dims must be positive"):
+        core.state((0, *dims[1:]), arrays, settings)
+    with pytest.raises(TypeError):
+        core.update(arrays, np.zeros((K, 3)), np.ones(3), np.zeros(K))
+
+
 @needs_core
 def test_compiled_entry_points_refuse_bad_input():
     """Wrong sizes, dtypes and rows give a ValueError naming the argument; a rejected update
     changes nothing."""
     streams = _streams(P + 5)
     u = streams[0][1]
-    bank = AFVSGPBank.from_learners(_learners(streams, u), compiled=True)
+    bank = AFVSGPBank.from_learners(_learners(streams, u), backend="compiled")
     core = afvsgp_bank._core
     n, c = 2, bank._c
-    args = [bank._dims, n, bank._ind_xit, bank.log_var, bank.inv_ls2, bank._ubt, bank.var,
-            bank._l_oo, bank._stats, bank._scale, bank.noise_variance, bank._l_d, bank._cvec,
-            bank._fresh, np.array([0, 1]), np.zeros((n, 3)), np.empty((n, c)),
-            np.empty((n, c, c)), bank._work, bank._lsl, bank._white]
+    args = [bank._core_state(), n, np.array([0, 1]), np.zeros((n, 3)), np.empty((n, c)),
+            np.empty((n, c, c))]
     assert core.predict(*args) == 0
     bad = list(args)
-    bad[14] = np.array([0, K])
+    bad[2] = np.array([0, K])
     with pytest.raises(ValueError, match="rows"):
         core.predict(*bad)
     bad = list(args)
-    bad[15] = np.zeros((n, 4))
+    bad[3] = np.zeros((n, 4))
     with pytest.raises(ValueError, match="xi must hold 6 elements"):
         core.predict(*bad)
     bad = list(args)
-    bad[14] = np.array([0, 1], dtype=np.int32)
+    bad[2] = np.array([0, 1], dtype=np.int32)
     with pytest.raises(ValueError, match="rows must be of dtype int64"):
         core.predict(*bad)
     bad = list(args)
-    bad[16] = np.empty((n, c))[:, ::-1]
+    bad[4] = np.empty((n, c))[:, ::-1]
     with pytest.raises(ValueError, match="b_out must be a C-contiguous"):
         core.predict(*bad)
-    bad = list(args)
-    bad[2] = bank._ind_xi  # the (K, Mp, b) view of the storage by dimension
-    with pytest.raises(ValueError, match="ind_xit must be a C-contiguous"):
-        core.predict(*bad)
+    with pytest.raises(ValueError, match="z must hold 4 elements"):
+        core.update(bank._core_state(), np.zeros((K, 3)), np.ones(c), np.zeros(K + 1))
     with pytest.raises(ValueError, match="k and m"):
         core.factor_inverse(bank._dims, K, 3, True, bank._koo, bank._l_oo, bank._koo_inv,
                             bank._fresh)
@@ -316,34 +343,21 @@ def test_compiled_entry_points_refuse_bad_input():
             np.testing.assert_array_equal(getattr(bank, name), value, err_msg=name)
 
 
-def test_compiled_flag(monkeypatch):
-    """``compiled`` takes None, True or False; True without the core is an ImportError."""
+def test_backend_switch(without_extensions):
+    """``backend`` takes "auto", "numpy" or "compiled" (settable later); "compiled" without
+    the core is an ImportError naming it, "auto" then runs numpy."""
     xi, u, z, _ = synthetic(np.random.default_rng(0), P, noise_std=0.05)
     learners = _learners([(xi, u, z, None)] * 2, u)
-    with pytest.raises(ValueError, match="compiled must be None, True or False"):
-        AFVSGPBank.from_learners(learners, compiled="yes")
-    assert AFVSGPBank.from_learners(learners, compiled=False).compiled is False
-    monkeypatch.setattr(afvsgp_bank, "_core", None)
-    monkeypatch.setattr(afvsgp_bank, "COMPILED", False)
+    with pytest.raises(ValueError, match="backend must be one of"):
+        AFVSGPBank.from_learners(learners, backend="yes")
+    bank = AFVSGPBank.from_learners(learners, backend="numpy")
+    assert bank.compiled is False and bank.backend == "numpy"
+    bank.backend = "auto"
+    assert bank.compiled is (afvsgp_bank._core is not None)
+    without_extensions("bank")
     assert AFVSGPBank.from_learners(learners).compiled is False
-    with pytest.raises(ImportError, match="afvsgp_gym.gp._bank"):
-        AFVSGPBank.from_learners(learners, compiled=True)
-
-
-def test_compiled_learners_option_reaches_the_bank():
-    """``FilterConfig.compiled_learners`` reaches the AFVSGP bank the filter builds."""
-    from afvsgp_gym.cbf import FilterConfig, SafetyController
-
-    rng = np.random.default_rng(0)
-    xi, u, z = rng.normal(size=(60, 4)), rng.uniform(-1, 1, size=(60, 2)), rng.normal(size=60)
-    kw = dict(learner_kwargs={"num_inducing": 6, "window": 30}, learn_hyperparameters=False)
-    ctrl = SafetyController(-np.ones(2), np.ones(2), 2, dataset=(xi, u, z),
-                            compiled_learners=False, **kw)
-    assert ctrl.bank.bank.compiled is False
-    ctrl = SafetyController(-np.ones(2), np.ones(2), 2, dataset=(xi, u, z), **kw)
-    assert ctrl.bank.bank.compiled is afvsgp_bank.COMPILED
-    with pytest.raises(ValueError, match="compiled_learners"):
-        FilterConfig(compiled_learners=1)
+    with pytest.raises(ImportError, match=r"afvsgp_gym\.gp\._bank, which was not built"):
+        AFVSGPBank.from_learners(learners, backend="compiled")
 
 
 @needs_core
@@ -353,7 +367,7 @@ def test_posterior_cache_is_shared_by_both_paths(monkeypatch):
     bank unpickled where the core is missing runs numpy."""
     streams = _streams(P + 60)
     u = streams[0][1]
-    bank = AFVSGPBank.from_learners(_learners(streams, u), compiled=True)
+    bank = AFVSGPBank.from_learners(_learners(streams, u), backend="compiled")
     for i in range(P, P + 60):
         xi, z = _rows(streams, i)
         bank.update(xi, u[i], z)
@@ -361,10 +375,10 @@ def test_posterior_cache_is_shared_by_both_paths(monkeypatch):
     tol = 1e3 * float(bank.conditioning()[1].max()) * EPS  # as in the test above
     for first, second in ((True, False), (False, True)):
         bank._fresh[:] = False
-        bank.compiled = first
+        bank.backend = "compiled" if first else "numpy"
         b1, s1 = bank.predict_affine(xs)  # refreshes the cache
         assert bank._fresh.all()
-        bank.compiled = second
+        bank.backend = "compiled" if second else "numpy"
         b2, s2 = bank.predict_affine(xs)  # reads it
         assert _rel(b2, b1) < tol and _rel(s2, s1) < tol
     blob = pickle.dumps(bank)
@@ -379,7 +393,7 @@ def test_a_bank_pickled_with_inducing_inputs_by_point_loads():
     updates the same digits as the bank it was."""
     streams = _streams(P + 30)
     u = streams[0][1]
-    bank = AFVSGPBank.from_learners(_learners(streams, u), compiled=True)
+    bank = AFVSGPBank.from_learners(_learners(streams, u), backend="compiled")
     for i in range(P, P + 20):
         xi, z = _rows(streams, i)
         bank.update(xi, u[i], z)
@@ -412,7 +426,7 @@ def test_compiled_install_writes_the_numpy_copies(monkeypatch):
     learners = [AFVSGP(ADPKernel(np.full((3, 3), 1.0 + 0.2 * k), np.array([1.0, 0.6, 0.4])),
                        0.0025 * (k + 1), **opts).fit(xi[:6], u[:6], z[:6], False)
                 for k, (xi, _, z, _) in enumerate(streams)]  # 6 of 12 slots: appends first
-    bank = AFVSGPBank.from_learners(learners, compiled=True)
+    bank = AFVSGPBank.from_learners(learners, backend="compiled")
     calls = []
     install = AFVSGPBank._install
 
@@ -445,19 +459,17 @@ def test_compiled_install_writes_the_numpy_copies(monkeypatch):
 @needs_core
 def test_compiled_install_refuses_a_slot_out_of_range():
     streams = _streams(P + 5)
-    bank = AFVSGPBank.from_learners(_learners(streams, streams[0][1]), compiled=True)
+    bank = AFVSGPBank.from_learners(_learners(streams, streams[0][1]), backend="compiled")
     m = int(bank.n_inducing_[0])
     snap = pickle.dumps(bank)
     args = (0, m, m, True, 1, 1.0, 1.0, 0.0, 1.0, np.zeros(3), np.ones(bank._c),
-            np.zeros(bank._mp), np.zeros(m), np.zeros(1), np.zeros(m), bank._ind_xit,
-            bank._ind_ub, bank._ubt, bank._koo, bank._stats, bank._wk, bank._l_oo,
-            bank._koo_inv, bank._fresh, bank.n_added_, bank.n_removed_)
+            np.zeros(bank._mp), np.zeros(m), np.zeros(1), np.zeros(m))
     with pytest.raises(ValueError, match="pos"):
-        afvsgp_bank._core.install(bank._dims, *args)
+        afvsgp_bank._core.install(bank._core_state(), *args)
     bad = list(args)
     bad[2], bad[12] = 0, np.zeros(m + 1)  # a replace with srow too long
     with pytest.raises(ValueError, match="srow must hold"):
-        afvsgp_bank._core.install(bank._dims, *bad)
+        afvsgp_bank._core.install(bank._core_state(), *bad)
     assert pickle.dumps(bank) == snap  # nothing changed
 
 

@@ -1,10 +1,10 @@
-"""The warm-up fit inside the filter loop: ``benchmarks.gp_fit``'s probe sees the fitted learner
-once, right after warm-up (issue 10's conditioning report)."""
+"""The warm-up fit inside the filter loop: ``benchmarks/gp_fit.py``'s probe sees the fitted
+learner once, right after warm-up (its conditioning report)."""
 
 import numpy as np
+from gp_fit import conditioning  # benchmarks/gp_fit.py (pytest's pythonpath)
 
 from afvsgp_gym.benchmarks.filter import run_episode
-from afvsgp_gym.benchmarks.gp_fit import conditioning
 
 
 def test_probe_reports_conditioning_after_the_warm_up_fit():

@@ -1,5 +1,6 @@
 """The hyperparameter fit keeps the noise variance above its data-relative floor
-(``hyper.NOISE_MIN`` x the data's weighted mean square; benchmarks/gp.md, "Noise floor")."""
+(``hyper.NOISE_MIN`` x the data's weighted mean square; docs/learners.md, "The hyperparameter
+fit")."""
 
 import numpy as np
 import pytest

@@ -3,7 +3,7 @@
 Cost is Safety-Gymnasium's: a step costs when some barrier has h < 0 or some arm geometry
 touches an obstacle. The point mass runs 20 seeds; the Franka (whole-arm spheres, the default)
 runs two seeds per scenario here, the 50-seed sweeps and their confidence bounds are in
-benchmarks/filter.md. Tracking "away from the obstacle" is ``info["tracking_error"]`` at the
+docs/safety.md. Tracking "away from the obstacle" is ``info["tracking_error"]`` at the
 steps where ``info["reference_h"] >= 0.05`` (the reference keeps 5 cm clear of every
 obstacle), after warm-up; its limits here are loose sanity bounds (the sweeps compare it
 with the oracle's).
@@ -50,7 +50,7 @@ def episode(scenario, learner, seed, **filter_options):
 
 def test_pointmass_none_violates():
     # without the brake backup: on the point mass the env's brake alone keeps "none" safe
-    # (benchmarks/filter.md), so the nominal-only HOCBF is judged on its own here
+    # (docs/safety.md), so the nominal-only HOCBF is judged on its own here
     assert episode("pointmass", "none", 0, backup=None)["cost"] > 0
 
 

@@ -86,3 +86,20 @@ def test_episode_safety_stats_count_every_filtered_step():
     double.reset(seed=0)
     with pytest.raises(ValueError, match="episode_safety"):
         double.step(np.zeros(2, dtype=np.float32))
+
+
+def test_episode_safety_stats_count_as_the_episode_runner():
+    """EpisodeSafetyStats and the episode runner count with the one EpisodeCounter: the
+    same episode (the runner stepping the stats wrapper) gives the same counts."""
+    from afvsgp_gym.evaluation import make_policy, run_episode
+
+    env = EpisodeSafetyStats(SafetyFilter(gym.make(PM, max_episode_steps=500), learner="afvsgp",
+                                          seed=0))
+    seen = []
+    counts, _ = run_episode(env, make_policy("nominal", env), seed=0, on_step=seen.append)
+    stats = seen[-1]["episode_safety"]
+    assert counts["steps"] == stats["steps"] == 500
+    for name in ("return", "cost_steps", "violation_steps", "contact_steps", "limit_steps",
+                 "min_h", "interventions", "infeasible_steps"):
+        assert counts[name] == stats[name], name
+    assert stats["interventions"] > 0

@@ -1,5 +1,5 @@
 """The warm-up hyperparameter fit in the closed loop: filter sweeps with the conditioning of each
-learner right after its warm-up fit (issue 10; results in benchmarks/filter.md and gp.md).
+learner right after its warm-up fit (the design is in docs/learners.md).
 
 Every episode is :func:`afvsgp_gym.benchmarks.filter.run_episode` with the given learner; right
 after the warm-up fit it records, per barrier, ``cond(K_oo)`` and ``cond(K_oo + S/s2)`` (2-norm,
@@ -7,7 +7,7 @@ float64 SVD) and the learned noise variance. ``--prior`` overrides the learners'
 (:class:`afvsgp_gym.gp.hyper.LogNormalPrior` standard deviations, ``none`` for no prior).
 Command line::
 
-    python -m afvsgp_gym.benchmarks.gp_fit [--scenarios franka_static:0-49 ...]
+    python benchmarks/gp_fit.py [--scenarios franka_static:0-49 ...]
         [--learner afvsgp] [--prior 1.5,1.5 | none] [--json PATH]
 """
 

@@ -1,10 +1,13 @@
 """RL benchmark: an agent learning FrankaObstacleReach-v0 behind the AFVSGP filter, behind
 the oracle filter and with no filter (same seeds), its training cost and held-out success.
 
-One command runs everything (benchmarks/rl.md has the results and the design)::
+One command runs everything (docs/rl.md has the results and the design; it needs the rl
+extra and runs from the repository's root)::
 
-    python -m afvsgp_gym.benchmarks.rl          # full: 3 seeds x 3 conditions, 500k env steps
-    python -m afvsgp_gym.benchmarks.rl --quick  # the pipeline in minutes (not the result)
+    python benchmarks/rl_benchmark.py          # full: 3 seeds x 3 conditions, 500k env steps
+    python benchmarks/rl_benchmark.py --quick  # the pipeline in minutes (not the result)
+
+(it was ``python -m afvsgp_gym.benchmarks.rl`` before it left the installed package).
 
 For every condition and seed it trains with :func:`afvsgp_gym.agents.sb3.train` (two envs in
 ``SubprocVecEnv`` workers, one filter per worker, nominal model "zero"), then evaluates the
@@ -415,7 +418,7 @@ def _best_filtered(results: dict) -> dict | None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m afvsgp_gym.benchmarks.rl",
+    p = argparse.ArgumentParser(prog="python benchmarks/rl_benchmark.py",
                                 description=__doc__.split("\n\n")[0])
     p.add_argument("--quick", action="store_true", help="the pipeline in minutes")
     p.add_argument("--out", default=None, metavar="DIR",

@@ -1,0 +1,102 @@
+"""The statistics of a set of episodes: :func:`summarize`."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping
+from typing import Any
+
+import numpy as np
+
+__all__ = ["SUMMARY_FIELDS", "summarize"]
+
+#: Keys of one summary (:func:`summarize`), in table order.
+SUMMARY_FIELDS = (
+    "episodes",
+    "episodes_with_cost",
+    "cost_rate_upper",
+    "episodes_with_violation",
+    "episodes_with_contact",
+    "episodes_with_limit_violation",
+    "cost_steps",
+    "violation_steps",
+    "contact_steps",
+    "limit_steps",
+    "min_h",
+    "interventions",
+    "infeasible_steps",
+    "tracking_error_mean",
+    "tracking_error_max",
+    "return_mean",
+    "return_std",
+    "steps",
+    "unstable_episodes",
+    "minimal_intervention",
+    "filter_time_median_s",
+    "filter_time_p99_s",
+)
+
+
+def _num(x: Any) -> float:
+    return math.nan if x is None else float(x)
+
+
+def summarize(records: Iterable[Mapping[str, Any]], confidence: float = 0.95) -> dict:
+    """Aggregate episode records (of :func:`~afvsgp_gym.evaluation.run_spec` or
+    ``evaluate`` rows).
+
+    Counts are summed over episodes; ``episodes_with_cost`` is the headline with
+    ``cost_rate_upper`` its exact one-sided Clopper-Pearson ``confidence`` bound;
+    ``tracking_error_mean`` is the mean of the episode means (episodes without a counted step
+    left out), ``min_h`` and ``tracking_error_max`` the extremes; ``minimal_intervention`` the
+    share of the proposals that were safe with margin (true HOCBF constraint above
+    :data:`~afvsgp_gym.episode_counts.SAFE_MARGIN` after warm-up) and passed the filter
+    unchanged; filter times are quantiles of every step pooled (from the records' histograms
+    when present).
+    """
+    from afvsgp_gym.stats import clopper_pearson_upper, histogram_quantile, merge_histograms
+
+    records = list(records)
+    n = len(records)
+    if n == 0:
+        raise ValueError("summarize needs at least one episode record")
+    returns = np.array([_num(r["return"]) for r in records])
+    track = np.array([_num(r["tracking_error_mean"]) for r in records])
+    track_max = np.array([_num(r["tracking_error_max"]) for r in records])
+    with_cost = sum(int(r["cost_steps"]) > 0 for r in records)
+    safe_total = sum(int(r.get("safe_proposals") or 0) for r in records)
+    kept_total = sum(int(r.get("safe_proposals_kept") or 0) for r in records)
+    hists = [r.get("filter_time_hist") for r in records]
+    if all(h is not None for h in hists):
+        hist = merge_histograms(hists)
+        t_med, t_p99 = histogram_quantile(hist, 0.5), histogram_quantile(hist, 0.99)
+    else:  # rows without histograms: episode quantiles only
+        t_med = float(np.nanmedian([_num(r["filter_time_median_s"]) for r in records]))
+        t_p99 = float(np.nanmax([_num(r["filter_time_p99_s"]) for r in records]))
+    return {
+        "episodes": n,
+        "episodes_with_cost": int(with_cost),
+        "cost_rate_upper": clopper_pearson_upper(int(with_cost), n, confidence),
+        "episodes_with_violation": int(sum(int(r["violation_steps"]) > 0 for r in records)),
+        "episodes_with_contact": int(sum(int(r["contact_steps"]) > 0 for r in records)),
+        "episodes_with_limit_violation": int(sum(int(r.get("limit_steps") or 0) > 0
+                                                 for r in records)),
+        "cost_steps": int(sum(int(r["cost_steps"]) for r in records)),
+        "violation_steps": int(sum(int(r["violation_steps"]) for r in records)),
+        "contact_steps": int(sum(int(r["contact_steps"]) for r in records)),
+        "limit_steps": int(sum(int(r.get("limit_steps") or 0) for r in records)),
+        "min_h": float(min(_num(r["min_h"]) for r in records)),
+        "interventions": int(sum(int(r["interventions"]) for r in records)),
+        "infeasible_steps": int(sum(int(r["infeasible_steps"]) for r in records)),
+        "tracking_error_mean": float(np.mean(track[np.isfinite(track)]))
+        if np.isfinite(track).any() else math.nan,
+        "tracking_error_max": float(np.max(track_max[np.isfinite(track_max)]))
+        if np.isfinite(track_max).any() else math.nan,
+        "return_mean": float(returns.mean()),
+        "return_std": float(returns.std()),
+        "steps": int(sum(int(r["steps"]) for r in records)),
+        "unstable_episodes": int(sum(bool(r["unstable"]) for r in records)),
+        "minimal_intervention": (kept_total / safe_total) if safe_total else math.nan,
+        "filter_time_median_s": t_med,
+        "filter_time_p99_s": t_p99,
+    }
