@@ -91,7 +91,10 @@ class LoopBank:
         self.n_learners, self.action_dim = int(n_barriers), int(action_dim)
         self._cls = getattr(gp, cls_name)
         self._kwargs = kwargs
-        self._cls(**kwargs)  # constructor checks its arguments now
+        try:  # every setting is checked now, not at the end of the warm-up
+            self._cls(**kwargs)._check_params()
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"learner_kwargs refused by {cls_name}: {exc}") from None
         self.shared = bool(shared_hyperparameters)
         self.learners: list = []
 

@@ -30,6 +30,15 @@ class BaseLearner:
     kernel_: ADPKernel
     noise_variance_: float
 
+    def _check_params(self) -> None:
+        """Check the constructor parameters that need no data (``ValueError`` naming the
+        first bad one); ``fit`` calls it, and the safety filter calls it when it is built, so
+        that a bad ``learner_kwargs`` is refused then and not at the end of its warm-up."""
+        if self.kernel is not None and not isinstance(self.kernel, ADPKernel):
+            raise ValueError(f"kernel must be an ADPKernel or None, got {type(self.kernel)}")
+        if self.noise_variance is not None:
+            check_real(self.noise_variance, "noise_variance", low=0.0, low_open=True)
+
     def _init_hyper(self, xi, u, z):
         """Kernel and noise from the constructor or the data (never modifies parameters):
         ``ADPKernel.from_data`` and ``max(0.1 var(z), 1e-6)`` by default."""

@@ -125,6 +125,7 @@ class AFVSGP(SparseLearner):
 
     # ------------------------------------------------------------------ fit
     def _check_params(self) -> None:
+        super()._check_params()
         check_count(self.num_inducing, "num_inducing")
         check_count(self.window, "window")
         check_real(self.forgetting, "forgetting", low=0.0, high=1.0, low_open=True)

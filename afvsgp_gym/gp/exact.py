@@ -74,10 +74,14 @@ class ExactGP(BaseLearner):
         self.max_iter = max_iter
         self.prior = prior
 
+    def _check_params(self) -> None:
+        super()._check_params()
+        check_count(self.max_iter, "max_iter")
+
     def fit(self, xi, u, z, learn_hyperparameters: bool = True) -> ExactGP:
         """Fit on (xi (N,b), u (N,m), z (N,)), maximising the log marginal likelihood plus the
         prior unless ``learn_hyperparameters`` is False."""
-        check_count(self.max_iter, "max_iter")
+        self._check_params()
         xi, u, z = check_batch(xi, u, z)
         kernel, noise = self._init_hyper(xi, u, z)
         if learn_hyperparameters:

@@ -294,10 +294,7 @@ class SOGP(BaseLearner):
 
     # ----------------------------------------------------------------- checks
     def _check_params(self) -> None:
-        if self.kernel is not None and not isinstance(self.kernel, ADPKernel):
-            raise ValueError(f"kernel must be an ADPKernel or None, got {type(self.kernel)}")
-        if self.noise_variance is not None:
-            check_real(self.noise_variance, "noise_variance", low=0.0, low_open=True)
+        super()._check_params()
         for name in ("num_inducing", "batch_size", "online_maxiter", "fit_maxiter"):
             check_count(getattr(self, name), name)
         check_real(self.jitter, "jitter", low=0.0)

@@ -66,12 +66,16 @@ class VSGP(SparseLearner):
         self.max_iter = max_iter
         self.prior = prior
 
-    def fit(self, xi, u, z, learn_hyperparameters: bool = True) -> VSGP:
-        """Fit on (xi (N,b), u (N,m), z (N,)); maximises the Titsias bound (eq. 18) plus the
-        prior over the hyperparameters unless ``learn_hyperparameters`` is False."""
+    def _check_params(self) -> None:
+        super()._check_params()
         check_count(self.num_inducing, "num_inducing")
         check_real(self.jitter, "jitter", low=0.0)
         check_count(self.max_iter, "max_iter")
+
+    def fit(self, xi, u, z, learn_hyperparameters: bool = True) -> VSGP:
+        """Fit on (xi (N,b), u (N,m), z (N,)); maximises the Titsias bound (eq. 18) plus the
+        prior over the hyperparameters unless ``learn_hyperparameters`` is False."""
+        self._check_params()
         xi, u, z = check_batch(xi, u, z)
         kernel, noise, xo, uo, jitter, bound = self._fit_hyperparameters(
             xi, u, z, np.ones(len(z)), learn_hyperparameters)
