@@ -5,7 +5,8 @@ Both the episode runner (:func:`afvsgp_gym.evaluation.run_episode`) and the
 the keys it reads are the envs' (``cost``, ``h``, ``collision``, ``limit_violation``,
 ``success``, ``unstable``, ``torque_saturated``) and the safety filter's (``filter_active``,
 ``filter_feasible``, ``filter_status``, ``warmup``, ``filter_time_s``,
-``proposal_true_margin``, ``action_proposed``, ``action_applied``), each with a default when
+``proposal_true_margin``, ``action_proposed``, ``action_applied``, ``learner_error``), each
+with a default when
 absent (an env without a filter counts no intervention).
 """
 
@@ -52,6 +53,9 @@ class EpisodeCounter:
         max-margin fallback applied) and ``relaxed_steps`` (the mean-only solution).
     warmup_steps, saturated_steps : int
         Steps with ``info["warmup"]``, with ``info["torque_saturated"]``.
+    learner_error_steps : int
+        Steps on which a learner failed (``info["learner_error"]`` not None): the filter went
+        on without that prediction, update or fit.
     success, unstable : bool
         Some step had ``info["success"]``, ``info["unstable"]``.
     safe_proposals, safe_proposals_kept : int
@@ -74,6 +78,7 @@ class EpisodeCounter:
         self.interventions = self.infeasible_steps = 0
         self.backup_steps = self.relaxed_steps = 0
         self.warmup_steps = self.saturated_steps = 0
+        self.learner_error_steps = 0
         self.success = self.unstable = False
         self.safe_proposals = self.safe_proposals_kept = 0
         self.filter_times: list[float] = []
@@ -99,6 +104,7 @@ class EpisodeCounter:
             self.backup_steps += status.startswith(("backup", "fallback"))
         self.warmup_steps += warm
         self.saturated_steps += bool(info.get("torque_saturated", False))
+        self.learner_error_steps += info.get("learner_error") is not None
         self.success = self.success or bool(info.get("success", False))
         self.unstable = self.unstable or bool(info.get("unstable", False))
         if not info.get("warmup", True) and info.get("proposal_true_margin", -1.0) > SAFE_MARGIN:

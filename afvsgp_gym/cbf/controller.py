@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -229,6 +230,9 @@ class SafetyController:
         self.n_update_failures = 0
         self.n_skipped_samples = 0
         self.last_error: str | None = None
+        #: the learner failure of the current step (``filter`` then ``observe``), else None
+        self.learner_error: str | None = None
+        self._warned = False
         if dataset is not None and self.learns:
             self.fit(dataset)
 
@@ -364,6 +368,7 @@ class SafetyController:
         Never raises for NaN values: they give the flagged fallback.
         """
         t0 = time.perf_counter()
+        self.learner_error = None  # a new step
         K, m = self.n_barriers, self.action_dim
         if self.uses_true_terms:
             if true_terms is None:
@@ -419,7 +424,7 @@ class SafetyController:
                         G = np.zeros((len(rows), m + 1, m + 1))
                         G[where] = cone_matrices(sig, self.config.beta, self.backend)
             except Exception as exc:  # a learner failure must not stop the loop
-                self.last_error = f"{type(exc).__name__}: {exc}"
+                self._learner_failed(exc, "prediction")
                 a0 = np.full(len(rows), np.nan)
                 pred_rows, bvec, sig, G = rows[:0], None, None, None
         res = self.socp.solve(u_nom, a0, a, G, u_backup)
@@ -524,7 +529,7 @@ class SafetyController:
                 self.bank.update(xi, u, z)
             except Exception as exc:
                 self.n_update_failures += 1
-                self.last_error = f"{type(exc).__name__}: {exc}"
+                self._learner_failed(exc, "online update")
         return z
 
     def _fit_warmup(self) -> None:
@@ -534,8 +539,20 @@ class SafetyController:
             self._buffer = []
         except Exception as exc:
             self.n_update_failures += 1
-            self.last_error = f"{type(exc).__name__}: {exc}"
+            self._learner_failed(exc, "fit at the end of the warm-up")
             del self._buffer[: len(self._buffer) // 2]
+
+    def _learner_failed(self, exc: Exception, where: str) -> None:
+        """A learner raised inside the loop: the step goes on (the prediction's barriers are
+        flagged invalid, an update or fit is skipped); ``learner_error`` and ``last_error``
+        say so, and the first failure is warned (``RuntimeWarning``), never silent."""
+        self.last_error = self.learner_error = f"{where}: {type(exc).__name__}: {exc}"
+        if not getattr(self, "_warned", False):  # (absent from a controller pickled before)
+            self._warned = True
+            warnings.warn(f"the {self.learner_name} learner failed ({self.last_error}); the "
+                          "filter goes on (failures are reported in "
+                          "SafetyController.learner_error and info['learner_error'], this "
+                          "warning only once)", RuntimeWarning, stacklevel=3)
 
     def _update_residuals(self, u: np.ndarray, z: np.ndarray) -> None:
         """Residual observer with the prediction the filter used for this very action."""

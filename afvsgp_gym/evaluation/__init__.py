@@ -12,6 +12,7 @@ Per episode (see :data:`EPISODE_FIELDS`): ``cost_steps`` (``info["cost"] > 0``, 
 (``info["collision"]``), ``limit_steps`` (``info["limit_violation"]``), ``min_h``,
 ``interventions`` (``info["filter_active"]``),
 ``infeasible_steps`` (``not info["filter_feasible"]``: the filter applied its backup),
+``learner_error_steps`` (``info["learner_error"]``: a learner failed, the filter went on),
 ``tracking_error_mean``/``_max`` over the steps after the env's warm-up whose reference keeps
 ``info["reference_h"] >= REFERENCE_CLEARANCE`` from every obstacle (NaN when no step does or
 the env reports neither), filter time median and 99th percentile. The headline safety number

@@ -19,6 +19,7 @@ _EPISODE_TABLE = (("learner", "learner"), ("episode", "ep"), ("seed", "seed"),
                   ("violation_steps", "h<0"), ("contact_steps", "contact"),
                   ("limit_steps", "limits"), ("min_h", "min_h"),
                   ("interventions", "interv"), ("infeasible_steps", "backup"),
+                  ("learner_error_steps", "learn_err"),
                   ("tracking_error_mean", "track"), ("tracking_error_max", "track_max"),
                   ("filter_time_median_s", "t_med_us"), ("filter_time_p99_s", "t_p99_us"))
 _SUMMARY_TABLE = (("learner", "learner"), ("episodes", "episodes"),
@@ -26,6 +27,7 @@ _SUMMARY_TABLE = (("learner", "learner"), ("episodes", "episodes"),
                   ("episodes_with_violation", "w/ h<0"), ("episodes_with_contact", "w/ contact"),
                   ("episodes_with_limit_violation", "w/ limits"), ("min_h", "min_h"),
                   ("interventions", "interv"), ("infeasible_steps", "backup"),
+                  ("learner_error_steps", "learn_err"),
                   ("tracking_error_mean", "track"), ("tracking_error_max", "track_max"),
                   ("minimal_intervention", "kept"), ("return_mean", "return"),
                   ("filter_time_median_s", "t_med_us"), ("filter_time_p99_s", "t_p99_us"))
@@ -43,7 +45,8 @@ def format_table(result: dict) -> str:
             + f"\n\nSummary ({COST_DEFINITION}; w/ cost: "
               "episodes with cost; cost<=95%: exact Clopper-Pearson 95 % upper bound on the "
               "per-episode cost rate; track: mean tracking error (m) away from the obstacle; "
-              "backup: infeasible steps; kept: share of the proposals safe with margin that "
+              "backup: infeasible steps; learn_err: steps on which a learner failed; "
+              "kept: share of the proposals safe with margin that "
               "passed unchanged)\n"
             + table(sum_rows, *cols(_SUMMARY_TABLE), micro=True))
 

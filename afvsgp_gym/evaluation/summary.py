@@ -25,6 +25,7 @@ SUMMARY_FIELDS = (
     "min_h",
     "interventions",
     "infeasible_steps",
+    "learner_error_steps",
     "tracking_error_mean",
     "tracking_error_max",
     "return_mean",
@@ -88,6 +89,9 @@ def summarize(records: Iterable[Mapping[str, Any]], confidence: float = 0.95) ->
         "min_h": float(min(_num(r["min_h"]) for r in records)),
         "interventions": int(sum(int(r["interventions"]) for r in records)),
         "infeasible_steps": int(sum(int(r["infeasible_steps"]) for r in records)),
+        # (absent from the records of older sweeps: none counted then)
+        "learner_error_steps": int(sum(int(r.get("learner_error_steps") or 0)
+                                       for r in records)),
         "tracking_error_mean": float(np.mean(track[np.isfinite(track)]))
         if np.isfinite(track).any() else math.nan,
         "tracking_error_max": float(np.max(track_max[np.isfinite(track_max)]))

@@ -37,6 +37,7 @@ REPORT_COLUMNS = (
     ("tracking_error_mean", "track"),
     ("tracking_error_max", "track_max"),
     ("infeasible_steps", "backup"),
+    ("learner_error_steps", "learn_err"),
     ("minimal_intervention", "kept"),
     ("filter_time_median_s", "t_med_us"),
     ("filter_time_p99_s", "t_p99_us"),
@@ -149,7 +150,8 @@ def format_report(rep: Mapping[str, Any], markdown: bool = False) -> str:
     lines = [f"{rep['episodes']} episodes in {len(rows)} groups; {COST_DEFINITION}; w/ cost: "
              f"episodes with cost; cost<={100 * conf:g}%: exact "
              f"Clopper-Pearson upper bound on the per-episode cost rate; track: mean tracking "
-             f"error (m) away from the obstacle; backup: infeasible steps; filter times in us"]
+             f"error (m) away from the obstacle; backup: infeasible steps; learn_err: steps on "
+             f"which a learner failed; filter times in us"]
     if rep.get("duplicates"):
         lines.append(f"note: {rep['duplicates']} repeated episode records counted once")
     if len(rep.get("code_versions", ())) > 1:

@@ -25,6 +25,7 @@ EPISODE_SAFETY_FIELDS = (
     "relaxed_steps",
     "warmup_steps",
     "saturated_steps",
+    "learner_error_steps",
 )
 
 
@@ -48,7 +49,8 @@ class EpisodeSafetyStats(gym.Wrapper, gym.utils.RecordConstructorArgs):
       (the backup or max-margin fallback applied) and ``relaxed_steps`` (the mean-only
       solution applied); ``warmup_steps`` with ``info["warmup"]``.
     - ``success``: some step had ``info["success"]``; ``saturated_steps``:
-      ``info["torque_saturated"]``.
+      ``info["torque_saturated"]``; ``learner_error_steps``: ``info["learner_error"]`` not
+      None (a learner failed, the filter went on).
 
     Example:
         >>> import gymnasium as gym

@@ -95,8 +95,10 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
     ``"filter_active"``, ``"filter_feasible"``, ``"filter_status"``, ``"delta_b_mean"``,
     ``"delta_b_std"`` (per barrier, NaN where not predicted), ``"filter_n_active"`` (barriers
     in the cone program), ``"filter_time_s"``, ``"warmup"``, ``"proposal_true_margin"`` (the
-    proposal's smallest true HOCBF constraint value, ground truth for evaluation only);
-    ``"delta_b_true"`` comes from the env. ``filter_fallbacks`` counts infeasible steps since
+    proposal's smallest true HOCBF constraint value, ground truth for evaluation only),
+    ``"learner_error"`` (None, or what a learner raised in this step: the filter went on
+    without its prediction, update or fit, and warned once); ``"delta_b_true"`` comes from the
+    env. ``filter_fallbacks`` counts infeasible steps since
     the last reset.
 
     Example:
@@ -224,6 +226,7 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
             filter_time_s=float(res.solve_time_s),
             warmup=bool(res.warmup),
             proposal_true_margin=true_margin,
+            learner_error=self.controller.learner_error,
         )
         return obs, reward, terminated, truncated, info
 
