@@ -230,7 +230,7 @@ class SafetyController:
         self.n_update_failures = 0
         self.n_skipped_samples = 0
         self.last_error: str | None = None
-        #: the learner failure of the current step (``filter`` then ``observe``), else None
+        #: the learner failures of the current step (``filter`` then ``observe``), else None
         self.learner_error: str | None = None
         self._warned = False
         if dataset is not None and self.learns:
@@ -546,7 +546,9 @@ class SafetyController:
         """A learner raised inside the loop: the step goes on (the prediction's barriers are
         flagged invalid, an update or fit is skipped); ``learner_error`` and ``last_error``
         say so, and the first failure is warned (``RuntimeWarning``), never silent."""
-        self.last_error = self.learner_error = f"{where}: {type(exc).__name__}: {exc}"
+        self.last_error = f"{where}: {type(exc).__name__}: {exc}"
+        self.learner_error = (self.last_error if self.learner_error is None
+                              else f"{self.learner_error}; {self.last_error}")
         if not getattr(self, "_warned", False):  # (absent from a controller pickled before)
             self._warned = True
             warnings.warn(f"the {self.learner_name} learner failed ({self.last_error}); the "
