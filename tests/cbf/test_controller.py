@@ -67,9 +67,39 @@ def test_nan_terms_give_flagged_fallback(field):
     res = ctrl.filter(np.array([-1.0, 0.0]), [BarrierTerms(**vals)])
     assert not res.feasible and res.status == "invalid_input"
     assert np.all(np.isfinite(res.u)) and np.all(np.abs(res.u) <= 1)
-    # observe skips NaN samples without raising
-    good = BarrierTerms(np.array([0.1, -0.5]), 0.0, np.array([1.0, 0.0]), np.zeros(3))
-    ctrl.observe([BarrierTerms(**vals)], res.u, [good], 0.01)
+
+
+@pytest.mark.parametrize("field", ["derivatives", "xi"])
+def test_observe_skips_and_counts_non_finite_samples(field):
+    """A learning controller (in its warm-up, then fitted) skips a sample whose measurement
+    or features are not finite: counted in ``n_skipped_samples``, left out of the fit data and
+    of the online updates, never raised."""
+    rng = np.random.default_rng(0)
+    ctrl = SafetyController(-np.ones(2), np.ones(2), learner="afvsgp", warmup_samples=20,
+                            learner_kwargs={"num_inducing": 5})
+
+    def terms(bad=False):
+        vals = {"derivatives": rng.normal(size=2), "lf": 0.0, "lg": np.zeros(2),
+                "xi": rng.normal(size=3)}
+        if bad:
+            vals[field] = np.full(len(vals[field]), np.nan)
+        return [BarrierTerms(**vals)]
+
+    for step in range(19):  # warm-up: 19 samples, 3 of them bad
+        bad = step in (2, 9, 15)
+        z = ctrl.observe(terms(), rng.uniform(-1, 1, 2), terms(bad), 0.01)
+        assert np.isnan(z[0]) == bad
+    assert ctrl.n_skipped_samples == 3 and ctrl.warming_up
+    xi, u, z = ctrl.dataset()[0]
+    assert xi.shape == (16, 3) and u.shape == (16, 2) and np.all(np.isfinite(z))
+    ctrl.observe(terms(), np.zeros(2), terms(), 0.01)  # the 20th sample: the fit
+    assert not ctrl.warming_up and ctrl.n_update_failures == 0
+    probe = rng.normal(size=(1, 3))
+    before = ctrl.bank.predict_affine(probe, np.array([0]))
+    z = ctrl.observe(terms(), np.zeros(2), terms(bad=True), 0.01)  # after the fit
+    assert np.isnan(z[0]) and ctrl.n_skipped_samples == 4 and ctrl.learner_error is None
+    for a, b in zip(ctrl.bank.predict_affine(probe, np.array([0])), before, strict=True):
+        np.testing.assert_array_equal(a, b)  # the skipped sample did not reach the learner
 
 
 def test_nan_action_gives_flagged_fallback():
@@ -84,12 +114,17 @@ def test_nan_action_gives_flagged_fallback():
     [
         ({"n_barriers": 0}, "n_barriers"),
         ({"activation_distance": np.nan}, "activation_distance"),
+        ({"activation_distance": -0.1}, r"activation_distance must be >= 0"),
         ({"residual_correction": 1.0}, "residual_correction"),
         ({"beta": -1.0}, "beta"),
         ({"warmup_samples": 1}, "warmup_samples"),
         ({"exploration_noise": -0.1}, "exploration_noise"),
         ({"alpha": 0.0}, "alpha"),
         ({"learner": "none", "learner_kwargs": {"x": 1}}, "learner_kwargs"),
+        ({"learner": "afvsgp", "learner_kwargs": {"num_inducing": 0}}, "num_inducing"),
+        ({"learner": "afvsgp", "learner_kwargs": {"forgetting": 1.5}}, "forgetting"),
+        ({"learner": "vsgp", "learner_kwargs": {"noise_variance": -1.0}}, "noise_variance"),
+        ({"learner": "gp", "learner_kwargs": {"max_iter": 0}}, "max_iter"),
         ({"online_exploration": -1.0}, "online_exploration"),
         ({"noise_floor": 0.1}, "unknown option.*noise_floor"),
         ({"barrier_margin": -1.0}, "barrier_margin"),
@@ -99,12 +134,3 @@ def test_nan_action_gives_flagged_fallback():
 def test_bad_options(kwargs, match):
     with pytest.raises(ValueError, match=match):
         SafetyController(-np.ones(2), np.ones(2), **kwargs)
-
-
-def test_module_doctest():
-    import doctest
-
-    import afvsgp_gym.cbf.controller as module
-
-    res = doctest.testmod(module)
-    assert res.attempted > 0 and res.failed == 0

@@ -1,13 +1,10 @@
 """SafetyFilter on the point-mass env: info keys, action handling, bad input, vector envs."""
 
-import doctest
-
 import gymnasium as gym
 import numpy as np
 import pytest
 
 import afvsgp_gym  # noqa: F401  (registers the ids)
-import afvsgp_gym.wrappers.safety_filter as sf_module
 from afvsgp_gym.agents import NominalController
 from afvsgp_gym.cbf import LEARNERS
 from afvsgp_gym.envs.point_mass import PointMassObstacleEnv
@@ -37,11 +34,6 @@ def run_episode(env, seed, max_steps=None):
         infos.append(info)
         if term or trunc or (max_steps and len(hs) >= max_steps):
             return np.array(hs), infos
-
-
-def test_doctest_example():
-    res = doctest.testmod(sf_module)
-    assert res.attempted > 0 and res.failed == 0
 
 
 def test_info_keys_and_action_is_copied():
@@ -263,3 +255,106 @@ def test_env_suggestions_are_defaults_under_the_callers_options():
     assert other.controller.config.learner_kwargs == {}
     with pytest.raises(ValueError, match="learner_kwargs"):  # not a dict: refused by name
         SafetyFilter(env(), learner="afvsgp", learner_kwargs="window=50")
+
+
+def _learned(env, probes):
+    """The learners' affine predictions (eq. 20) of every barrier at the probe features."""
+    rows = np.arange(env.unwrapped.n_barriers)
+    return [np.concatenate([a.ravel() for a in env.controller.bank.predict_affine(x, rows)])
+            for x in probes]
+
+
+def _steps(env, policy, obs, n):
+    for _ in range(n):
+        obs, _, _, _, info = env.step(policy(obs))
+        assert info["learner_error"] is None
+    return obs, info
+
+
+def test_learning_false_freezes_the_learners_and_true_resumes():
+    """``env.learning = False`` (evaluation): the learners' predictions at fixed features do
+    not move over 150 steps of new data; set back to True, the next steps change them."""
+    env = SafetyFilter(gym.make(PM), learner="afvsgp", warmup_samples=60,
+                       learner_kwargs={"num_inducing": 8})
+    policy = NominalController(env)
+    obs, _ = env.reset(seed=1)
+    obs, info = _steps(env, policy, obs, 80)
+    assert not info["warmup"]
+    probes = [env.unwrapped.barrier_terms("nominal").xi[None]]
+    obs, _ = _steps(env, policy, obs, 5)
+    probes.append(env.unwrapped.barrier_terms("nominal").xi[None])
+    env.learning = False
+    frozen = _learned(env, probes)
+    obs, _ = _steps(env, policy, obs, 150)
+    for a, b in zip(_learned(env, probes), frozen, strict=True):
+        np.testing.assert_array_equal(a, b)
+    env.learning = True
+    obs, _ = _steps(env, policy, obs, 20)
+    assert not all(np.array_equal(a, b)
+                   for a, b in zip(_learned(env, probes), frozen, strict=True))
+
+
+def test_learners_persist_across_resets():
+    """A reset neither refits nor forgets: after it the filter is past its warm-up at once,
+    and predicts what it predicted before the reset; the residual correction restarts."""
+    env = SafetyFilter(gym.make(PM), learner="afvsgp", warmup_samples=60,
+                       learner_kwargs={"num_inducing": 8})
+    policy = NominalController(env)
+    obs, _ = env.reset(seed=1)
+    obs, info = _steps(env, policy, obs, 80)
+    assert not info["warmup"]
+    bank = env.controller.bank
+    probes = [env.unwrapped.barrier_terms("nominal").xi[None]]
+    before = _learned(env, probes)
+    obs, _ = env.reset(seed=2)
+    assert env.controller.bank is bank and not env.controller.warming_up
+    assert np.all(env.controller.residual_bias == 0.0)
+    for a, b in zip(_learned(env, probes), before, strict=True):
+        np.testing.assert_array_equal(a, b)
+    _, _, _, _, info = env.step(policy(obs))
+    assert not info["warmup"]  # the second episode starts with the fitted learners
+
+
+def test_bad_learner_kwargs_are_refused_when_the_filter_is_built():
+    """Not at the end of the warm-up (where the error used to be caught and learning silently
+    switched off): at construction, naming the key."""
+    with pytest.raises(ValueError, match=r"learner_kwargs refused by AFVSGP: num_inducing"):
+        SafetyFilter(gym.make(PM), learner="afvsgp", learner_kwargs={"num_inducing": 0})
+    with pytest.raises(ValueError, match=r"learner_kwargs .* unexpected keyword .*'windw'"):
+        SafetyFilter(gym.make(PM), learner="afvsgp", learner_kwargs={"windw": 50})
+
+
+def test_a_learner_failure_is_reported_counted_and_warned_once(recwarn):
+    """A learner that raises inside the loop: the filter goes on; every such step has
+    ``info["learner_error"]`` saying where, the episode counts them (``learner_error_steps``,
+    in the records and their summary), and one warning is given, not one per step."""
+    from afvsgp_gym.evaluation import run_episode, summarize
+
+    env = SafetyFilter(gym.make(PM), learner="afvsgp", warmup_samples=60,
+                       learner_kwargs={"num_inducing": 8})
+    policy = NominalController(env)
+    obs, _ = env.reset(seed=1)
+    _steps(env, policy, obs, 70)
+    assert not recwarn.list
+
+    def broken(*args):
+        raise np.linalg.LinAlgError("a failed factorisation")
+
+    env.controller.bank.update = broken  # every online update fails from here on
+    counts, _ = run_episode(env, policy, seed=2, max_steps=30)
+    assert counts["learner_error_steps"] == 30
+    assert summarize([counts, counts])["learner_error_steps"] == 60
+    assert env.controller.n_update_failures == 30
+    assert env.controller.learner_error == ("online update: LinAlgError: a failed "
+                                            "factorisation")
+    warned = [w for w in recwarn.list if issubclass(w.category, RuntimeWarning)]
+    assert len(warned) == 1 and "afvsgp learner failed (online update" in str(warned[0].message)
+    env.controller.bank.predict_affine = broken  # a failed prediction: that step is flagged
+    obs, _ = env.reset(seed=3)
+    for _ in range(100):
+        obs, _, _, _, info = env.step(policy(obs))
+        if info["filter_n_active"]:
+            break
+    assert info["learner_error"] == ("prediction: LinAlgError: a failed factorisation; online "
+                                     "update: LinAlgError: a failed factorisation")
+    assert not info["filter_feasible"] and np.all(np.isfinite(info["action_applied"]))
