@@ -252,6 +252,27 @@ def test_user_spheres_and_contact_cost():
     assert info["collision"] and info["cost"] == 1.0  # ... but the hand touches the obstacle
 
 
+def test_a_contact_after_a_step_is_cost():
+    """An obstacle that comes down onto the braked hand after the reset: every step with the
+    contact is a cost step while the tiny sphere's h stays positive and no joint limit is
+    reached (so the contact alone makes the cost), and no step without it is."""
+    env = FrankaObstacleEnv(
+        "static", safety_spheres=[{"body": "panda0_link7", "offset": (0, 0, 0.21), "radius": 0.01}],
+        obstacles=[{"position": [0.307, 0.0, 0.687], "radius": 0.08,
+                    "start": [0.307, 0.0, 0.987], "start_time": 0.2, "speed": 0.3}],
+    )
+    _, info = env.reset(seed=0)
+    assert not info["collision"] and info["cost"] == 0.0
+    contact, cost = [], []
+    for _ in range(400):
+        _, _, _, _, info = env.step(env.backup_action())
+        assert info["h"] > 0.1 and not info["limit_violation"]
+        contact.append(info["collision"])
+        cost.append(info["cost"])
+    assert cost == [1.0 if c else 0.0 for c in contact]
+    assert not any(contact[:200]) and sum(contact) > 100  # it arrived, and stays on the hand
+
+
 @pytest.mark.parametrize("nominal_model", ["zero", "kinematic", "perturbed", "exact"])
 def test_delta_b_true_is_true_minus_nominal(nominal_model):
     env = FrankaObstacleEnv("dynamic", nominal_model=nominal_model, warmup_steps=0)
