@@ -51,6 +51,14 @@ def test_nan_terms_with_backup_apply_the_backup():
     np.testing.assert_array_equal(res.u, [0.2, 0.2])
 
 
+#: The nominal HOCBF constraint ``c0 + c u >= 0`` of ``_fitted_controller`` (alpha = 2 for
+#: both class-K gains, relative degree 2), worked by hand: psi_1 = h' + 2 h, psi_2 = psi_1' +
+#: 2 psi_1 = h'' + 4 h' + 4 h with h'' = lf + lg u, less the barrier margin 1e-3 times
+#: d psi_2 / d h = 4.
+def _nominal_c0(h, hd, lf=0.0):
+    return lf + 4.0 * hd + 4.0 * h - 4e-3
+
+
 def _fitted_controller(w, rng, **options):
     """AFVSGP fitted offline on z = 1 + u . (2, -1) with frozen online learning."""
     xi = rng.normal(size=(120, 3))
@@ -101,11 +109,12 @@ def test_residual_bias_shifts_the_constraint_mean():
     u_nom = np.array([-0.5, 0.5])
     res = ctrl.filter(u_nom, terms)
     b, sig = ctrl.bank.predict_affine(terms[0].xi[None], np.array([0]))
-    c0, c = ctrl.hocbf.constraint(terms[0])
-    a0 = c0 - ctrl.config.barrier_margin * float(np.prod(ctrl.hocbf.gains)) + b[0, 0] - 4.0
+    a0 = _nominal_c0(0.05, -0.3) + b[0, 0] - 4.0  # lg = 0: the gain is the learned one alone
+    # any factor with G'G = beta^2 Sigma gives the cone (eq. 05); the eigen-factor here, the
+    # controller's is Cholesky's
     w, v = np.linalg.eigh(0.5 * (sig[0] + sig[0].T))
-    G = (ctrl.beta * np.sqrt(np.maximum(w, 0)))[:, None] * v.T
-    ref = SOCPFilter(-np.ones(2), np.ones(2)).solve(u_nom, [a0], (c + b[0, 1:])[None], G[None])
+    G = (2.5 * np.sqrt(np.maximum(w, 0)))[:, None] * v.T  # beta = 2.5, the default
+    ref = SOCPFilter(-np.ones(2), np.ones(2)).solve(u_nom, [a0], b[:, 1:], G[None])
     assert res.status == ref.status
     np.testing.assert_allclose(res.u, ref.u, atol=1e-7)
     unbiased = _fitted_controller(0.2, np.random.default_rng(1)).filter(u_nom, terms)
@@ -149,9 +158,8 @@ def test_infeasible_chance_constraint_relaxes_to_the_mean(relax):
     if relax:
         assert res.status.startswith("relaxed:")
         b, _ = ctrl.bank.predict_affine(terms[0].xi[None], np.array([0]))
-        c0, c = ctrl.hocbf.constraint(terms[0])
-        a0 = c0 - ctrl.config.barrier_margin * float(np.prod(ctrl.hocbf.gains)) + b[0, 0]
-        assert a0 + (c + b[0, 1:]) @ res.u >= -1e-6  # the mean constraint holds
+        a0 = _nominal_c0(0.05, 0.0) + b[0, 0]  # lg = 0: the gain is the learned one alone
+        assert a0 + b[0, 1:] @ res.u >= -1e-6  # the mean constraint holds
         assert res.margins[0] < 0  # the chance constraint does not
     else:
         assert res.status.startswith("backup:")

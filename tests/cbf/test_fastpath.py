@@ -50,16 +50,21 @@ def test_halfspace_box_matches_50_digit_bisection(seed):
     a = rng.normal(size=m) * (rng.uniform(size=m) > 0.2)  # some zero coefficients
     u_nom = rng.uniform(3 * low, 3 * high)  # often outside the box
     best = float(np.maximum(a * low, a * high).sum())  # max of a u over the box
-    gap = best - float(a @ np.clip(u_nom, low, high))
-    if gap <= 0.0:  # the clipped u_nom is the best point of the box already
-        return
-    a0 = -float(a @ np.clip(u_nom, low, high)) - rng.uniform(0.01, 0.99) * gap
+    at_clip = float(a @ np.clip(u_nom, low, high))
+    gap = best - at_clip
+    if gap > 0.0:  # the half-space cuts the clipped proposal off, the box's best point not
+        a0 = -at_clip - rng.uniform(0.01, 0.99) * gap
+    else:  # the clipped proposal is the box's best point: a half-space it satisfies
+        a0 = -at_clip + rng.uniform(0.01, 1.0)
     sol = fastpath.project_halfspace_box(u_nom, a0, a, low, high)
     ref = _halfspace_mp(u_nom, a0, a, low, high)
     assert sol is not None
     u, lam = sol
     np.testing.assert_allclose(u, ref, atol=1e-13 * (1 + np.abs(ref).max()))
     assert lam >= 0 and np.all(u >= low) and np.all(u <= high)
+    if gap <= 0.0:
+        assert lam == 0.0
+        np.testing.assert_array_equal(u, np.clip(u_nom, low, high))
 
 
 def test_halfspace_root_at_a_breakpoint_and_all_faces():
