@@ -1,8 +1,9 @@
 """``afvsgp-gym`` console script: evaluate, sweep, report, reproduce, plot, video, train, bench.
 
 Each subcommand validates its arguments (unknown env ids, agents and learners list the valid
-choices and exit with status 2; output paths are checked for writability before any work
-starts) and then calls one library function:
+choices and exit with status 2; the values of ``--env-kwargs`` and ``--filter-kwargs`` are
+checked by building the env and the filter once, and output paths for writability, before any
+work starts) and then calls one library function:
 
 - ``evaluate``  -> :func:`afvsgp_gym.evaluation.evaluate`
 - ``sweep``     -> :func:`afvsgp_gym.sweep.run_sweep` (after :func:`afvsgp_gym.sweep.validate`)
@@ -95,6 +96,28 @@ def _check_agent_fits(parser: argparse.ArgumentParser, agent: str, env_id: str,
         env.close()
 
 
+def _check_kwargs(parser: argparse.ArgumentParser, env_id: str, learners: Sequence[str | None],
+                  env_kwargs: dict, filter_kwargs: dict) -> None:
+    """The env and each learner's filter built once with the given kwargs before the run, so
+    that a bad value is an argument error naming its option, not a traceback of the run."""
+    import gymnasium as gym
+
+    from afvsgp_gym.wrappers import SafetyFilter
+
+    try:
+        env = gym.make(env_id, **env_kwargs)
+    except Exception as exc:
+        parser.error(f"--env-kwargs: {type(exc).__name__}: {exc}")
+    try:
+        for learner in learners:
+            if learner is not None:
+                SafetyFilter(env, learner=learner, **filter_kwargs)
+    except Exception as exc:
+        parser.error(f"--filter-kwargs: {type(exc).__name__}: {exc}")
+    finally:
+        env.close()
+
+
 def _require_sb3(parser: argparse.ArgumentParser) -> None:
     from afvsgp_gym.agents.sb3 import require_sb3
 
@@ -183,6 +206,7 @@ def _cmd_evaluate(args: argparse.Namespace, parser: argparse.ArgumentParser) -> 
     env_kwargs = json_object_arg(parser, args.env_kwargs, "--env-kwargs")
     _check_agent_fits(parser, args.agent, args.env, env_kwargs)
     filter_kwargs = json_object_arg(parser, args.filter_kwargs, "--filter-kwargs")
+    _check_kwargs(parser, args.env, learners, env_kwargs, filter_kwargs)
     with _executor(parser, args.workers, args.ray, inline_single=True) as executor:
         result = evaluate(args.env, agent=args.agent, learners=learners,
                           episodes=args.episodes, seed=args.seed, max_steps=args.max_steps,
@@ -331,10 +355,11 @@ def _cmd_video(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int
     if Path(args.out).suffix.lower() not in VIDEO_SUFFIXES:
         parser.error(f"--out must end in one of {', '.join(VIDEO_SUFFIXES)}, got {args.out!r}")
     out = _check_out(parser, args.out, "--out")
+    env_kwargs = json_object_arg(parser, args.env_kwargs, "--env-kwargs")
+    _check_kwargs(parser, args.env, [args.learner], env_kwargs, {})
     os.environ.setdefault("MUJOCO_GL", "egl")
     res = record_video(args.env, out, agent=args.agent, learner=args.learner, seed=args.seed,
-                       max_steps=args.max_steps, every=args.every,
-                       env_kwargs=json_object_arg(parser, args.env_kwargs, "--env-kwargs"))
+                       max_steps=args.max_steps, every=args.every, env_kwargs=env_kwargs)
     print(f"wrote {res['path']}: {res['frames']} frames of {res['steps']} steps, "
           f"min h = {res['min_h']:.4f}, {res['violation_steps']} steps with h < 0")
     return 0
@@ -352,11 +377,13 @@ def _cmd_train(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int
         parser.error(f"--out must end in .zip, got {out!r}")
     out_path = _check_out(parser, out, "--out")
     log_dir = _check_out(parser, args.log_dir, "--log-dir", directory=True)
+    env_kwargs = json_object_arg(parser, args.env_kwargs, "--env-kwargs")
+    filter_kwargs = json_object_arg(parser, args.filter_kwargs, "--filter-kwargs")
+    _check_kwargs(parser, args.env, [learner], env_kwargs, filter_kwargs)
     res = train(args.algo, args.env, learner=learner, timesteps=args.timesteps,
                 path=out_path, seed=args.seed, n_envs=args.n_envs,
-                action_repeat=args.action_repeat,
-                env_kwargs=json_object_arg(parser, args.env_kwargs, "--env-kwargs"),
-                filter_kwargs=json_object_arg(parser, args.filter_kwargs, "--filter-kwargs"),
+                action_repeat=args.action_repeat, env_kwargs=env_kwargs,
+                filter_kwargs=filter_kwargs,
                 algo_kwargs=json_object_arg(parser, args.algo_kwargs, "--algo-kwargs"),
                 log_dir=log_dir, verbose=args.verbose)
     behind = "no filter" if learner is None else f"SafetyFilter(learner={learner!r})"
