@@ -115,5 +115,6 @@ def test_train_bad_arguments(tmp_path):
         train("ppo", REACH, timesteps=10, action_repeat=0, path=tmp_path / "x")
     with pytest.raises(ValueError, match="algo"):
         train("dqn", REACH, timesteps=10, path=tmp_path / "x")
-    with pytest.raises(SystemExit):
+    with pytest.raises(SystemExit) as exc:
         main(["train", "--env", REACH, "--algo-kwargs", "[1]", "--out", str(tmp_path / "a.zip")])
+    assert exc.value.code == 2

@@ -5,6 +5,7 @@ import sys
 
 import imageio.v2 as imageio
 import numpy as np
+import pytest
 
 from afvsgp_gym.benchmarks.run_all import run_all
 from afvsgp_gym.cli import main
@@ -57,10 +58,9 @@ def test_reproduce_tiny_then_plot(tmp_path, capsys):
 
 
 def test_plot_without_traces_explains(tmp_path, capsys):
-    try:
+    with pytest.raises(SystemExit) as exc:
         main(["plot", "--traces", str(tmp_path)])
-    except SystemExit as exc:
-        assert exc.code == 2
+    assert exc.value.code == 2
     assert "afvsgp-gym reproduce" in capsys.readouterr().err
 
 
@@ -81,4 +81,7 @@ def test_bench_tolerates_a_missing_module(capsys, monkeypatch):
     monkeypatch.setitem(sys.modules, "afvsgp_gym.benchmarks.envs", None)  # as if absent
     res = run_all(quick=True, areas=["envs"])
     assert res == {"envs": None}
+    assert "afvsgp_gym.benchmarks.envs is not present" in capsys.readouterr().out
+    # bench exits with status 1 when no area it was asked for ran
+    assert main(["bench", "--quick", "--only", "envs"]) == 1
     assert "afvsgp_gym.benchmarks.envs is not present" in capsys.readouterr().out

@@ -151,12 +151,14 @@ def test_cli_refuses_before_running(tmp_path, capsys):
     assert exc.value.code == 2
     assert "unknown learner 'x'" in capsys.readouterr().err
     assert not out.exists()  # nothing ran, nothing written
-    with pytest.raises(SystemExit):
+    with pytest.raises(SystemExit) as exc:
         main(["sweep", str(tmp_path / "nope.toml"), "--out", str(out)])
+    assert exc.value.code == 2
     assert "cannot read config" in capsys.readouterr().err
     cfg.write_text("grid = [")
-    with pytest.raises(SystemExit):
+    with pytest.raises(SystemExit) as exc:
         main(["sweep", str(cfg), "--out", str(out)])
+    assert exc.value.code == 2
     assert "not valid TOML" in capsys.readouterr().err
 
 
