@@ -41,10 +41,17 @@ def test_train_then_evaluate_zip(tmp_path, capsys):
 
 
 def test_sac_with_filter_logs_cost(tmp_path):
+    """Every finished training episode is logged with its cost: 40 agent steps of 10-step
+    episodes (one env step per action here) are 4 episodes, and the oracle filter keeps
+    them free of cost from the first step (no warm-up keeps the obstacle away)."""
     res = train("sac", PM, learner="oracle", timesteps=40, path=tmp_path / "sac",
-                env_kwargs={"warmup_steps": 250},
+                env_kwargs={"warmup_steps": 0, "max_episode_steps": 10},
                 algo_kwargs={"learning_starts": 20, "batch_size": 16,
                              "policy_kwargs": {"net_arch": [16]}})
     assert res.path.suffix == ".zip" and res.path.is_file()
     assert load_policy(res.path).model.__class__.__name__ == "SAC"
-    assert isinstance(res.episode_costs, list)
+    assert (res.timesteps, res.env_steps) == (40, 40)
+    assert [r["steps"] for r in res.episodes] == [10] * 4
+    assert [r["timesteps"] for r in res.episodes] == [10, 20, 30, 40]
+    assert res.episode_costs == [0.0] * 4
+    assert res.episode_interventions == [r["interventions"] for r in res.episodes]

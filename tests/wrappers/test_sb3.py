@@ -51,10 +51,10 @@ def test_ppo_trains_with_filter_in_the_loop():
         assert not wrapper.controller.warming_up
         assert wrapper.controller.n_update_failures == 0
     assert any(not i["warmup"] for i in rec.infos)
-    # A random initial policy can wander into an obstacle during warm-up, when the filter has
-    # no model yet (nominal "zero"); once the learner is fitted no new violation may start.
+    # A random initial policy could wander into an obstacle during warm-up, when the filter
+    # has no model yet (nominal "zero"); once the learner is fitted no step may have cost.
     for k in range(2):
         mine = rec.infos[k::2]
-        for prev, cur in zip(mine[:-1], mine[1:], strict=True):
-            assert cur["warmup"] or not (cur["cost"] > 0 and prev["cost"] == 0)
+        assert sum(i["warmup"] for i in mine) == 200  # the learner's warm-up samples
+        assert [i["cost"] for i in mine if not i["warmup"]] == [0.0] * 120
     venv.close()
