@@ -117,6 +117,9 @@ _STACKED = ("inv_ls2", "var", "_var_diag", "log_var", "noise_variance", "jitter"
 class AFVSGPBank:
     """K AFVSGP learners in stacked arrays (see the module docstring).
 
+    Per learner ``k``: :meth:`inducing` (its inducing set), :meth:`statistics` (``S``, ``r``),
+    :meth:`conditioning` (of ``K_oo`` and ``K_oo + S/s2``).
+
     Parameters
     ----------
     settings : BankSettings
@@ -407,6 +410,18 @@ class AFVSGPBank:
             self._stats[k] *= 1.0 / self._scale[k]
             self._scale[k] = 1.0
             self._white[k] = False
+
+    def inducing(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """Learner ``k``'s inducing set: features (M, b) and actions (M, m) (copies)."""
+        m = int(self.n_inducing_[k])
+        return self._ind_xi[k, :m].copy(), self._ind_ub[k, :m, 1:].copy()
+
+    def statistics(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """Learner ``k``'s weighted statistics (eq. 20): ``S = K_ox Lambda K_xo`` (M, M) and
+        ``r = K_ox Lambda z`` (M,) (copies)."""
+        m = int(self.n_inducing_[k])
+        st = self._stats[k] / self._scale[k]
+        return st[:m, 1 : m + 1].copy(), st[:m, 0].copy()
 
     def conditioning(self) -> tuple[np.ndarray, np.ndarray]:
         """(K,) 2-norm condition numbers of ``K_oo`` and ``K_oo + S/s2`` of every learner."""
