@@ -14,15 +14,19 @@ from afvsgp_gym.envs.scenario import CyclicReference, ObstacleSpec
 ENV_ID = "afvsgp_gym/PointMassObstacle-v0"
 
 
+def _near_state(env):
+    """The point's position and velocity set by :func:`_env_near_moving_obstacle`."""
+    po, _, _ = env.obstacles[0].state(env.time)
+    return po + np.r_[0.2, -0.1, 0.05][: env.dim], np.random.default_rng(3).normal(size=env.dim)
+
+
 def _env_near_moving_obstacle(dim=2, dt=1e-5, **kw):
     """An env mid-way through the dynamic obstacle's approach, close to the obstacle."""
     env = PointMassObstacleEnv("dynamic", dim=dim, dt=dt, warmup_steps=0, **kw)
     env.reset(seed=0)
     ob = env.obstacles[0]
     env.set_time_step(int(round(0.5 * ob.duration / dt)))  # peak speed, acceleration nearby
-    po, _, _ = ob.state(env.time)
-    rng = np.random.default_rng(3)
-    env.set_state(po + np.r_[0.2, -0.1, 0.05][:dim], rng.normal(size=dim))
+    env.set_state(*_near_state(env))
     return env
 
 
@@ -51,8 +55,9 @@ def test_true_terms_match_finite_differences(dim):
 def test_true_terms_independent_formula():
     env = _env_near_moving_obstacle(dim=3, dt=0.01)
     t = env.barrier_terms("true")[0]
+    p, v = _near_state(env)
     po, vo, ao = env.obstacles[0].state(env.time)
-    d, vr = env._p - po, env._v - vo
+    d, vr = p - po, v - vo
     dist = np.linalg.norm(d)
     h_fn = lambda p: np.linalg.norm(p - po) - env.obstacles[0].radius - env.agent_radius  # noqa: E731
     # Hessian of |d| by central differences gives the curvature term v' H v
@@ -61,17 +66,17 @@ def test_true_terms_independent_formula():
     for i in range(3):
         e = np.eye(3)[i] * eps
         g1 = np.array(
-            [(h_fn(env._p + e + f) - h_fn(env._p + e - f)) / (2 * eps) for f in np.eye(3) * eps]
+            [(h_fn(p + e + f) - h_fn(p + e - f)) / (2 * eps) for f in np.eye(3) * eps]
         )
         g0 = np.array(
-            [(h_fn(env._p - e + f) - h_fn(env._p - e - f)) / (2 * eps) for f in np.eye(3) * eps]
+            [(h_fn(p - e + f) - h_fn(p - e - f)) / (2 * eps) for f in np.eye(3) * eps]
         )
         H[i] = (g1 - g0) / (2 * eps)
-    acc_free = -env.drag / env.mass * env._v
+    acc_free = -env.drag / env.mass * v
     lf_ref = d / dist @ (acc_free - ao) + vr @ H @ vr
     np.testing.assert_allclose(t.lf, lf_ref, rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(t.lg, d / dist * env.max_force / env.mass, rtol=1e-12)
-    np.testing.assert_allclose(t.xi, np.r_[env._p, env._v, d, vr])
+    np.testing.assert_allclose(t.xi, np.r_[p, v, d, vr])
     assert env.feature_dim == t.xi.shape[0] == 12
 
 
