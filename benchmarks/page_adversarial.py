@@ -19,8 +19,11 @@ from __future__ import annotations
 
 import gzip
 import json
+import os
+import platform
 import shutil
 import sys
+import time
 
 from acceptance_tables import PRIORS, learner, prior, scenario, summary
 from docgen import DOCS, RESULTS, main, measured, provenance, read_json, read_jsonl, table
@@ -76,7 +79,7 @@ def headline(recs: list[dict]) -> list[tuple]:
             if sub:
                 s = summary(sub)
                 rows.append((label(sub[0]) + (f", prior \"{pr}\"" if pr else ""), s["n"],
-                             cost_cell(s), f"{100 * s['bound']:.2g} %", f"{s['min_h']:+.4f}"))
+                             cost_cell(s), f"{100 * s['bound']:.3g} %", f"{s['min_h']:+.4f}"))
     return rows
 
 
@@ -210,12 +213,28 @@ def build() -> dict:
     return {PAGE: "\n".join(out).rstrip("\n") + "\n"}
 
 
+def _this_machine() -> str:
+    try:
+        with open("/proc/cpuinfo") as fh:
+            for line in fh:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
 def refresh(adversarial: str, routes_file: str, authority_file: str) -> None:
-    """Keep :data:`FIELDS` of the sweeps' records, compress them into the results files."""
+    """Keep :data:`FIELDS` of the sweeps' records, compress them into the results files.
+    Records that lack ``machine`` and ``date`` (sweeps of older versions) get this machine's
+    CPU and the day the results file was last written: refresh on the machine that ran it."""
     for src, dst in ((adversarial, SOURCE), (routes_file, ROUTES)):
         recs = read_jsonl(src)
+        day = time.strftime("%Y-%m-%d", time.localtime(os.path.getmtime(src)))
         with gzip.open(dst, "wt", encoding="utf-8") as fh:
             for r in recs:
+                r.setdefault("machine", _this_machine())
+                r.setdefault("date", day)
                 fh.write(json.dumps({k: r.get(k) for k in FIELDS}) + "\n")
     shutil.copyfile(authority_file, AUTHORITY)
 

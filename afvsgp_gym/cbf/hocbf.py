@@ -173,8 +173,22 @@ class BarrierConstraints:
         self._two = two = np.flatnonzero(deg == 2)
         with np.errstate(invalid="ignore"):  # D = inf: every such barrier is active anyway
             self._alpha_at_activation = braking_alpha(act[two], first[two], decel[two])[0]
+        self._cache: tuple | None = None
         #: d psi_r / d h at h = 0 per barrier: the product of its gains
         self.margin_gain = first * np.array([np.prod(self.gains[1:r]) for r in deg])
+
+    def _first(self, derivatives: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``alpha_1(h)`` and ``alpha_1'(h)`` of the relative-degree-2 barriers, computed once
+        per state: a read-only derivatives array (an env's, shared by the constraints, the
+        activation and the ground truth of one step) is remembered until the next one."""
+        cached = self._cache
+        if cached is not None and cached[0] is derivatives:
+            return cached[1]
+        two = self._two
+        out = braking_alpha(derivatives[two, 0], self.first_gain[two], self.deceleration[two])
+        if not derivatives.flags.writeable:
+            self._cache = (derivatives, out)
+        return out
 
     def psi1(self, derivatives: np.ndarray) -> np.ndarray:
         """``psi_1`` (K,) of every barrier (``h`` itself for relative degree 1: its psi_1
@@ -183,8 +197,7 @@ class BarrierConstraints:
         out = d[:, 0].copy()
         two = self._two
         if len(two):
-            alpha, _ = braking_alpha(d[two, 0], self.first_gain[two], self.deceleration[two])
-            out[two] = d[two, 1] + alpha
+            out[two] = d[two, 1] + self._first(d)[0]
         return out
 
     def constraints(self, terms: BarrierSet) -> tuple[np.ndarray, np.ndarray]:
@@ -200,9 +213,9 @@ class BarrierConstraints:
         for r, rows, coeffs in self._by_degree:
             if r == 1:
                 c0[rows] += first[rows] * d[rows, 0]
-            elif r == 2:
-                h, hd = d[rows, 0], d[rows, 1]
-                alpha, slope = braking_alpha(h, first[rows], self.deceleration[rows])
+            elif r == 2:  # rows is self._two
+                hd = d[rows, 1]
+                alpha, slope = self._first(d)
                 c0[rows] += slope * hd + self.gains[1] * (hd + alpha)
             else:
                 c0[rows] += d[rows, :r] @ coeffs
@@ -218,6 +231,6 @@ class BarrierConstraints:
         near = h < self.activation
         two = self._two
         if len(two):
-            alpha_h, _ = braking_alpha(h[two], self.first_gain[two], self.deceleration[two])
-            near[two] |= derivatives[two, 1] + alpha_h < self._alpha_at_activation
+            near[two] |= derivatives[two, 1] + self._first(derivatives)[0] < \
+                self._alpha_at_activation
         return np.flatnonzero(near)

@@ -74,10 +74,24 @@ def measure_samples(
     u = np.asarray(u, dtype=np.float64)
     r = before.relative_degree
     lgu_before, lgu_after = before.lg @ u, after.lg @ u
-    if degrees is not None:
-        rows, col = np.arange(len(degrees)), degrees - 1
-        fd = (after.derivatives[rows, col] - before.derivatives[rows, col]) / dt
-    elif _compiled.resolve(backend, ("step",)).step:
+    xi, z, bad = _samples(before, lgu_before, after, lgu_after, dt, r, backend)
+    if degrees is not None:  # the barriers of lower degree: their own highest derivative
+        low = np.flatnonzero(degrees != r)
+        if len(low):
+            col = degrees[low] - 1
+            fd = (after.derivatives[low, col] - before.derivatives[low, col]) / dt
+            nominal = 0.5 * ((before.lf[low] + lgu_before[low]) + (after.lf[low] + lgu_after[low]))
+            z[low] = fd - nominal
+            if bad or not math.isfinite(float(z[low].sum())):
+                bad = int((~(np.isfinite(z) & np.all(np.isfinite(xi), axis=1))).sum())
+    return xi, z, bad
+
+
+def _samples(before: BarrierSet, lgu_before: np.ndarray, after: BarrierSet,
+             lgu_after: np.ndarray, dt: float, r: int, backend) -> tuple[np.ndarray, np.ndarray,
+                                                                       int]:
+    """Eq. 48 on column ``r - 1`` of every barrier, and the count of non-finite samples."""
+    if _compiled.resolve(backend, ("step",)).step:
         K, nb = before.xi.shape
         xi, z = np.empty((K, nb)), np.empty(K)
         try:
@@ -88,8 +102,7 @@ def measure_samples(
             pass
         else:
             return xi, z, bad
-    if degrees is None:
-        fd = (after.derivatives[:, r - 1] - before.derivatives[:, r - 1]) / dt
+    fd = (after.derivatives[:, r - 1] - before.derivatives[:, r - 1]) / dt
     nominal = 0.5 * ((before.lf + lgu_before) + (after.lf + lgu_after))
     xi, z = 0.5 * (before.xi + after.xi), fd - nominal
     if math.isfinite(float(z.sum()) + float(xi.sum())):  # a finite sum: every value is
