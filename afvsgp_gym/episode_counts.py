@@ -5,9 +5,9 @@ Both the episode runner (:func:`afvsgp_gym.evaluation.run_episode`) and the
 the keys it reads are the envs' (``cost``, ``h``, ``collision``, ``limit_violation``,
 ``success``, ``unstable``, ``torque_saturated``) and the safety filter's (``filter_active``,
 ``filter_feasible``, ``filter_status``, ``warmup``, ``filter_time_s``,
-``proposal_true_margin``, ``action_proposed``, ``action_applied``, ``learner_error``), each
-with a default when
-absent (an env without a filter counts no intervention).
+``proposal_true_margin``, ``action_proposed``, ``action_applied``, ``learner_error``,
+``calibration``, ``delta_b_lower``), each with a default when absent (an env without a filter
+counts no intervention).
 """
 
 from __future__ import annotations
@@ -18,13 +18,21 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["COST_DEFINITION", "SAFE_MARGIN", "EpisodeCounter"]
+__all__ = ["CALIBRATION_LEGEND", "COST_DEFINITION", "SAFE_MARGIN", "EpisodeCounter"]
 
 #: The one definition of the safety cost, printed with every table.
 COST_DEFINITION = (
     "cost: steps with info['cost'] > 0, i.e. some obstacle barrier has h < 0 (h<0), the robot "
     "touches an obstacle (contact), or a joint is at its range stop or above its speed limit "
     "(limits; with the env's optional checks also above its acceleration or torque-rate limit)"
+)
+
+#: The calibration columns of every table, in one line.
+CALIBRATION_LEGEND = (
+    "miss: share of the learned band's (barrier, step) pairs whose eq. 48 sample fell below "
+    "the band the filter used (promised: Phi(-beta), 0.62 % at beta = 2.5); true_miss: the "
+    "same against the exact model error; cov1/cov2/cov3: share within 1/2/3 predicted std "
+    "(68.3/95.4/99.7 % if calibrated)"
 )
 
 #: m/s^2; a proposal is "safe with margin" when its true HOCBF constraint value exceeds this
@@ -56,6 +64,17 @@ class EpisodeCounter:
     learner_error_steps : int
         Steps on which a learner failed (``info["learner_error"]`` not None): the filter went
         on without that prediction, update or fit.
+    calibration_samples, calibration_misses : int
+        The learned band against its eq. 48 samples, summed over the steps'
+        ``info["calibration"]``: (barrier, step) pairs scored, and those below the band the
+        filter used; ``calibration_within_1std`` (``_2std``, ``_3std``) those within one (two,
+        three) predicted standard deviations of the band's center
+        (:mod:`afvsgp_gym.cbf.calibration`).
+    true_band_samples, true_band_misses : int
+        The same band against the simulator's exact model error: pairs with a finite
+        ``info["delta_b_lower"]`` and ``info["delta_b_true"]``, and those with
+        ``delta_b_true < delta_b_lower`` (ground truth for evaluation; the filter never sees
+        it).
     success, unstable : bool
         Some step had ``info["success"]``, ``info["unstable"]``.
     safe_proposals, safe_proposals_kept : int
@@ -79,6 +98,10 @@ class EpisodeCounter:
         self.backup_steps = self.relaxed_steps = 0
         self.warmup_steps = self.saturated_steps = 0
         self.learner_error_steps = 0
+        self.calibration_samples = self.calibration_misses = 0
+        self.calibration_within_1std = self.calibration_within_2std = 0
+        self.calibration_within_3std = 0
+        self.true_band_samples = self.true_band_misses = 0
         self.success = self.unstable = False
         self.safe_proposals = self.safe_proposals_kept = 0
         self.filter_times: list[float] = []
@@ -105,6 +128,18 @@ class EpisodeCounter:
         self.warmup_steps += warm
         self.saturated_steps += bool(info.get("torque_saturated", False))
         self.learner_error_steps += info.get("learner_error") is not None
+        cal = info.get("calibration")
+        if cal is not None:
+            self.calibration_samples += cal["samples"]
+            self.calibration_misses += cal["misses"]
+            self.calibration_within_1std += cal["within_1std"]
+            self.calibration_within_2std += cal["within_2std"]
+            self.calibration_within_3std += cal["within_3std"]
+            lower, true = info.get("delta_b_lower"), info.get("delta_b_true")
+            if lower is not None and true is not None:
+                ok = np.isfinite(lower) & np.isfinite(true)
+                self.true_band_samples += int(ok.sum())
+                self.true_band_misses += int((true[ok] < lower[ok]).sum())
         self.success = self.success or bool(info.get("success", False))
         self.unstable = self.unstable or bool(info.get("unstable", False))
         if not info.get("warmup", True) and info.get("proposal_true_margin", -1.0) > SAFE_MARGIN:

@@ -9,6 +9,7 @@ from dataclasses import dataclass, field, fields
 import numpy as np
 
 from afvsgp_gym._compiled import BACKENDS, Backend
+from afvsgp_gym.cbf.calibration import CALIBRATION_MODES
 from afvsgp_gym.validation import check_count, check_real
 
 __all__ = ["DEFAULT_BETA", "DEFAULT_RESIDUAL_CORRECTION", "FilterConfig"]
@@ -60,6 +61,17 @@ class FilterConfig:
     beta : float
         Chance-constraint multiplier on the predicted standard deviation (eq. 49);
         0 gives the mean-only QP.
+    calibration : str
+        ``"off"`` (default): the band is ``beta`` predicted standard deviations, as the paper's;
+        ``"conformal"``: each learner's multiplier is adapted online so that the long-run rate
+        of eq. 48 samples below the band meets ``Phi(-beta)`` whatever the model's
+        misspecification, never below ``beta``
+        (:class:`~afvsgp_gym.cbf.calibration.ConformalMultiplier`, its guarantee and
+        assumptions). Needs ``beta > 0``. Either way the filter reports the band it used
+        (``FilterResult.delta_b_lower``) and each step's misses and coverages
+        (``SafetyController.last_calibration``).
+    calibration_step : float
+        ``eta > 0`` of the conformal correction, standard deviations per miss.
     barrier_margin : float
         Buffer subtracted from ``h`` in the constraint (units of ``h``): the HOCBF condition
         holds in continuous time; with a zero-order-hold action the sampled ``h`` can dip
@@ -145,6 +157,8 @@ class FilterConfig:
     relative_degree: int = 2
     alpha: float | tuple[float, ...] = 4.0
     beta: float = DEFAULT_BETA
+    calibration: str = "off"
+    calibration_step: float = 0.5
     barrier_margin: float = 1e-3
     activation_distance: float | tuple[float, ...] = float("inf")
     braking_deceleration: float | tuple[float, ...] = float("inf")
@@ -171,6 +185,13 @@ class FilterConfig:
                 raise ValueError(f"alpha must be a float or a sequence of floats, got {self.alpha}")
             object.__setattr__(self, "alpha", tuple(float(a) for a in self.alpha))
         check_real(self.beta, "beta", low=0.0)
+        if self.calibration not in CALIBRATION_MODES:
+            raise ValueError(f"calibration must be one of {list(CALIBRATION_MODES)}. "
+                             f"Got: {self.calibration!r}")
+        if self.calibration != "off" and not self.beta > 0:
+            raise ValueError(f"calibration={self.calibration!r} needs beta > 0. "
+                             f"Got: beta={self.beta!r}")
+        check_real(self.calibration_step, "calibration_step", low=0.0, low_open=True)
         check_real(self.barrier_margin, "barrier_margin", low=0.0)
         object.__setattr__(self, "activation_distance", _per_barrier(
             self.activation_distance, "activation_distance", lambda v: v >= 0,

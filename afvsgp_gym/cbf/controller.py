@@ -36,6 +36,7 @@ import numpy as np
 from scipy.linalg.lapack import dpotrf
 
 from afvsgp_gym import _compiled
+from afvsgp_gym.cbf.calibration import CalibrationCounts, ConformalMultiplier, score_counts
 from afvsgp_gym.cbf.config import FilterConfig
 from afvsgp_gym.cbf.exploration import Exploration, exploration_scale
 from afvsgp_gym.cbf.hocbf import HOCBF, BarrierConstraints
@@ -74,6 +75,10 @@ class FilterResult:
     delta_b_mean, delta_b_std : ndarray of shape (K,)
         Learned mean and standard deviation of ``Delta B^(r)`` at ``u`` (eq. 51; NaN where
         not predicted).
+    delta_b_lower : ndarray of shape (K,)
+        The lower edge of the band each constraint used at ``u``: ``delta_b_mean`` plus the
+        residual bias minus the multiplier (``beta``, or the conformal one) times
+        ``delta_b_std`` (NaN where not predicted; the mean without learning).
     solve_time_s : float
         Wall time of prediction and cone program.
     warmup : bool
@@ -92,6 +97,7 @@ class FilterResult:
     solve_time_s: float
     warmup: bool = False
     n_active: int = 0
+    delta_b_lower: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -99,12 +105,17 @@ class StepPrediction:
     """What the filter predicted for the step it just filtered (read by ``observe``).
 
     ``rows`` the barriers predicted, ``mean`` (k, m+1) and ``cov`` (k, m+1, m+1) their
-    affine prediction, ``action`` the action returned."""
+    affine prediction, ``action`` the action returned; ``center`` (k,) the band's center at
+    ``action`` (mean plus residual bias), ``std`` (k,) its standard deviation, ``multiplier``
+    (k,) the band's multiplier."""
 
     rows: np.ndarray
     mean: np.ndarray
     cov: np.ndarray
     action: np.ndarray
+    center: np.ndarray | None = None
+    std: np.ndarray | None = None
+    multiplier: np.ndarray | None = None
 
 
 def cone_matrix(sigma: np.ndarray, beta: float) -> np.ndarray:
@@ -224,6 +235,11 @@ class SafetyController:
         self.residuals = ResidualObserver(self.n_barriers, cfg.residual_correction,
                                           self.backend)
         self.learning = bool(cfg.online)
+        #: the online multiplier (``calibration="conformal"``), else None
+        self.conformal = (ConformalMultiplier(layout.learner, cfg.beta, cfg.calibration_step)
+                          if self.learns and cfg.calibration == "conformal" else None)
+        #: the calibration of the last observed step's band (None: nothing was predicted)
+        self.last_calibration: CalibrationCounts | None = None
         self.fitted = not self.learns
         self._buffer: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self._pending: StepPrediction | None = None
@@ -411,18 +427,22 @@ class SafetyController:
         if len(pred_rows):
             try:
                 bvec, sig = self.bank.predict_affine(bset.xi[pred_rows], pred_rows)
-                done, G = (self._learned_terms(a0, a, bvec, pred_rows, sig) if ok is None
-                           else (False, None))
+                bias = self.residuals.bias[pred_rows]  # (a copy) the bias this step uses
+                mult = self._multiplier(pred_rows)
+                sig_cone = (sig if self.conformal is None
+                            else sig * ((mult / self.config.beta) ** 2)[:, None, None])
+                done, G = (self._learned_terms(a0, a, bvec, pred_rows, sig_cone)
+                           if ok is None else (False, None))
                 if done:  # every barrier of the program predicted
                     u_nom = self._excite(u_nom, pred_rows, sig, a0, a)
                 else:
                     where = slice(None) if ok is None else np.searchsorted(rows, pred_rows)
-                    a0[where] += bvec[:, 0] + self.residuals.bias[pred_rows]
+                    a0[where] += bvec[:, 0] + bias
                     a[where] += bvec[:, 1:]
                     u_nom = self._excite(u_nom, pred_rows, sig, a0[where], a[where])
                     if self.config.beta > 0:
                         G = np.zeros((len(rows), m + 1, m + 1))
-                        G[where] = cone_matrices(sig, self.config.beta, self.backend)
+                        G[where] = cone_matrices(sig_cone, self.config.beta, self.backend)
             except Exception as exc:  # a learner failure must not stop the loop
                 self._learner_failed(exc, "prediction")
                 a0 = np.full(len(rows), np.nan)
@@ -440,11 +460,15 @@ class SafetyController:
         fill = np.nan if self.learns else 0.0  # nothing learned: Delta B = 0 exactly
         mean = np.full(K, fill)
         std = mean.copy()
+        lower = mean.copy()
         if bvec is not None:
             ubar = np.concatenate([[1.0], u])
             mean[pred_rows] = bvec @ ubar
-            std[pred_rows] = np.sqrt(np.maximum(((sig @ ubar) * ubar).sum(axis=1), 0.0))
-            self._pending = StepPrediction(pred_rows, bvec, sig, u.copy())
+            s = np.sqrt(np.maximum(((sig @ ubar) * ubar).sum(axis=1), 0.0))
+            std[pred_rows] = s
+            center = mean[pred_rows] + bias
+            lower[pred_rows] = center - mult * s
+            self._pending = StepPrediction(pred_rows, bvec, sig, u.copy(), center, s, mult)
         else:
             self._pending = None if warm else StepPrediction(rows[:0], bvec, sig, u.copy())
         return FilterResult(
@@ -458,7 +482,14 @@ class SafetyController:
             solve_time_s=time.perf_counter() - t0,
             warmup=warm,
             n_active=len(rows),
+            delta_b_lower=lower,
         )
+
+    def _multiplier(self, rows: np.ndarray) -> np.ndarray:
+        """The band's multiplier of barriers ``rows``: ``beta``, or the conformal one."""
+        if self.conformal is None:
+            return np.full(len(rows), float(self.config.beta))
+        return self.conformal.multiplier(rows)
 
     def constraints(self, terms) -> tuple[np.ndarray, np.ndarray]:
         """The nominal HOCBF constraints (eq. 45) of every barrier, ``c0 + c @ u >= 0``:
@@ -501,6 +532,7 @@ class SafetyController:
         (such samples are skipped and counted in ``n_skipped_samples``).
         """
         K = self.n_barriers
+        self.last_calibration = None
         if not self.learns:
             return np.full(K, np.nan)
         before = self._terms(terms_before, "terms_before")
@@ -557,7 +589,8 @@ class SafetyController:
                           "warning only once)", RuntimeWarning, stacklevel=3)
 
     def _update_residuals(self, u: np.ndarray, z: np.ndarray) -> None:
-        """Residual observer with the prediction the filter used for this very action."""
+        """Residual observer with the prediction the filter used for this very action; the
+        band's calibration (and its conformal correction) from the same prediction."""
         pred, self._pending = self._pending, None
         if pred is None or pred.mean is None:
             self.residuals.reset()  # no barrier predicted: every bias returns to 0
@@ -566,6 +599,11 @@ class SafetyController:
         if not float(d @ d) <= 1e-12 * (1.0 + float(u @ u)):
             self.residuals.reset()
             return
+        if pred.center is not None and len(pred.rows):
+            scores, self.last_calibration = score_counts(z[pred.rows], pred.center, pred.std,
+                                                         pred.multiplier)
+            if self.conformal is not None:
+                self.conformal.update(pred.rows, scores)
         ubar = np.concatenate([[1.0], u])
         self.residuals.update(pred.rows, pred.mean @ ubar, z=z)
 

@@ -32,7 +32,7 @@ One module per job:
 - :mod:`~afvsgp_gym.evaluation.version`: :func:`code_version`, :func:`cpu_model`.
 """
 
-from afvsgp_gym.episode_counts import COST_DEFINITION, SAFE_MARGIN
+from afvsgp_gym.episode_counts import CALIBRATION_LEGEND, COST_DEFINITION, SAFE_MARGIN
 from afvsgp_gym.evaluation.factories import BUILTIN_AGENTS, Policy, make_env, make_policy
 from afvsgp_gym.evaluation.io import check_writable, jsonable
 from afvsgp_gym.evaluation.report import format_table, write_csv, write_json
@@ -50,6 +50,7 @@ from afvsgp_gym.evaluation.version import code_version, cpu_model
 
 __all__ = [
     "BUILTIN_AGENTS",
+    "CALIBRATION_LEGEND",
     "COST_DEFINITION",
     "COUNT_FIELDS",
     "EPISODE_FIELDS",

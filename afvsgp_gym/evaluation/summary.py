@@ -26,6 +26,12 @@ SUMMARY_FIELDS = (
     "interventions",
     "infeasible_steps",
     "learner_error_steps",
+    "calibration_samples",
+    "miss_rate",
+    "true_miss_rate",
+    "coverage_1std",
+    "coverage_2std",
+    "coverage_3std",
     "tracking_error_mean",
     "tracking_error_max",
     "return_mean",
@@ -52,8 +58,12 @@ def summarize(records: Iterable[Mapping[str, Any]], confidence: float = 0.95) ->
     left out), ``min_h`` and ``tracking_error_max`` the extremes; ``minimal_intervention`` the
     share of the proposals that were safe with margin (true HOCBF constraint above
     :data:`~afvsgp_gym.episode_counts.SAFE_MARGIN` after warm-up) and passed the filter
-    unchanged; filter times are quantiles of every step pooled (from the records' histograms
-    when present).
+    unchanged; ``miss_rate`` the share of the scored (barrier, step) pairs whose eq. 48 sample
+    fell below the learned band the filter used (the chance constraint promises
+    ``Phi(-beta)``), ``true_miss_rate`` the same against the exact model error,
+    ``coverage_1std`` (2, 3) the share within one (two, three) predicted standard deviations
+    (NaN without scored pairs; :mod:`afvsgp_gym.cbf.calibration`); filter times are
+    quantiles of every step pooled (from the records' histograms when present).
     """
     from afvsgp_gym.stats import clopper_pearson_upper, histogram_quantile, merge_histograms
 
@@ -74,6 +84,13 @@ def summarize(records: Iterable[Mapping[str, Any]], confidence: float = 0.95) ->
     else:  # rows without histograms: episode quantiles only
         t_med = float(np.nanmedian([_num(r["filter_time_median_s"]) for r in records]))
         t_p99 = float(np.nanmax([_num(r["filter_time_p99_s"]) for r in records]))
+    def total(name: str) -> int:  # (absent from the records of older sweeps: 0)
+        return int(sum(int(r.get(name) or 0) for r in records))
+
+    def rate(num: str, den: str) -> float:
+        d = total(den)
+        return total(num) / d if d else math.nan
+
     return {
         "episodes": n,
         "episodes_with_cost": int(with_cost),
@@ -92,6 +109,12 @@ def summarize(records: Iterable[Mapping[str, Any]], confidence: float = 0.95) ->
         # (absent from the records of older sweeps: none counted then)
         "learner_error_steps": int(sum(int(r.get("learner_error_steps") or 0)
                                        for r in records)),
+        "calibration_samples": total("calibration_samples"),
+        "miss_rate": rate("calibration_misses", "calibration_samples"),
+        "true_miss_rate": rate("true_band_misses", "true_band_samples"),
+        "coverage_1std": rate("calibration_within_1std", "calibration_samples"),
+        "coverage_2std": rate("calibration_within_2std", "calibration_samples"),
+        "coverage_3std": rate("calibration_within_3std", "calibration_samples"),
         "tracking_error_mean": float(np.mean(track[np.isfinite(track)]))
         if np.isfinite(track).any() else math.nan,
         "tracking_error_max": float(np.max(track_max[np.isfinite(track_max)]))

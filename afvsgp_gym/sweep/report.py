@@ -19,7 +19,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from afvsgp_gym.evaluation import COST_DEFINITION, jsonable, summarize
+from afvsgp_gym.evaluation import CALIBRATION_LEGEND, COST_DEFINITION, jsonable, summarize
 
 __all__ = ["REPORT_COLUMNS", "config_fields", "dedupe", "format_report", "group", "report",
            "write_report_json"]
@@ -38,6 +38,11 @@ REPORT_COLUMNS = (
     ("tracking_error_max", "track_max"),
     ("infeasible_steps", "backup"),
     ("learner_error_steps", "learn_err"),
+    ("miss_rate", "miss"),
+    ("true_miss_rate", "true_miss"),
+    ("coverage_1std", "cov1"),
+    ("coverage_2std", "cov2"),
+    ("coverage_3std", "cov3"),
     ("minimal_intervention", "kept"),
     ("filter_time_median_s", "t_med_us"),
     ("filter_time_p99_s", "t_p99_us"),
@@ -151,7 +156,7 @@ def format_report(rep: Mapping[str, Any], markdown: bool = False) -> str:
              f"episodes with cost; cost<={100 * conf:g}%: exact "
              f"Clopper-Pearson upper bound on the per-episode cost rate; track: mean tracking "
              f"error (m) away from the obstacle; backup: infeasible steps; learn_err: steps on "
-             f"which a learner failed; filter times in us"]
+             f"which a learner failed; {CALIBRATION_LEGEND}; filter times in us"]
     if rep.get("duplicates"):
         lines.append(f"note: {rep['duplicates']} repeated episode records counted once")
     if len(rep.get("code_versions", ())) > 1:

@@ -26,6 +26,13 @@ EPISODE_SAFETY_FIELDS = (
     "warmup_steps",
     "saturated_steps",
     "learner_error_steps",
+    "calibration_samples",
+    "calibration_misses",
+    "calibration_within_1std",
+    "calibration_within_2std",
+    "calibration_within_3std",
+    "true_band_samples",
+    "true_band_misses",
 )
 
 
@@ -51,6 +58,9 @@ class EpisodeSafetyStats(gym.Wrapper, gym.utils.RecordConstructorArgs):
     - ``success``: some step had ``info["success"]``; ``saturated_steps``:
       ``info["torque_saturated"]``; ``learner_error_steps``: ``info["learner_error"]`` not
       None (a learner failed, the filter went on).
+    - ``calibration_*`` and ``true_band_*``: the learned band's misses and coverages against
+      the eq. 48 samples and against the exact model error (``info["calibration"]``,
+      ``info["delta_b_lower"]``, ``info["delta_b_true"]``).
 
     Example:
         >>> import gymnasium as gym

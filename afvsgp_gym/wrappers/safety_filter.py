@@ -97,7 +97,11 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
     in the cone program), ``"filter_time_s"``, ``"warmup"``, ``"proposal_true_margin"`` (the
     proposal's smallest true HOCBF constraint value, ground truth for evaluation only),
     ``"learner_error"`` (None, or what a learner raised in this step: the filter went on
-    without its prediction, update or fit, and warned once); ``"delta_b_true"`` comes from the
+    without its prediction, update or fit, and warned once), ``"delta_b_lower"`` (per
+    barrier, the lower edge of the band each constraint used: mean plus residual bias minus
+    the multiplier times the std; NaN where not predicted), ``"calibration"`` (None, or this
+    step's band against its eq. 48 samples: ``samples``, ``misses`` below the band,
+    ``within_1std/2std/3std``; :mod:`afvsgp_gym.cbf.calibration`); ``"delta_b_true"`` comes from the
     env. ``filter_fallbacks`` counts infeasible steps since
     the last reset.
 
@@ -227,6 +231,9 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
             warmup=bool(res.warmup),
             proposal_true_margin=true_margin,
             learner_error=self.controller.learner_error,
+            delta_b_lower=res.delta_b_lower,
+            calibration=(None if self.controller.last_calibration is None
+                         else self.controller.last_calibration.as_dict()),
         )
         return obs, reward, terminated, truncated, info
 

@@ -1,0 +1,137 @@
+"""Calibration of the learned band of the chance constraint (eq. 49 with a constant
+multiplier): what it promised, what the eq. 48 samples showed, and an online conformal
+correction of the multiplier.
+
+The cone program asks, per barrier ``k`` in the program, that the learned constraint hold at
+the band's lower edge ``lower_k = mean_k + bias_k - q_k std_k`` (``std_k`` the predicted
+standard deviation of ``Delta B_k`` at the applied action, eq. 51, ``bias_k`` the residual
+observer's correction, ``q_k = beta`` unless corrected). The promise is that the model error
+falls below that edge with probability ``alpha = Phi(-beta)`` (0.62 % at ``beta = 2.5``).
+After the step, the eq. 48 sample ``z_k`` gives the score ``e_k = (z_k - mean_k - bias_k) /
+std_k``: a *miss* is ``e_k < -q_k``, and ``|e_k| <= 1, 2, 3`` are the two-sided coverages of
+one, two and three standard deviations (68.3, 95.4, 99.7 % for a calibrated Gaussian).
+
+:class:`ConformalMultiplier` adapts ``q`` online by quantile tracking (adaptive conformal
+inference, Gibbs and Candes 2021; the P term of conformal PID control, Angelopoulos et al.
+2023), per learner (a joint's four limit barriers share their learner's multiplier)::
+
+    q <- max(beta, q + eta * sum_k (miss_k - alpha))
+
+**Guarantee** (deterministic, for any sequence of states, actions and model errors, however
+misspecified the GP): if every score of a learner's barriers satisfies ``e_k >= -Q``, then
+over its first ``N`` scored samples the misses number at most
+``alpha N + (Q - beta + eta n) / eta`` (``n`` the most samples of one step, 4 for a joint), so
+the one-sided miss rate is at most ``alpha + (Q - beta + eta n) / (eta N)``. Proof: the floor
+only adds to ``q``, so ``eta (misses - alpha N) <= q_N - beta``, and ``q`` rises only after a
+miss, which needs ``q < Q``. The assumptions: the scores are finite (a sample that is not is
+skipped) and each is revealed before the next step's update (eq. 48's one-step delay). It is
+a long-run rate, not a per-step probability, and it covers the eq. 48 sample (the true model
+error plus the measurement's own error), not the true model error alone. The floor at
+``beta`` means a well-specified model is never widened: its misses arrive at rate ``alpha``,
+so ``q`` returns to ``beta`` between them.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["CALIBRATION_MODES", "CalibrationCounts", "ConformalMultiplier", "miss_target",
+           "score_counts"]
+
+#: Values of ``FilterConfig.calibration``.
+CALIBRATION_MODES = ("off", "conformal")
+
+
+def miss_target(beta: float) -> float:
+    """``alpha = Phi(-beta)``: the one-sided miss probability the band promises (eq. 49)."""
+    return 0.5 * math.erfc(float(beta) / math.sqrt(2.0))
+
+
+@dataclass(frozen=True)
+class CalibrationCounts:
+    """The calibration of one step's band, over the barriers the filter predicted.
+
+    Attributes
+    ----------
+    samples : int
+        Barriers with a finite score ``e_k``.
+    misses : int
+        Those below the band the filter used (``e_k < -q_k``, ``q_k = beta`` unless corrected).
+    within_1std, within_2std, within_3std : int
+        Those with ``|e_k| <= 1, 2, 3`` (two-sided coverage of the predicted std).
+    """
+
+    samples: int
+    misses: int
+    within_1std: int
+    within_2std: int
+    within_3std: int
+
+    def as_dict(self) -> dict[str, int]:
+        """The counts as the dict ``info["calibration"]`` holds."""
+        return {"samples": self.samples, "misses": self.misses,
+                "within_1std": self.within_1std, "within_2std": self.within_2std,
+                "within_3std": self.within_3std}
+
+
+def score_counts(z: np.ndarray, mean: np.ndarray, std: np.ndarray,
+                 multiplier: np.ndarray) -> tuple[np.ndarray, CalibrationCounts]:
+    """Scores ``e = (z - mean) / std`` (NaN where any input is not finite or ``std <= 0``)
+    and their :class:`CalibrationCounts` (``mean`` includes the residual bias)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        e = (np.asarray(z, dtype=np.float64) - mean) / std
+    e = np.where(np.isfinite(e) & (std > 0), e, np.nan)
+    ok = ~np.isnan(e)
+    a = np.abs(e[ok])
+    counts = CalibrationCounts(int(ok.sum()), int((e[ok] < -multiplier[ok]).sum()),
+                               int((a <= 1.0).sum()), int((a <= 2.0).sum()),
+                               int((a <= 3.0).sum()))
+    return e, counts
+
+
+class ConformalMultiplier:
+    """Online quantile tracking of the band's multiplier, one per learner (module docstring).
+
+    Parameters
+    ----------
+    groups : ndarray of int, shape (K,)
+        The multiplier barrier ``k`` uses (its learner's number).
+    beta : float
+        The configured multiplier: the floor and the start, and ``alpha = Phi(-beta)`` the
+        target miss rate.
+    step : float
+        ``eta``, standard deviations per miss (a miss raises ``q`` by ``eta (1 - alpha)``,
+        a sample inside the band lowers it by ``eta alpha``).
+
+    Example:
+        >>> import numpy as np
+        >>> cm = ConformalMultiplier(np.array([0, 0, 1]), beta=2.5, step=0.5)
+        >>> cm.update(np.array([0, 2]), np.array([-4.0, 0.3]))  # barrier 0 missed
+        >>> cm.multiplier(np.array([0, 1, 2])).round(3)
+        array([2.997, 2.997, 2.5  ])
+    """
+
+    def __init__(self, groups: np.ndarray, beta: float, step: float):
+        self.groups = np.asarray(groups, dtype=np.intp)
+        self.beta = float(beta)
+        self.step = float(step)
+        self.target = miss_target(beta)
+        self.q = np.full(int(self.groups.max()) + 1 if self.groups.size else 0, self.beta)
+
+    def multiplier(self, rows: np.ndarray) -> np.ndarray:
+        """The multipliers of barriers ``rows`` (a copy)."""
+        return self.q[self.groups[rows]]
+
+    def update(self, rows: np.ndarray, scores: np.ndarray) -> None:
+        """One step's scores of barriers ``rows`` (NaN skipped), each judged against the
+        multiplier the filter used, i.e. the current one."""
+        ok = ~np.isnan(scores)
+        if not ok.any():
+            return
+        g = self.groups[rows[ok]]
+        miss = scores[ok] < -self.q[g]
+        np.add.at(self.q, g, self.step * (miss - self.target))
+        np.maximum(self.q, self.beta, out=self.q)

@@ -1,0 +1,176 @@
+"""The learned band's calibration: scores and counts, the conformal multiplier's guarantee on
+synthetic streams, and the filter's report of the band it used (``delta_b_lower``)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.stats import norm
+
+from afvsgp_gym.cbf import SafetyController
+from afvsgp_gym.cbf.calibration import ConformalMultiplier, miss_target, score_counts
+from afvsgp_gym.cbf.config import FilterConfig
+from afvsgp_gym.types import BarrierTerms
+
+BETA, ETA = 2.5, 0.5
+
+
+@pytest.mark.parametrize("beta", [0.0, 1.0, 2.5, 6.0, 9.0])
+def test_miss_target_is_the_normal_tail(beta):
+    assert miss_target(beta) == pytest.approx(norm.sf(beta), rel=1e-12)
+
+
+def test_score_counts_by_hand():
+    z = np.array([0.0, -3.0, 2.5, np.nan, 1.0, -0.5])
+    mean = np.array([0.0, 0.0, 0.0, 0.0, 1.0, 0.0])
+    std = np.array([1.0, 1.0, 1.0, 1.0, 0.0, 0.25])
+    mult = np.full(6, 2.5)
+    e, c = score_counts(z, mean, std, mult)
+    # scores 0, -3, 2.5, (NaN: z), (NaN: std 0), -2
+    np.testing.assert_array_equal(np.isnan(e), [False, False, False, True, True, False])
+    assert c.samples == 4
+    assert c.misses == 1  # only -3 < -2.5
+    assert (c.within_1std, c.within_2std, c.within_3std) == (1, 2, 4)
+
+
+def _stream(q_model, scores_per_step):
+    """Run a ConformalMultiplier over a stream of score rows, each judged against the
+    multiplier in force; returns (misses, samples, time-average of q)."""
+    cm = q_model
+    misses = samples = 0
+    q_sum = np.zeros_like(cm.q)
+    for scores in scores_per_step:
+        rows = np.arange(len(scores))
+        misses += int((scores < -cm.multiplier(rows)).sum())
+        samples += len(scores)
+        q_sum += cm.q
+        cm.update(rows, scores)
+    return misses, samples, q_sum / len(scores_per_step)
+
+
+def test_deterministic_bound_on_an_adversarial_stream():
+    """Scores built to miss as often as possible (each just below the current band, while
+    the band is below Q): misses <= alpha N + (Q - beta + eta n) / eta, the module's bound."""
+    cm = ConformalMultiplier(np.zeros(2, dtype=int), BETA, ETA)
+    Q, misses, samples = 7.0, 0, 0
+    for _ in range(5000):
+        q = cm.q[0]
+        scores = np.full(2, -min(q + 1e-9, Q))
+        misses += int((scores < -q).sum())
+        samples += 2
+        cm.update(np.arange(2), scores)
+    alpha = miss_target(BETA)
+    bound = alpha * samples + (Q - BETA + ETA * 2) / ETA
+    assert misses <= bound
+    assert misses >= 0.9 * bound - 2  # the bound is nearly reached: it is tight
+    assert BETA <= cm.q[0] <= Q + ETA * 2
+
+
+@pytest.mark.parametrize("scale", [1.0, 3.0])
+def test_gaussian_stream_reaches_the_target(scale):
+    """Scores N(0, scale^2): calibrated (scale 1) the multiplier stays near beta (the floor
+    makes the rate a little lower than the target: after a miss the band is wider for ~1 /
+    (eta alpha) samples); three times too narrow it rises to about 3 beta; either way the miss
+    rate is within the deterministic bound of the target."""
+    rng = np.random.default_rng(0)
+    n_steps, per_step = 40_000, 2
+    cm = ConformalMultiplier(np.zeros(per_step, dtype=int), BETA, ETA)
+    scores = scale * rng.standard_normal((n_steps, per_step))
+    misses, samples, q = _stream(cm, scores)
+    alpha = miss_target(BETA)
+    Q = float(-scores.min())
+    assert misses / samples <= alpha + (Q - BETA + ETA * per_step) / (ETA * samples)
+    if scale == 1.0:  # a well-specified model is barely widened: on average < 10 %
+        assert q[0] <= 1.1 * BETA
+        assert misses / samples >= 0.5 * alpha
+    else:  # the score's 1 - alpha quantile (7.5), and near the target rate (binomial 5 sd)
+        assert q[0] == pytest.approx(scale * BETA, rel=0.1)
+        assert misses / samples >= alpha - 5 * math.sqrt(alpha / samples)
+
+
+def test_drift_is_tracked_within_a_stated_number_of_steps():
+    """The model error's scale jumps from 1 to 4 std at step 10,000: within 2,000 steps the
+    multiplier is at the new quantile and the miss rate of the rest meets the target."""
+    rng = np.random.default_rng(1)
+    cm = ConformalMultiplier(np.zeros(1, dtype=int), BETA, ETA)
+    first = rng.standard_normal((10_000, 1))
+    _stream(cm, first)
+    second = 4.0 * rng.standard_normal((30_000, 1))
+    _stream(cm, second[:2000])
+    assert cm.q[0] > 0.8 * 4.0 * BETA
+    misses, samples, _ = _stream(cm, second[2000:])
+    assert misses / samples <= 1.5 * miss_target(BETA)
+
+
+def test_multipliers_are_per_learner():
+    cm = ConformalMultiplier(np.array([0, 0, 1, 2]), BETA, ETA)
+    cm.update(np.array([1, 3]), np.array([-10.0, 0.0]))
+    np.testing.assert_allclose(cm.multiplier(np.arange(4)),
+                               [BETA + ETA * (1 - miss_target(BETA))] * 2 + [BETA, BETA])
+
+
+@pytest.mark.parametrize(("options", "match"), [
+    ({"calibration": "bayes"}, "calibration must be one of"),
+    ({"calibration": "conformal", "beta": 0.0}, "needs beta > 0"),
+    ({"calibration_step": 0.0}, "calibration_step"),
+    ({"calibration_step": float("nan")}, "calibration_step"),
+])
+def test_bad_calibration_options_are_refused(options, match):
+    with pytest.raises(ValueError, match=match):
+        FilterConfig(**options)
+
+
+def _terms(rng, k):
+    return [BarrierTerms(derivatives=np.array([rng.uniform(0.05, 0.2), rng.normal()]),
+                         lf=float(rng.normal()), lg=rng.normal(size=2),
+                         xi=rng.normal(size=3)) for _ in range(k)]
+
+
+@pytest.mark.parametrize("calibration", ["off", "conformal"])
+def test_controller_reports_the_band_it_used(calibration):
+    """``delta_b_lower`` is mean + bias - multiplier * std at the applied action, and
+    ``last_calibration`` counts the eq. 48 samples below it, step by step (checked from the
+    public results: FilterResult and observe's z)."""
+    rng = np.random.default_rng(3)
+    K = 3
+    ctrl = SafetyController(-np.ones(2), np.ones(2), n_barriers=K, warmup_samples=20,
+                            calibration=calibration, seed=0)
+    total_miss = total = 0
+    for step in range(120):
+        before = _terms(rng, K)
+        res = ctrl.filter(rng.uniform(-1, 1, 2), before)
+        mult = (np.full(K, BETA) if ctrl.conformal is None
+                else ctrl.conformal.multiplier(np.arange(K)))
+        bias = ctrl.residuals.bias.copy()  # the observer's state before this step's update
+        z = ctrl.observe(before, res.u, _terms(rng, K), 0.004)
+        if res.warmup:
+            assert ctrl.last_calibration is None
+            continue
+        pred = np.isfinite(res.delta_b_std)
+        np.testing.assert_allclose(res.delta_b_lower[pred],
+                                   (res.delta_b_mean + bias - mult * res.delta_b_std)[pred],
+                                   rtol=1e-12, atol=1e-12)
+        assert np.isnan(res.delta_b_lower[~pred]).all()
+        c = ctrl.last_calibration
+        ok = pred & np.isfinite(z) & (res.delta_b_std > 0)
+        assert c.samples == ok.sum()
+        assert c.misses == int((z[ok] < res.delta_b_lower[ok]).sum())
+        center = (res.delta_b_mean + bias)[ok]
+        assert c.within_2std == int((np.abs(z[ok] - center) <= 2 * res.delta_b_std[ok]).sum())
+        total_miss, total = total_miss + c.misses, total + c.samples
+    assert total > 200
+    if calibration == "conformal":  # random terms: far from calibrated, the band widened
+        assert ctrl.conformal.q.max() > BETA
+
+
+def test_off_keeps_the_multiplier_and_the_conformal_one_only_widens():
+    rng = np.random.default_rng(4)
+    ctrl = SafetyController(-np.ones(2), np.ones(2), n_barriers=2, warmup_samples=20,
+                            calibration="conformal", seed=1)
+    for _ in range(200):
+        before = _terms(rng, 2)
+        res = ctrl.filter(rng.uniform(-1, 1, 2), before)
+        ctrl.observe(before, res.u, _terms(rng, 2), 0.004)
+        assert (ctrl.conformal.q >= BETA).all()
