@@ -11,11 +11,17 @@ After the step, the eq. 48 sample ``z_k`` gives the score ``e_k = (z_k - mean_k 
 std_k``: a *miss* is ``e_k < -q_k``, and ``|e_k| <= 1, 2, 3`` are the two-sided coverages of
 one, two and three standard deviations (68.3, 95.4, 99.7 % for a calibrated Gaussian).
 
-:class:`ConformalMultiplier` adapts ``q`` online by quantile tracking (adaptive conformal
+:class:`ConformalMultiplier` adapts the band online by quantile tracking (adaptive conformal
 inference, Gibbs and Candes 2021; the P term of conformal PID control, Angelopoulos et al.
-2023), per learner (a joint's four limit barriers share their learner's multiplier)::
+2023), per learner (a joint's four limit barriers share their learner's), in one of two ways:
 
-    q <- max(beta, q + eta * sum_k (miss_k - alpha))
+- ``"conformal"``, the multiplier: ``q <- max(beta, q + eta * sum_k (miss_k - alpha))``, the
+  band ``mean + bias - q std``;
+- ``"conformal-additive"``, a margin in the model error's own unit: the band
+  ``mean + bias - beta std - m`` with ``m <- max(0, m + eta sigma * sum_k (miss_k - alpha))``,
+  ``sigma`` the learner's noise standard deviation. Where the model is confident and wrong
+  (a small ``std``) a multiplier must grow large, and then also widens the band where the
+  model is uncertain; a margin does not.
 
 **Guarantee** (deterministic, for any sequence of states, actions and model errors, however
 misspecified the GP): if every score of a learner's barriers satisfies ``e_k >= -Q``, then
@@ -23,12 +29,14 @@ over its first ``N`` scored samples the misses number at most
 ``alpha N + (Q - beta + eta n) / eta`` (``n`` the most samples of one step, 4 for a joint), so
 the one-sided miss rate is at most ``alpha + (Q - beta + eta n) / (eta N)``. Proof: the floor
 only adds to ``q``, so ``eta (misses - alpha N) <= q_N - beta``, and ``q`` rises only after a
-miss, which needs ``q < Q``. The assumptions: the scores are finite (a sample that is not is
-skipped) and each is revealed before the next step's update (eq. 48's one-step delay). It is
-a long-run rate, not a per-step probability, and it covers the eq. 48 sample (the true model
-error plus the measurement's own error), not the true model error alone. The floor at
-``beta`` means a well-specified model is never widened: its misses arrive at rate ``alpha``,
-so ``q`` returns to ``beta`` between them.
+miss, which needs ``q < Q``. For the margin, the same with ``Q`` the largest
+``(mean + bias - beta std - z) / sigma`` and ``beta`` replaced by 0. The assumptions: the
+scores are finite (a sample that is not is skipped) and each is revealed before the next
+step's update (eq. 48's one-step delay). It is a long-run rate, not a per-step probability,
+and it covers the eq. 48 sample (the true model error plus the measurement's own error), not
+the true model error alone. The floor at ``beta`` (at 0 for the margin) means a
+well-specified model is barely widened: its misses arrive at rate ``alpha``, and the band
+returns to the paper's between them.
 """
 
 from __future__ import annotations
@@ -42,7 +50,7 @@ __all__ = ["CALIBRATION_MODES", "CalibrationCounts", "ConformalMultiplier", "mis
            "score_counts"]
 
 #: Values of ``FilterConfig.calibration``.
-CALIBRATION_MODES = ("off", "conformal")
+CALIBRATION_MODES = ("off", "conformal", "conformal-additive")
 
 
 def miss_target(beta: float) -> float:
@@ -78,22 +86,25 @@ class CalibrationCounts:
 
 
 def score_counts(z: np.ndarray, mean: np.ndarray, std: np.ndarray,
-                 multiplier: np.ndarray) -> tuple[np.ndarray, CalibrationCounts]:
+                 lower: np.ndarray) -> tuple[np.ndarray, CalibrationCounts]:
     """Scores ``e = (z - mean) / std`` (NaN where any input is not finite or ``std <= 0``)
-    and their :class:`CalibrationCounts` (``mean`` includes the residual bias)."""
+    and their :class:`CalibrationCounts` (``mean`` includes the residual bias; a miss is a
+    scored ``z < lower``, the band's lower edge)."""
+    z = np.asarray(z, dtype=np.float64)
     with np.errstate(divide="ignore", invalid="ignore"):
-        e = (np.asarray(z, dtype=np.float64) - mean) / std
+        e = (z - mean) / std
     e = np.where(np.isfinite(e) & (std > 0), e, np.nan)
     ok = ~np.isnan(e)
     a = np.abs(e[ok])
-    counts = CalibrationCounts(int(ok.sum()), int((e[ok] < -multiplier[ok]).sum()),
+    counts = CalibrationCounts(int(ok.sum()), int((z[ok] < lower[ok]).sum()),
                                int((a <= 1.0).sum()), int((a <= 2.0).sum()),
                                int((a <= 3.0).sum()))
     return e, counts
 
 
 class ConformalMultiplier:
-    """Online quantile tracking of the band's multiplier, one per learner (module docstring).
+    """Online quantile tracking of the band, one multiplier (or margin) per learner (module
+    docstring).
 
     Parameters
     ----------
@@ -104,7 +115,11 @@ class ConformalMultiplier:
         target miss rate.
     step : float
         ``eta``, standard deviations per miss (a miss raises ``q`` by ``eta (1 - alpha)``,
-        a sample inside the band lowers it by ``eta alpha``).
+        a sample inside the band lowers it by ``eta alpha``); for the margin, noise standard
+        deviations per miss.
+    additive : bool
+        Adapt the margin ``m`` (``margin``, from 0) instead of the multiplier ``q`` (which
+        stays ``beta``).
 
     Example:
         >>> import numpy as np
@@ -114,24 +129,45 @@ class ConformalMultiplier:
         array([2.997, 2.997, 2.5  ])
     """
 
-    def __init__(self, groups: np.ndarray, beta: float, step: float):
+    def __init__(self, groups: np.ndarray, beta: float, step: float, additive: bool = False):
         self.groups = np.asarray(groups, dtype=np.intp)
         self.beta = float(beta)
         self.step = float(step)
+        self.additive = bool(additive)
         self.target = miss_target(beta)
-        self.q = np.full(int(self.groups.max()) + 1 if self.groups.size else 0, self.beta)
+        n = int(self.groups.max()) + 1 if self.groups.size else 0
+        self.q = np.full(n, self.beta)
+        #: the additive margins (0 for the multiplier), in each learner's model-error unit
+        self.margin = np.zeros(n)
+        #: each learner's unit of the margin's step (its noise std, set at its first update)
+        self.unit = np.full(n, np.nan)
 
     def multiplier(self, rows: np.ndarray) -> np.ndarray:
         """The multipliers of barriers ``rows`` (a copy)."""
         return self.q[self.groups[rows]]
 
-    def update(self, rows: np.ndarray, scores: np.ndarray) -> None:
-        """One step's scores of barriers ``rows`` (NaN skipped), each judged against the
-        multiplier the filter used, i.e. the current one."""
+    def margins(self, rows: np.ndarray) -> np.ndarray:
+        """The additive margins of barriers ``rows`` (a copy; zeros for the multiplier)."""
+        return self.margin[self.groups[rows]]
+
+    def update(self, rows: np.ndarray, scores: np.ndarray, std: np.ndarray | None = None,
+               noise_std: np.ndarray | None = None) -> None:
+        """One step's scores of barriers ``rows`` (NaN skipped), each judged against the band
+        the filter used, i.e. the current one; the margin also needs the scores' ``std`` and
+        the learners' ``noise_std`` (per row)."""
         ok = ~np.isnan(scores)
         if not ok.any():
             return
         g = self.groups[rows[ok]]
-        miss = scores[ok] < -self.q[g]
-        np.add.at(self.q, g, self.step * (miss - self.target))
-        np.maximum(self.q, self.beta, out=self.q)
+        if not self.additive:
+            miss = scores[ok] < -self.q[g]
+            np.add.at(self.q, g, self.step * (miss - self.target))
+            np.maximum(self.q, self.beta, out=self.q)
+            return
+        unset = np.isnan(self.unit[g])
+        if unset.any():
+            self.unit[g[unset]] = noise_std[ok][unset]
+        # below mean + bias - beta std - m, in the model error's unit
+        miss = scores[ok] * std[ok] < -self.beta * std[ok] - self.margin[g]
+        np.add.at(self.margin, g, self.step * self.unit[g] * (miss - self.target))
+        np.maximum(self.margin, 0.0, out=self.margin)

@@ -67,11 +67,13 @@ class FilterConfig:
         of eq. 48 samples below the band meets ``Phi(-beta)`` whatever the model's
         misspecification, never below ``beta``
         (:class:`~afvsgp_gym.cbf.calibration.ConformalMultiplier`, its guarantee and
-        assumptions). Needs ``beta > 0``. Either way the filter reports the band it used
-        (``FilterResult.delta_b_lower``) and each step's misses and coverages
-        (``SafetyController.last_calibration``).
+        assumptions); ``"conformal-additive"``: the band keeps ``beta`` standard deviations and
+        each learner adapts an additive margin the same way. Needs ``beta > 0``. Either way
+        the filter reports the band it used (``FilterResult.delta_b_lower``) and each step's
+        misses and coverages (``SafetyController.last_calibration``).
     calibration_step : float
-        ``eta > 0`` of the conformal correction, standard deviations per miss.
+        ``eta > 0`` of the conformal correction: standard deviations per miss (the
+        multiplier), or the learner's noise standard deviations per miss (the margin).
     barrier_margin : float
         Buffer subtracted from ``h`` in the constraint (units of ``h``): the HOCBF condition
         holds in continuous time; with a zero-order-hold action the sampled ``h`` can dip

@@ -106,8 +106,8 @@ class StepPrediction:
 
     ``rows`` the barriers predicted, ``mean`` (k, m+1) and ``cov`` (k, m+1, m+1) their
     affine prediction, ``action`` the action returned; ``center`` (k,) the band's center at
-    ``action`` (mean plus residual bias), ``std`` (k,) its standard deviation, ``multiplier``
-    (k,) the band's multiplier."""
+    ``action`` (mean plus residual bias), ``std`` (k,) its standard deviation, ``lower``
+    (k,) its lower edge."""
 
     rows: np.ndarray
     mean: np.ndarray
@@ -115,7 +115,7 @@ class StepPrediction:
     action: np.ndarray
     center: np.ndarray | None = None
     std: np.ndarray | None = None
-    multiplier: np.ndarray | None = None
+    lower: np.ndarray | None = None
 
 
 def cone_matrix(sigma: np.ndarray, beta: float) -> np.ndarray:
@@ -236,8 +236,9 @@ class SafetyController:
                                           self.backend)
         self.learning = bool(cfg.online)
         #: the online multiplier (``calibration="conformal"``), else None
-        self.conformal = (ConformalMultiplier(layout.learner, cfg.beta, cfg.calibration_step)
-                          if self.learns and cfg.calibration == "conformal" else None)
+        self.conformal = (ConformalMultiplier(layout.learner, cfg.beta, cfg.calibration_step,
+                                              additive=cfg.calibration == "conformal-additive")
+                          if self.learns and cfg.calibration != "off" else None)
         #: the calibration of the last observed step's band (None: nothing was predicted)
         self.last_calibration: CalibrationCounts | None = None
         self.fitted = not self.learns
@@ -428,16 +429,20 @@ class SafetyController:
             try:
                 bvec, sig = self.bank.predict_affine(bset.xi[pred_rows], pred_rows)
                 bias = self.residuals.bias[pred_rows]  # (a copy) the bias this step uses
-                mult = self._multiplier(pred_rows)
-                sig_cone = (sig if self.conformal is None
+                mult, marg = self._band(pred_rows)
+                sig_cone = (sig if self.conformal is None or self.conformal.additive
                             else sig * ((mult / self.config.beta) ** 2)[:, None, None])
                 done, G = (self._learned_terms(a0, a, bvec, pred_rows, sig_cone)
                            if ok is None else (False, None))
                 if done:  # every barrier of the program predicted
+                    if marg is not None:
+                        a0 -= marg
                     u_nom = self._excite(u_nom, pred_rows, sig, a0, a)
                 else:
                     where = slice(None) if ok is None else np.searchsorted(rows, pred_rows)
                     a0[where] += bvec[:, 0] + bias
+                    if marg is not None:
+                        a0[where] -= marg
                     a[where] += bvec[:, 1:]
                     u_nom = self._excite(u_nom, pred_rows, sig, a0[where], a[where])
                     if self.config.beta > 0:
@@ -467,8 +472,9 @@ class SafetyController:
             s = np.sqrt(np.maximum(((sig @ ubar) * ubar).sum(axis=1), 0.0))
             std[pred_rows] = s
             center = mean[pred_rows] + bias
-            lower[pred_rows] = center - mult * s
-            self._pending = StepPrediction(pred_rows, bvec, sig, u.copy(), center, s, mult)
+            edge = center - mult * s if marg is None else center - mult * s - marg
+            lower[pred_rows] = edge
+            self._pending = StepPrediction(pred_rows, bvec, sig, u.copy(), center, s, edge)
         else:
             self._pending = None if warm else StepPrediction(rows[:0], bvec, sig, u.copy())
         return FilterResult(
@@ -485,11 +491,14 @@ class SafetyController:
             delta_b_lower=lower,
         )
 
-    def _multiplier(self, rows: np.ndarray) -> np.ndarray:
-        """The band's multiplier of barriers ``rows``: ``beta``, or the conformal one."""
+    def _band(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """The band's multiplier of barriers ``rows`` (``beta``, or the conformal one) and
+        its additive margin (None for none)."""
         if self.conformal is None:
-            return np.full(len(rows), float(self.config.beta))
-        return self.conformal.multiplier(rows)
+            return np.full(len(rows), float(self.config.beta)), None
+        if self.conformal.additive:
+            return self.conformal.multiplier(rows), self.conformal.margins(rows)
+        return self.conformal.multiplier(rows), None
 
     def constraints(self, terms) -> tuple[np.ndarray, np.ndarray]:
         """The nominal HOCBF constraints (eq. 45) of every barrier, ``c0 + c @ u >= 0``:
@@ -601,9 +610,11 @@ class SafetyController:
             return
         if pred.center is not None and len(pred.rows):
             scores, self.last_calibration = score_counts(z[pred.rows], pred.center, pred.std,
-                                                         pred.multiplier)
+                                                         pred.lower)
             if self.conformal is not None:
-                self.conformal.update(pred.rows, scores)
+                noise = (np.sqrt(self.bank.noise_variance(pred.rows))
+                         if self.conformal.additive else None)
+                self.conformal.update(pred.rows, scores, pred.std, noise)
         ubar = np.concatenate([[1.0], u])
         self.residuals.update(pred.rows, pred.mean @ ubar, z=z)
 

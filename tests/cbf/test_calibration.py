@@ -26,8 +26,8 @@ def test_score_counts_by_hand():
     z = np.array([0.0, -3.0, 2.5, np.nan, 1.0, -0.5])
     mean = np.array([0.0, 0.0, 0.0, 0.0, 1.0, 0.0])
     std = np.array([1.0, 1.0, 1.0, 1.0, 0.0, 0.25])
-    mult = np.full(6, 2.5)
-    e, c = score_counts(z, mean, std, mult)
+    lower = mean - 2.5 * std
+    e, c = score_counts(z, mean, std, lower)
     # scores 0, -3, 2.5, (NaN: z), (NaN: std 0), -2
     np.testing.assert_array_equal(np.isnan(e), [False, False, False, True, True, False])
     assert c.samples == 4
@@ -138,7 +138,7 @@ def test_controller_reports_the_band_it_used(calibration):
     ctrl = SafetyController(-np.ones(2), np.ones(2), n_barriers=K, warmup_samples=20,
                             calibration=calibration, seed=0)
     total_miss = total = 0
-    for step in range(120):
+    for _ in range(120):
         before = _terms(rng, K)
         res = ctrl.filter(rng.uniform(-1, 1, 2), before)
         mult = (np.full(K, BETA) if ctrl.conformal is None

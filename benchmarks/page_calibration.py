@@ -1,0 +1,198 @@
+"""Write docs/calibration.md: the learned band of the chance constraint against its outcomes.
+
+    python benchmarks/page_calibration.py            # writes docs/calibration.md
+    python benchmarks/page_calibration.py --check    # exit 1 if it is not what this writes
+
+Reads ``results/calibration.jsonl.gz``: ``afvsgp-gym sweep benchmarks/configs/calibration.toml``
+(one sitting, one machine). To refresh it, run that sweep, then ``python
+benchmarks/page_calibration.py --refresh CALIBRATION.jsonl``: it keeps the fields the page
+reads (:data:`FIELDS`), compresses the records into the results file and writes the page.
+"""
+
+from __future__ import annotations
+
+import gzip
+import json
+import math
+import sys
+
+from acceptance_tables import PRIORS, SCENARIOS, learner, prior, scenario, summary
+from docgen import DOCS, RESULTS, main, measured, provenance, read_jsonl, table
+
+SOURCE = RESULTS / "calibration.jsonl.gz"
+PAGE = DOCS / "calibration.md"
+
+#: the record fields the page reads (the rest of a sweep's records is left out of the tree)
+FIELDS = ("block", "config", "seed", "code_version", "machine", "date", "steps",
+          "cost_steps", "violation_steps", "contact_steps", "limit_steps", "min_h",
+          "infeasible_steps", "tracking_error_mean", "safe_proposals", "safe_proposals_kept",
+          "calibration_samples", "calibration_misses", "calibration_within_1std",
+          "calibration_within_2std", "calibration_within_3std", "true_band_samples",
+          "true_band_misses")
+
+BETA = 2.5
+#: Phi(-beta): the one-sided miss probability the band promises
+TARGET = 0.5 * math.erfc(BETA / math.sqrt(2.0))
+#: a cell meets the issue's acceptance when its miss rate is within this factor of TARGET
+TOLERANCE = 1.5
+BANDS = ("off", "conformal", "conformal-additive")
+ADVERSARIAL_AGENTS = ("greedy", "swing4", "swing6")
+
+
+def band(rec: dict) -> str:
+    return rec["config"].get("filter_kwargs", {}).get("calibration", "off")
+
+
+def meta(recs: list[dict]) -> dict:
+    def one(key: str) -> str | None:
+        values = sorted({str(r[key]) for r in recs if r.get(key)})
+        return " / ".join(values) or None
+
+    return {"machine": one("machine"), "date": one("date"), "code": one("code_version")}
+
+
+def rates(recs: list[dict]) -> dict:
+    def total(name: str) -> int:
+        return sum(int(r.get(name) or 0) for r in recs)
+
+    n, n_true = total("calibration_samples"), total("true_band_samples")
+    return {"samples": n,
+            "miss": total("calibration_misses") / n if n else math.nan,
+            "true_miss": total("true_band_misses") / n_true if n_true else math.nan,
+            **{f"cov{k}": total(f"calibration_within_{k}std") / n if n else math.nan
+               for k in (1, 2, 3)}}
+
+
+def pct(x: float, digits: int = 2) -> str:
+    return "-" if math.isnan(x) else f"{100 * x:.{digits}f} %"
+
+
+def tracker_rows(recs: list[dict]) -> tuple[list[tuple], dict]:
+    oracle = {sc: summary(g) for sc in SCENARIOS
+              if (g := [r for r in recs if learner(r) == "oracle" and scenario(r) == sc])}
+    rows, met = [], {b: [0, 0] for b in BANDS}
+    for sc in SCENARIOS:
+        for pr in PRIORS:
+            for b in BANDS:
+                g = [r for r in recs if learner(r) == "afvsgp" and scenario(r) == sc
+                     and prior(r) == pr and band(r) == b]
+                if not g:
+                    continue
+                s, c = summary(g), rates(g)
+                ok = c["miss"] <= TOLERANCE * TARGET
+                met[b][0] += ok
+                met[b][1] += 1
+                ratio = (f"{s['track'] / oracle[sc]['track']:.2f}" if sc in oracle else "-")
+                rows.append((sc, pr, b, s["n"], f"{s['cost']}", pct(c["miss"]),
+                             pct(c["true_miss"]),
+                             f"{pct(c['cov1'], 0)} / {pct(c['cov2'], 0)} / {pct(c['cov3'], 0)}",
+                             f"{s['track']:.4f}", ratio, f"{s['backup']:.0f}"))
+    return rows, met
+
+
+def pooled_rows(recs: list[dict]) -> list[tuple]:
+    rows = []
+    for b in BANDS:
+        g = [r for r in recs if learner(r) == "afvsgp" and band(r) == b]
+        if g:
+            s, c = summary(g), rates(g)
+            rows.append((b, s["n"], f"{s['cost']}", f"{100 * s['bound']:.3g} %",
+                         f"{c['samples']}", pct(c["miss"], 3), pct(c["true_miss"], 3),
+                         f"{pct(c['cov1'], 1)} / {pct(c['cov2'], 1)} / {pct(c['cov3'], 1)}"))
+    oracle = [r for r in recs if learner(r) == "oracle"]
+    if oracle:
+        s = summary(oracle)
+        rows.append(("oracle (exact model)", s["n"], f"{s['cost']}",
+                     f"{100 * s['bound']:.3g} %", "-", "-", "-", "-"))
+    return rows
+
+
+def adversarial_rows(recs: list[dict]) -> list[tuple]:
+    rows = []
+    for agent in ADVERSARIAL_AGENTS:
+        for pr in ("zero", "kinematic"):
+            cells = [agent, pr]
+            for b in BANDS:
+                g = [r for r in recs if r["config"]["agent"] == agent and prior(r) == pr
+                     and band(r) == b]
+                if g:
+                    s, c = summary(g), rates(g)
+                    cells += [f"{s['cost']} / {s['n']} (limits: {s['limit_eps']})",
+                              pct(c["miss"])]
+                else:
+                    cells += ["-", "-"]
+            rows.append(tuple(cells))
+    return rows
+
+
+def build() -> dict:
+    recs = read_jsonl(SOURCE)
+    tracker = [r for r in recs if r["config"]["agent"] == "nominal"]
+    adversarial = [r for r in recs if r["config"]["agent"] != "nominal"]
+    rows, met = tracker_rows(tracker)
+    out = [provenance("benchmarks/page_calibration.py",
+                      ["benchmarks/results/calibration.jsonl.gz"]),
+           "",
+           "# Calibration: does the chance constraint mean what it says?",
+           "",
+           "Each learned constraint of the cone program holds at the lower edge of a band, "
+           "`mean + bias - q std` (`info[\"delta_b_lower\"]`): the learned mean of the model "
+           f"error plus the residual observer's bias, minus `q` predicted standard deviations "
+           f"(`q = beta = {BETA:g}` as in the paper, or the online conformal multiplier, "
+           "`FilterConfig(calibration=\"conformal\")`). The band promises that the model error "
+           f"falls below its edge with probability `Phi(-beta)` = {pct(TARGET)} per barrier "
+           "and step. After each step the eq. 48 sample of the same model error shows whether "
+           "it did: a *miss*. `miss` is the share of the (barrier, step) pairs of the cone "
+           "program that missed, `true miss` the same against the simulator's exact model "
+           "error (`info[\"delta_b_true\"]`, which the filter never sees), `coverage` the "
+           "share within 1 / 2 / 3 predicted standard deviations of the band's centre "
+           "(68.3 / 95.4 / 99.7 % for a calibrated Gaussian). The conformal multiplier and "
+           "its guarantee: [the filter](filter.md#calibration) and "
+           "`afvsgp_gym.cbf.calibration`.",
+           "",
+           measured(meta(recs)) + f" {len(recs)} episodes of 16 s "
+           "(`afvsgp-gym sweep benchmarks/configs/calibration.toml`).",
+           "",
+           "## Pooled over the scenes and the nominal models",
+           "",
+           "AFVSGP behind the nominal tracker, the same seeds for both bands and the oracle; "
+           "`with cost` counts episodes (95 % bound: exact one-sided Clopper-Pearson).",
+           "",
+           table(("band", "episodes", "with cost", "95 % bound", "scored pairs", "miss",
+                  "true miss", "coverage 1 / 2 / 3 std"), pooled_rows(tracker)),
+           "",
+           "## By scene and nominal model",
+           "",
+           f"A cell meets the target when its miss rate is at most {TOLERANCE:g} x "
+           f"{pct(TARGET)}: " + "; ".join(f"`{b}` in {k} of {n} cells" for b, (k, n)
+                                          in met.items() if n) + ". `tracking`: mean "
+           "tracking error (m) where the reference is 5 cm clear of the obstacle, "
+           "`/ oracle` its ratio to the oracle's on the same scene and seeds, `backup` the "
+           "mean number of infeasible steps per episode.",
+           "",
+           table(("scene", "prior", "band", "episodes", "with cost", "miss", "true miss",
+                  "coverage 1 / 2 / 3 std", "tracking [m]", "/ oracle", "backup"), rows),
+           ""]
+    if adversarial:
+        out += ["## Against the policies that defeat the filter with nothing known", "",
+                "The three policies with the most episodes with cost in the adversarial "
+                "suite ([any policy](adversarial.md)), episodes with cost / episodes over the "
+                "three scenes, and the band's miss rate.", "",
+                table(("policy", "prior", *(f"{b}: {what}" for b in BANDS
+                                            for what in ("with cost", "miss"))),
+                      adversarial_rows(adversarial)), ""]
+    return {PAGE: "\n".join(out).rstrip("\n") + "\n"}
+
+
+def refresh(source: str) -> None:
+    """Keep :data:`FIELDS` of the sweep's records and compress them into the results file."""
+    with gzip.open(SOURCE, "wt", encoding="utf-8") as fh:
+        for r in read_jsonl(source):
+            fh.write(json.dumps({k: r.get(k) for k in FIELDS}) + "\n")
+
+
+if __name__ == "__main__":
+    if len(sys.argv) == 3 and sys.argv[1] == "--refresh":
+        refresh(sys.argv[2])
+        sys.argv[1:] = []
+    raise SystemExit(main(__doc__, build))
