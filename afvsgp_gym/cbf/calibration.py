@@ -42,12 +42,12 @@ returns to the paper's between them.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
 __all__ = ["CALIBRATION_MODES", "CalibrationCounts", "ConformalMultiplier", "miss_target",
-           "score_counts"]
+           "score_counts", "scores"]
 
 #: Values of ``FilterConfig.calibration``.
 CALIBRATION_MODES = ("off", "conformal", "conformal-additive")
@@ -58,8 +58,7 @@ def miss_target(beta: float) -> float:
     return 0.5 * math.erfc(float(beta) / math.sqrt(2.0))
 
 
-@dataclass(frozen=True)
-class CalibrationCounts:
+class CalibrationCounts(NamedTuple):
     """The calibration of one step's band, over the barriers the filter predicted.
 
     Attributes
@@ -67,7 +66,7 @@ class CalibrationCounts:
     samples : int
         Barriers with a finite score ``e_k``.
     misses : int
-        Those below the band the filter used (``e_k < -q_k``, ``q_k = beta`` unless corrected).
+        Those below the band the filter used (``z_k`` below its lower edge).
     within_1std, within_2std, within_3std : int
         Those with ``|e_k| <= 1, 2, 3`` (two-sided coverage of the predicted std).
     """
@@ -80,25 +79,36 @@ class CalibrationCounts:
 
     def as_dict(self) -> dict[str, int]:
         """The counts as the dict ``info["calibration"]`` holds."""
-        return {"samples": self.samples, "misses": self.misses,
-                "within_1std": self.within_1std, "within_2std": self.within_2std,
-                "within_3std": self.within_3std}
+        return self._asdict()
+
+
+def scores(z: np.ndarray, mean: np.ndarray, std: np.ndarray) -> np.ndarray:
+    """``e = (z - mean) / std``, NaN where any input is not finite or ``std <= 0``."""
+    d = np.asarray(z, dtype=np.float64) - mean
+    if (std > 0).all():
+        e = d / std
+        if np.isfinite(e).all():
+            return e
+    with np.errstate(divide="ignore", invalid="ignore"):
+        e = d / std
+    return np.where(np.isfinite(e) & (std > 0), e, np.nan)
 
 
 def score_counts(z: np.ndarray, mean: np.ndarray, std: np.ndarray,
                  lower: np.ndarray) -> tuple[np.ndarray, CalibrationCounts]:
-    """Scores ``e = (z - mean) / std`` (NaN where any input is not finite or ``std <= 0``)
-    and their :class:`CalibrationCounts` (``mean`` includes the residual bias; a miss is a
-    scored ``z < lower``, the band's lower edge)."""
-    z = np.asarray(z, dtype=np.float64)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        e = (z - mean) / std
-    e = np.where(np.isfinite(e) & (std > 0), e, np.nan)
+    """:func:`scores` and their :class:`CalibrationCounts` (``mean`` includes the residual
+    bias; a miss is a scored ``z < lower``, the band's lower edge)."""
+    e = scores(z, mean, std)
     ok = ~np.isnan(e)
-    a = np.abs(e[ok])
-    counts = CalibrationCounts(int(ok.sum()), int((z[ok] < lower[ok]).sum()),
-                               int((a <= 1.0).sum()), int((a <= 2.0).sum()),
-                               int((a <= 3.0).sum()))
+    if not ok.all():
+        e_ok, z, lower = e[ok], np.asarray(z)[ok], lower[ok]
+    else:
+        e_ok = e
+    a = np.abs(e_ok)
+    counts = CalibrationCounts(len(e_ok), int(np.count_nonzero(z < lower)),
+                               int(np.count_nonzero(a <= 1.0)),
+                               int(np.count_nonzero(a <= 2.0)),
+                               int(np.count_nonzero(a <= 3.0)))
     return e, counts
 
 

@@ -36,7 +36,12 @@ import numpy as np
 from scipy.linalg.lapack import dpotrf
 
 from afvsgp_gym import _compiled
-from afvsgp_gym.cbf.calibration import CalibrationCounts, ConformalMultiplier, score_counts
+from afvsgp_gym.cbf.calibration import (
+    CalibrationCounts,
+    ConformalMultiplier,
+    score_counts,
+    scores,
+)
 from afvsgp_gym.cbf.config import FilterConfig
 from afvsgp_gym.cbf.exploration import Exploration, exploration_scale
 from afvsgp_gym.cbf.hocbf import HOCBF, BarrierConstraints
@@ -239,8 +244,8 @@ class SafetyController:
         self.conformal = (ConformalMultiplier(layout.learner, cfg.beta, cfg.calibration_step,
                                               additive=cfg.calibration == "conformal-additive")
                           if self.learns and cfg.calibration != "off" else None)
-        #: the calibration of the last observed step's band (None: nothing was predicted)
-        self.last_calibration: CalibrationCounts | None = None
+        self._scored: tuple | None = None  # (z, center, std, lower) of the last observed step
+        self._calibration: CalibrationCounts | None = None
         self.fitted = not self.learns
         self._buffer: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self._pending: StepPrediction | None = None
@@ -541,7 +546,7 @@ class SafetyController:
         (such samples are skipped and counted in ``n_skipped_samples``).
         """
         K = self.n_barriers
-        self.last_calibration = None
+        self._scored = self._calibration = None
         if not self.learns:
             return np.full(K, np.nan)
         before = self._terms(terms_before, "terms_before")
@@ -609,16 +614,27 @@ class SafetyController:
             self.residuals.reset()
             return
         if pred.center is not None and len(pred.rows):
-            scores, self.last_calibration = score_counts(z[pred.rows], pred.center, pred.std,
-                                                         pred.lower)
+            self._scored = (z[pred.rows], pred.center, pred.std, pred.lower)
             if self.conformal is not None:
                 noise = (np.sqrt(self.bank.noise_variance(pred.rows))
                          if self.conformal.additive else None)
-                self.conformal.update(pred.rows, scores, pred.std, noise)
+                self.conformal.update(pred.rows, scores(*self._scored[:3]), pred.std, noise)
         ubar = np.concatenate([[1.0], u])
         self.residuals.update(pred.rows, pred.mean @ ubar, z=z)
 
     # ------------------------------------------------------------------ diagnostics
+    @property
+    def last_calibration(self) -> CalibrationCounts | None:
+        """The band of the last observed step against its eq. 48 samples: scored barriers,
+        misses below the band and the 1, 2, 3 std coverages
+        (:mod:`afvsgp_gym.cbf.calibration`); None when no barrier was predicted. Counted
+        when read."""
+        if getattr(self, "_scored", None) is None:  # (absent from a controller pickled before)
+            return None
+        if self._calibration is None:
+            self._calibration = score_counts(*self._scored)[1]
+        return self._calibration
+
     @property
     def noise_variances(self) -> np.ndarray | None:
         """(K,) learned noise variances after warm-up (None before, or without learning)."""
