@@ -901,9 +901,10 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         self._backup_step = self._steps
         w = self.brake_frequency
         acc = -(2.0 * w * d.qvel[:7] + w * w * (d.qpos[:7] - self._hold))
-        tau = self._catalogue_inertia() @ acc
-        u = tau / self._gear
-        np.clip(u, -1.0, 1.0, out=u)
+        u = (self._catalogue_inertia() @ acc) / self._gear
+        peak = float(np.abs(u).max())
+        if peak > 1.0:  # saturated: scale the whole torque, so the joints keep decelerating
+            u /= peak
         return u * (1.0 if self.normalize_action else self._gear)
 
     # ------------------------------------------------------------------ gym API
