@@ -564,6 +564,23 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         mujoco.mj_solveM(m, d, inv, np.eye(m.nv))
         return np.linalg.inv(inv)[:7, :7]
 
+    def _catalogue_coriolis(self) -> np.ndarray:
+        """``C_cat(q, q') q'`` (7,) of the catalogue model at the current state: its bias
+        forces at the joint speeds minus those at rest (gravity cancels)."""
+        self._catalogue_inertia()  # the model, built on first use
+        m, d = self._brake_model
+        d.qpos[:] = self.data.qpos
+        out = np.empty(m.nv)
+        rest = np.empty(m.nv)
+        d.qvel[:] = 0.0
+        mujoco.mj_fwdPosition(m, d)
+        mujoco.mj_comVel(m, d)
+        mujoco.mj_rne(m, d, 0, rest)
+        d.qvel[:] = self.data.qvel
+        mujoco.mj_comVel(m, d)
+        mujoco.mj_rne(m, d, 0, out)
+        return (out - rest)[:7]
+
     def _plant_parameters(self, scale, plant_seed, payload_mass: float, damping: float,
                           friction: float, armature: float) -> fm.PlantParameters:
         if np.ndim(scale) == 0:
@@ -878,11 +895,17 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         return 2.0 * (np.abs(lg) @ (f / self.action_scale))
 
     def backup_action(self) -> np.ndarray:
-        """The robot's own brake for the safety filter's backup: stop every joint and hold it
-        where the brake engaged, ``tau = M_cat(q) (-2 w q' - w^2 (q - q_hold))`` saturated at
-        the torque limits, as an action (``w`` = ``brake_frequency``, critically damped),
-        with ``q_hold`` the joint angles when the backup was first asked for in a run of
-        consecutive control periods.
+        """The robot's own brake for the safety filter's backup: stop every joint and hold it,
+        ``tau = C_cat(q, q') q' + M_cat(q) (-2 w q' - w^2 (q - q_hold))`` as an action (``w`` =
+        ``brake_frequency``, critically damped; ``C_cat`` the catalogue's Coriolis term), with
+        ``q_hold`` the joint angles when the backup was first asked for in a run of
+        consecutive control periods. Beyond the torque limits it only damps, with the largest
+        share ``s`` in [0, 1] of ``M_cat (-2 w q')`` that the limits admit, and holds from
+        where it is: the commanded joint accelerations keep their direction, so every joint
+        keeps decelerating. (Clipping each joint's torque apart bent it through the coupled
+        inertia and drove joint 4 to 7 rad/s while braking, 3x its datasheet speed; a
+        saturated spring back to where the brake engaged swung a 3 kg payload's wrist past
+        its speed.)
 
         ``M_cat`` is the catalogue inertia (the links unscaled, no payload, the plant's rotor
         inertia): the robot's own model, as its gravity compensation uses the catalogue
@@ -893,17 +916,26 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         inertia within a factor of ~2 of the catalogue's, ``w dt`` = 0.2 keeps the sampled
         loop well damped; the spring holds the arm against its uncompensated weight (a sag of
         ``residual torque / (M w^2)``, a few mrad). Far from rest it saturates: the torque
-        limits brake.
+        limits brake, at the largest deceleration of that direction.
         """
         d = self.data
         if self._backup_step != self._steps - 1 or self._hold is None:
             self._hold = d.qpos[:7].copy()
         self._backup_step = self._steps
         w = self.brake_frequency
+        inertia = self._catalogue_inertia()
         acc = -(2.0 * w * d.qvel[:7] + w * w * (d.qpos[:7] - self._hold))
-        tau = self._catalogue_inertia() @ acc
-        u = tau / self._gear
-        np.clip(u, -1.0, 1.0, out=u)
+        brake = (inertia @ acc) / self._gear
+        coriolis = self._catalogue_coriolis() / self._gear
+        u = coriolis + brake
+        if np.abs(u).max() > 1.0:  # saturated: damping only, and its largest share
+            self._hold = d.qpos[:7].copy()  # (a spring back to where it engaged winds up)
+            brake = (inertia @ (-2.0 * w * d.qvel[:7])) / self._gear
+            with np.errstate(divide="ignore", invalid="ignore"):
+                room = np.where(brake > 0, (1.0 - coriolis) / brake,
+                                np.where(brake < 0, (-1.0 - coriolis) / brake, np.inf))
+            share = min(1.0, max(0.0, float(room.min())))
+            u = np.clip(coriolis + share * brake, -1.0, 1.0)
         return u * (1.0 if self.normalize_action else self._gear)
 
     # ------------------------------------------------------------------ gym API

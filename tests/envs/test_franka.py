@@ -517,10 +517,11 @@ def test_perturbed_model_equals_plant_without_mismatch():
 
 @pytest.mark.parametrize("normalize", [True, False])
 def test_backup_action_is_a_saturated_joint_brake_that_holds(normalize):
-    """The brake: ``M_cat(q) (-2 w q' - w^2 (q - q_hold))`` saturated, with the catalogue
-    inertia (computed independently here with ``mj_fullM``'s product ``mj_mulM``) and
-    ``q_hold`` latched when the backup is first asked for; on the real plant (payload 1 kg,
-    scaled links) it stops every joint without chatter and holds the arm where it engaged."""
+    """The brake: ``C_cat(q, q') q' + M_cat(q) (-2 w q' - w^2 (q - q_hold))``, with the
+    catalogue inertia and Coriolis term (computed independently here with ``mj_mulM`` and
+    ``qfrc_bias``) and ``q_hold`` latched when the backup is first asked for; on the real
+    plant (payload 1 kg, scaled links) it stops every joint without chatter and holds the arm
+    where it engaged."""
     env = FrankaObstacleEnv(normalize_action=normalize)
     env.reset(seed=0)
     qd = np.array([0.02, -0.08, 0.005, 0.1, -0.01, 0.03, -0.002])  # slow: not saturated
@@ -532,6 +533,10 @@ def test_backup_action_is_a_saturated_joint_brake_that_holds(normalize):
     mujoco.mj_forward(cat, data)
     tau = np.zeros(cat.nv)
     mujoco.mj_mulM(cat, data, tau, -2.0 * 50.0 * qd)
+    gravity = data.qfrc_bias.copy()
+    data.qvel[:] = qd
+    mujoco.mj_forward(cat, data)
+    tau += data.qfrc_bias - gravity  # the Coriolis term
     assert np.all(np.abs(tau) < fm.TAU_MAX)
     scale = fm.TAU_MAX if normalize else 1.0
     np.testing.assert_allclose(u * scale, tau, rtol=1e-9, atol=1e-9 * np.abs(tau).max())
@@ -546,6 +551,56 @@ def test_backup_action_is_a_saturated_joint_brake_that_holds(normalize):
     assert max(speeds[:10]) <= np.abs(10 * qd).max()  # no overshoot growth (chatter)
     np.testing.assert_allclose(env.data.qpos, env._hold, atol=0.01)  # held, sag ~ mrad
     assert np.abs(env._hold - q0).max() < 0.1  # where the brake engaged
+
+
+def test_saturated_brake_is_coriolis_plus_the_largest_share_of_damping():
+    """Far from rest the brake's torque is the catalogue model's Coriolis term plus the
+    largest share ``s`` in [0, 1] of the damping torque ``M_cat(q) (-2 w q')`` that the torque
+    box admits (both computed here with MuJoCo's ``mj_mulM`` and ``qfrc_bias``)."""
+    env = FrankaObstacleEnv(normalize_action=True)
+    env.reset(seed=0)
+    q = fm.Q_HOME + np.array([0.3, 0.4, -0.2, 0.5, 0.3, -0.4, 0.2])
+    qd = np.array([-2.1, 1.2, -1.1, -2.0, -1.5, 2.2, -2.4])
+    env.set_state(q, qd)
+    u = env.backup_action()
+    cat = fm.build_model(fm.PlantParameters(armature=np.full(7, 0.1)), fm.SceneOptions())
+    data = mujoco.MjData(cat)
+    data.qpos[:] = q
+    mujoco.mj_forward(cat, data)
+    gravity = data.qfrc_bias.copy()
+    data.qvel[:7] = qd
+    mujoco.mj_forward(cat, data)
+    coriolis = (data.qfrc_bias - gravity)[:7] / fm.TAU_MAX
+    damping = np.zeros(cat.nv)
+    mujoco.mj_mulM(cat, data, damping, -2.0 * 50.0 * np.concatenate([qd, np.zeros(cat.nv - 7)]))
+    damping = damping[:7] / fm.TAU_MAX
+    assert np.abs(coriolis + damping).max() > 1.5  # saturated
+    share = (u - coriolis) @ damping / (damping @ damping)
+    assert 0.0 < share < 1.0
+    np.testing.assert_allclose(u, coriolis + share * damping, rtol=1e-9, atol=1e-9)
+    assert np.abs(u).max() == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("payload", [0.0, 3.0])
+def test_brake_never_drives_a_joint_past_its_speed_limit(payload):
+    """From fast states within the datasheet speeds (up to 0.95 of them, every joint at
+    once), with the catalogue's payload or 3 kg more than it knows of, the brake stops the arm
+    within 1 s and no joint ever exceeds its datasheet speed on the way (clipping each joint's
+    torque apart drove joint 4 to 7 rad/s, and a spring back to where the brake engaged
+    swung the wrist to 3 rad/s)."""
+    rng = np.random.default_rng(7)
+    vmax = np.array([2.175] * 4 + [2.61] * 3)  # the datasheet's
+    for trial in range(12):
+        env = FrankaObstacleEnv(payload_mass=payload, normalize_action=True)
+        env.reset(seed=trial)
+        env.set_state(fm.Q_HOME + rng.uniform(-0.6, 0.6, 7),
+                      rng.uniform(-0.95, 0.95, 7) * vmax)
+        peak = 0.0
+        for _ in range(250):
+            env.step(env.backup_action().astype(np.float32))
+            peak = max(peak, float((np.abs(env.data.qvel[:7]) / vmax).max()))
+        assert peak <= 1.0, (trial, peak)
+        assert np.abs(env.data.qvel[:7]).max() < 0.02, trial
 
 
 @pytest.mark.parametrize("spheres", ["ee", "arm"])
