@@ -56,8 +56,9 @@ def arm_section() -> list[str]:
            "the part spent in the learners (predictions and updates); `barriers in program`: "
            "the mean number of barriers near enough to the obstacle to enter the cone program; "
            "`env.step`: the whole wrapped step a user calls (physics, the env's barrier "
-           "terms, the filter and the learning). All but the default and the arm before the "
-           "limits protect the obstacle pairs only.",
+           "terms, the filter and the learning). The rows of 1, 7 and 42 barriers and the arm "
+           "before the limits protect the obstacle pairs only; the other rows of 21 add the "
+           "28 joint-limit barriers, as the default does.",
            "",
            measured(data),
            "",

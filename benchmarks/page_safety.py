@@ -4,11 +4,10 @@
     python benchmarks/page_safety.py --check    # exit 1 if either is not what this writes
 
 Reads ``benchmarks/results/acceptance.jsonl.gz``: the records of one sitting of
-``afvsgp-gym sweep`` on one machine (the three commands in ``REPRODUCE``, into one results
-file), each record carrying its ``code_version``, ``machine`` and ``date``. To refresh it, run
-those commands, add the two fields if the sweep did not write them, compress the file to
-that path and run this script. The README's "Results" table (between ``<!-- results:start``
-and ``<!-- results:end -->``) is written from the same records.
+``afvsgp-gym sweep`` on one machine (the command in ``REPRODUCE``), each record carrying
+its ``code_version``, ``machine`` and ``date``. To refresh it, run that command, compress the
+results file to that path and run this script. The README's "Results" table (between
+``<!-- results:start`` and ``<!-- results:end -->``) is written from the same records.
 """
 
 from __future__ import annotations
@@ -30,9 +29,7 @@ PAGE = DOCS / "safety.md"
 README = ROOT / "README.md"
 
 REPRODUCE = """\
-afvsgp-gym sweep benchmarks/configs/acceptance.toml --out check.jsonl
-afvsgp-gym sweep benchmarks/configs/compiled_learners_check.toml --out check.jsonl --limit 180
-afvsgp-gym sweep benchmarks/configs/fast_obstacle_seeds.toml --out check.jsonl
+afvsgp-gym sweep benchmarks/configs/acceptance.toml --out check.jsonl --workers 2
 python benchmarks/acceptance_tables.py check.jsonl      # the same tables in a terminal"""
 
 BLOCKS = {
@@ -98,8 +95,9 @@ def build() -> dict:
            "",
            "Seeded closed-loop episodes (16 s, 4000 steps each) of the nominal tracker, which "
            "ignores the obstacles, behind the safety filter. An episode *has cost* when any of "
-           "its steps has `info[\"cost\"] > 0`: some barrier `h < 0`, or an arm-obstacle "
-           "contact. The bound is the exact one-sided Clopper-Pearson 95 % upper bound on the "
+           "its steps has `info[\"cost\"] > 0`: some obstacle barrier `h < 0`, an "
+           "arm-obstacle contact, or a joint at its range stop or above its datasheet speed "
+           "(`limits`). The bound is the exact one-sided Clopper-Pearson 95 % upper bound on the "
            "per-episode cost rate; `min h` the closest approach of any safety sphere to the "
            "obstacle over the episodes (m).",
            "",
