@@ -8,11 +8,13 @@ Reads three results files of one sitting on one machine:
 - ``results/adversarial.jsonl.gz``: ``afvsgp-gym sweep benchmarks/configs/adversarial.toml``;
 - ``results/routes.jsonl.gz``: ``afvsgp-gym sweep benchmarks/configs/routes.toml`` (the
   class-K routes compared);
-- ``results/braking_authority.json``: ``python benchmarks/braking_authority.py --json ...``.
+- ``results/braking_authority.json``: ``python benchmarks/braking_authority.py --json ...``;
+- ``results/brake.jsonl.gz`` (optional): ``afvsgp-gym sweep benchmarks/configs/brake.toml``
+  (the brake, the mean-only relaxation and the calibrated band, later code).
 
 To refresh them, run those commands, then ``python benchmarks/page_adversarial.py --refresh
-ADVERSARIAL.jsonl ROUTES.jsonl AUTHORITY.json``: it keeps the fields the page reads
-(:data:`FIELDS`), compresses the records into the results files and writes the page.
+ADVERSARIAL.jsonl ROUTES.jsonl AUTHORITY.json [BRAKE.jsonl]``: it keeps the fields the page
+reads (:data:`FIELDS`), compresses the records into the results files and writes the page.
 """
 
 from __future__ import annotations
@@ -31,6 +33,13 @@ from docgen import DOCS, RESULTS, main, measured, provenance, read_json, read_js
 SOURCE = RESULTS / "adversarial.jsonl.gz"
 ROUTES = RESULTS / "routes.jsonl.gz"
 AUTHORITY = RESULTS / "braking_authority.json"
+BRAKE = RESULTS / "brake.jsonl.gz"
+BRAKE_BLOCKS = {
+    "defaults": "the defaults (the mean-only relaxation, then the brake)",
+    "no_relaxation": "no mean-only relaxation (`relax_to_mean=False`)",
+    "conformal_margin": "the conformal additive margin (`calibration=\"conformal-additive\"`, "
+                        "`calibration_step=1`)",
+}
 PAGE = DOCS / "adversarial.md"
 
 #: the record fields the page reads (the rest of a sweep's records is left out of the tree)
@@ -128,6 +137,22 @@ def routes(recs: list[dict]) -> list[str]:
                    "tracker, AFVSGP zero: tracking [m]", "AFVSGP / oracle"), rows)]
 
 
+def brake(recs: list[dict]) -> list[str]:
+    agents = list(dict.fromkeys(r["config"]["agent"] for r in recs))
+    rows = []
+    for block, name in BRAKE_BLOCKS.items():
+        group = [r for r in recs if r["block"] == block]
+        if not group:
+            continue
+        s = summary(group)
+        rows.append((name, s["n"], cost_cell(s), f"{100 * s['bound']:.3g} %",
+                     *(f"{sum(r['cost_steps'] > 0 for r in g)} / {len(g)}"
+                       for a in agents
+                       if (g := [r for r in group if r["config"]["agent"] == a]))))
+    return [measured(meta(recs)) + f" {len(recs)} episodes.", "",
+            table(("filter", "episodes", "with cost", "95 % bound", *agents), rows)]
+
+
 def authority(res: dict) -> list[str]:
     pct = res["authority_over_demand_percentiles"]
     fast = res["fast_authority_over_demand_percentiles"]
@@ -199,6 +224,17 @@ def build() -> dict:
                 "the swings of joints 1 and 2, and behind the nominal tracker (tracking error "
                 "where the reference is 5 cm clear of the obstacle, prior \"zero\").", ""]
         out += routes(read_jsonl(ROUTES)) + [""]
+    if BRAKE.exists():
+        out += ["## The brake, the relaxation and the calibrated band", "",
+                "AFVSGP with nothing known about the dynamics (priors \"zero\" and "
+                "\"kinematic\") against the policies that defeated it most often, on the "
+                "suite's seeds, with the brake that only damps when it saturates (the joint "
+                "accelerations keep their direction; clipping each joint's torque apart, as "
+                "the brake of the results above did, bent it through the coupled inertia and "
+                "drove joint 4 to 7 rad/s while braking): the defaults, without the mean-only "
+                "relaxation, and with the conformal additive margin of "
+                "[Calibration](calibration.md) (`benchmarks/configs/brake.toml`).", ""]
+        out += brake(read_jsonl(BRAKE)) + [""]
     if AUTHORITY.exists():
         out += ["## Can the torque limits meet the demand?", "",
                 "Where `psi_1 = 0` a barrier approaching at `v` asks for `h'' >= a v` (linear) "
@@ -224,11 +260,15 @@ def _this_machine() -> str:
     return platform.processor() or platform.machine()
 
 
-def refresh(adversarial: str, routes_file: str, authority_file: str) -> None:
+def refresh(adversarial: str, routes_file: str, authority_file: str,
+            brake_file: str | None = None) -> None:
     """Keep :data:`FIELDS` of the sweeps' records, compress them into the results files.
     Records that lack ``machine`` and ``date`` (sweeps of older versions) get this machine's
     CPU and the day the results file was last written: refresh on the machine that ran it."""
-    for src, dst in ((adversarial, SOURCE), (routes_file, ROUTES)):
+    pairs = [(adversarial, SOURCE), (routes_file, ROUTES)]
+    if brake_file is not None:
+        pairs.append((brake_file, BRAKE))
+    for src, dst in pairs:
         recs = read_jsonl(src)
         day = time.strftime("%Y-%m-%d", time.localtime(os.path.getmtime(src)))
         with gzip.open(dst, "wt", encoding="utf-8") as fh:
@@ -240,7 +280,7 @@ def refresh(adversarial: str, routes_file: str, authority_file: str) -> None:
 
 
 if __name__ == "__main__":
-    if len(sys.argv) == 5 and sys.argv[1] == "--refresh":
+    if len(sys.argv) in (5, 6) and sys.argv[1] == "--refresh":
         refresh(*sys.argv[2:])
         sys.argv[1:] = []
     raise SystemExit(main(__doc__, build))
