@@ -123,10 +123,11 @@ class ConformalMultiplier:
     beta : float
         The configured multiplier: the floor and the start, and ``alpha = Phi(-beta)`` the
         target miss rate.
-    step : float
+    step : float or array_like of shape (K,)
         ``eta``, standard deviations per miss (a miss raises ``q`` by ``eta (1 - alpha)``,
         a sample inside the band lowers it by ``eta alpha``); for the margin, noise standard
-        deviations per miss.
+        deviations per miss. Per barrier: each learner takes the largest of its barriers'
+        (0: that learner's band stays the paper's).
     additive : bool
         Adapt the margin ``m`` (``margin``, from 0) instead of the multiplier ``q`` (which
         stays ``beta``).
@@ -139,13 +140,16 @@ class ConformalMultiplier:
         array([2.997, 2.997, 2.5  ])
     """
 
-    def __init__(self, groups: np.ndarray, beta: float, step: float, additive: bool = False):
+    def __init__(self, groups: np.ndarray, beta: float, step, additive: bool = False):
         self.groups = np.asarray(groups, dtype=np.intp)
         self.beta = float(beta)
-        self.step = float(step)
         self.additive = bool(additive)
         self.target = miss_target(beta)
         n = int(self.groups.max()) + 1 if self.groups.size else 0
+        per_barrier = np.broadcast_to(np.asarray(step, dtype=np.float64), self.groups.shape)
+        #: (L,) each learner's step: the largest of its barriers'
+        self.step = np.zeros(n)
+        np.maximum.at(self.step, self.groups, per_barrier)
         self.q = np.full(n, self.beta)
         #: the additive margins (0 for the multiplier), in each learner's model-error unit
         self.margin = np.zeros(n)
@@ -171,7 +175,7 @@ class ConformalMultiplier:
         g = self.groups[rows[ok]]
         if not self.additive:
             miss = scores[ok] < -self.q[g]
-            np.add.at(self.q, g, self.step * (miss - self.target))
+            np.add.at(self.q, g, self.step[g] * (miss - self.target))
             np.maximum(self.q, self.beta, out=self.q)
             return
         unset = np.isnan(self.unit[g])
@@ -179,5 +183,5 @@ class ConformalMultiplier:
             self.unit[g[unset]] = noise_std[ok][unset]
         # below mean + bias - beta std - m, in the model error's unit
         miss = scores[ok] * std[ok] < -self.beta * std[ok] - self.margin[g]
-        np.add.at(self.margin, g, self.step * self.unit[g] * (miss - self.target))
+        np.add.at(self.margin, g, self.step[g] * self.unit[g] * (miss - self.target))
         np.maximum(self.margin, 0.0, out=self.margin)

@@ -71,9 +71,13 @@ class FilterConfig:
         each learner adapts an additive margin the same way. Needs ``beta > 0``. Either way
         the filter reports the band it used (``FilterResult.delta_b_lower``) and each step's
         misses and coverages (``SafetyController.last_calibration``).
-    calibration_step : float
-        ``eta > 0`` of the conformal correction: standard deviations per miss (the
-        multiplier), or the learner's noise standard deviations per miss (the margin).
+    calibration_step : float or tuple of float
+        ``eta`` of the conformal correction, one for all barriers (``> 0``) or one per barrier
+        (``>= 0``; a learner takes the largest of its barriers'; 0 keeps that learner's band
+        the paper's): standard deviations per miss (the multiplier), or the learner's noise
+        standard deviations per miss (the margin). E.g. on the Franka envs
+        ``[0.0] * env.unwrapped.n_obstacle_barriers + [1.0] * 28`` corrects the joint-limit
+        barriers' band only.
     barrier_margin : float
         Buffer subtracted from ``h`` in the constraint (units of ``h``): the HOCBF condition
         holds in continuous time; with a zero-order-hold action the sampled ``h`` can dip
@@ -160,7 +164,7 @@ class FilterConfig:
     alpha: float | tuple[float, ...] = 4.0
     beta: float = DEFAULT_BETA
     calibration: str = "off"
-    calibration_step: float = 0.5
+    calibration_step: float | tuple[float, ...] = 0.5
     barrier_margin: float = 1e-3
     activation_distance: float | tuple[float, ...] = float("inf")
     braking_deceleration: float | tuple[float, ...] = float("inf")
@@ -193,7 +197,12 @@ class FilterConfig:
         if self.calibration != "off" and not self.beta > 0:
             raise ValueError(f"calibration={self.calibration!r} needs beta > 0. "
                              f"Got: beta={self.beta!r}")
-        check_real(self.calibration_step, "calibration_step", low=0.0, low_open=True)
+        object.__setattr__(self, "calibration_step", _per_barrier(
+            self.calibration_step, "calibration_step",
+            (lambda v: v > 0) if np.ndim(self.calibration_step) == 0 else (lambda v: v >= 0),
+            "> 0 (one value) or >= 0 (one per barrier), and finite"))
+        if not np.all(np.isfinite(self.calibration_step)):
+            raise ValueError(f"calibration_step must be finite. Got: {self.calibration_step!r}")
         check_real(self.barrier_margin, "barrier_margin", low=0.0)
         object.__setattr__(self, "activation_distance", _per_barrier(
             self.activation_distance, "activation_distance", lambda v: v >= 0,
@@ -224,9 +233,9 @@ class FilterConfig:
             check_count(self.seed, "seed", 0)
 
     def per_barrier(self, name: str, n_barriers: int) -> np.ndarray:
-        """The option ``name`` (``activation_distance``, ``braking_deceleration`` or
-        ``first_gain``) as an array of ``n_barriers`` values; ``ValueError`` when a tuple has
-        another length."""
+        """The option ``name`` (``activation_distance``, ``braking_deceleration``,
+        ``first_gain`` or ``calibration_step``) as an array of ``n_barriers`` values;
+        ``ValueError`` when a tuple has another length."""
         value = getattr(self, name)
         if isinstance(value, tuple):
             if len(value) != n_barriers:

@@ -241,7 +241,8 @@ class SafetyController:
                                           self.backend)
         self.learning = bool(cfg.online)
         #: the online multiplier (``calibration="conformal"``), else None
-        self.conformal = (ConformalMultiplier(layout.learner, cfg.beta, cfg.calibration_step,
+        self.conformal = (ConformalMultiplier(layout.learner, cfg.beta,
+                                              cfg.per_barrier("calibration_step", K),
                                               additive=cfg.calibration == "conformal-additive")
                           if self.learns and cfg.calibration != "off" else None)
         self._scored: tuple | None = None  # (z, center, std, lower) of the last observed step

@@ -111,11 +111,33 @@ def test_multipliers_are_per_learner():
                                [BETA + ETA * (1 - miss_target(BETA))] * 2 + [BETA, BETA])
 
 
+def test_per_barrier_steps_take_each_learners_largest_and_zero_freezes():
+    """Barriers 0, 1 share learner 0 (steps 0 and 1: it takes 1), barrier 2 has step 0: its
+    band stays the paper's whatever it misses."""
+    cm = ConformalMultiplier(np.array([0, 0, 1]), BETA, [0.0, 1.0, 0.0])
+    np.testing.assert_array_equal(cm.step, [1.0, 0.0])
+    for _ in range(10):
+        cm.update(np.arange(3), np.full(3, -50.0))
+    assert cm.q[0] == pytest.approx(BETA + 20 * (1 - miss_target(BETA)))  # 2 per step
+    assert cm.q[1] == BETA
+
+
+def test_controller_takes_per_barrier_steps():
+    ctrl = SafetyController(-np.ones(2), np.ones(2), n_barriers=3, calibration="conformal",
+                            calibration_step=(0.0, 0.5, 2.0))
+    np.testing.assert_array_equal(ctrl.conformal.step, [0.0, 0.5, 2.0])
+    with pytest.raises(ValueError, match="calibration_step must be one value or 3"):
+        SafetyController(-np.ones(2), np.ones(2), n_barriers=3, calibration="conformal",
+                         calibration_step=(0.0, 0.5))
+
+
 @pytest.mark.parametrize(("options", "match"), [
     ({"calibration": "bayes"}, "calibration must be one of"),
     ({"calibration": "conformal", "beta": 0.0}, "needs beta > 0"),
     ({"calibration_step": 0.0}, "calibration_step"),
     ({"calibration_step": float("nan")}, "calibration_step"),
+    ({"calibration_step": float("inf")}, "calibration_step"),
+    ({"calibration_step": (0.5, -1.0)}, r"calibration_step\[1\]"),
 ])
 def test_bad_calibration_options_are_refused(options, match):
     with pytest.raises(ValueError, match=match):
