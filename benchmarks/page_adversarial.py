@@ -35,15 +35,16 @@ ROUTES = RESULTS / "routes.jsonl.gz"
 AUTHORITY = RESULTS / "braking_authority.json"
 BRAKE = RESULTS / "brake.jsonl.gz"
 BRAKE_BLOCKS = {
-    "defaults": "the defaults (the mean-only relaxation, then the brake)",
+    "defaults": "the paper's band (`calibration=\"off\"`; the mean-only relaxation, then "
+                "the brake)",
     "no_relaxation": "no mean-only relaxation (`relax_to_mean=False`)",
     "conformal_margin": "the conformal additive margin (`calibration=\"conformal-additive\"`, "
                         "`calibration_step=1`)",
     "limit_margin": "the same margin on the 28 joint-limit barriers only (`calibration_step` 0 "
-                    "for the obstacle pairs)",
+                    "for the obstacle pairs): **the Franka envs' default since**",
 }
 TRACKER_BLOCKS = {
-    "tracker_defaults": "AFVSGP, the defaults",
+    "tracker_defaults": "AFVSGP, the paper's band",
     "tracker_limit_margin": "AFVSGP, the margin on the joint-limit barriers only",
     "tracker_oracle": "oracle (true model)",
 }
