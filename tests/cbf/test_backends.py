@@ -99,10 +99,11 @@ def test_whole_arm_filter_agrees_across_backends(env_id, steps):
 
     What would feed a backend's own rounding back into its state is off: the inducing-set
     decisions (discrete: a near tie decides otherwise; compared in the bank's tests), the
-    online exploration (its gate draws noise by a decision) and the residual observer (it
-    compares the prediction at the controller's own action with the applied one)."""
+    online exploration (its gate draws noise by a decision), the residual observer (it
+    compares the prediction at the controller's own action with the applied one) and the
+    conformal margin (a miss is a decision)."""
     opts = dict(learner="afvsgp", seed=0, online_exploration=0.0, residual_correction=0.0,
-                learner_kwargs={"adapt_inducing": False})
+                learner_kwargs={"adapt_inducing": False}, calibration="off")
     ctrls = [SafetyFilter(gym.make(env_id), backend=backend, **opts).controller
              for backend in BACKENDS]
     env = gym.make(env_id)
