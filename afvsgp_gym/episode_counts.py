@@ -18,13 +18,26 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["CALIBRATION_LEGEND", "COST_DEFINITION", "SAFE_MARGIN", "EpisodeCounter"]
+__all__ = ["CALIBRATION_FIELDS", "CALIBRATION_LEGEND", "COST_DEFINITION", "SAFE_MARGIN",
+           "EpisodeCounter"]
 
 #: The one definition of the safety cost, printed with every table.
 COST_DEFINITION = (
     "cost: steps with info['cost'] > 0, i.e. some obstacle barrier has h < 0 (h<0), the robot "
     "touches an obstacle (contact), or a joint is at its range stop or above its speed limit "
     "(limits; with the env's optional checks also above its acceleration or torque-rate limit)"
+)
+
+#: The counts of the learned band's calibration (:class:`EpisodeCounter` attributes, episode
+#: records and ``info["episode_safety"]`` keys).
+CALIBRATION_FIELDS = (
+    "calibration_samples",
+    "calibration_misses",
+    "calibration_within_1std",
+    "calibration_within_2std",
+    "calibration_within_3std",
+    "true_band_samples",
+    "true_band_misses",
 )
 
 #: The calibration columns of every table, in one line.

@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from afvsgp_gym.episode_counts import EpisodeCounter
+from afvsgp_gym.episode_counts import CALIBRATION_FIELDS, EpisodeCounter
 from afvsgp_gym.evaluation.factories import Policy, make_env, make_policy
 from afvsgp_gym.evaluation.io import jsonable
 from afvsgp_gym.evaluation.spec import EpisodeSpec
@@ -35,13 +35,7 @@ COUNT_FIELDS = (
     "interventions",
     "infeasible_steps",
     "learner_error_steps",
-    "calibration_samples",
-    "calibration_misses",
-    "calibration_within_1std",
-    "calibration_within_2std",
-    "calibration_within_3std",
-    "true_band_samples",
-    "true_band_misses",
+    *CALIBRATION_FIELDS,
     "tracking_error_mean",
     "tracking_error_max",
     "unstable",
@@ -141,13 +135,7 @@ def run_episode(
         "interventions": counter.interventions,
         "infeasible_steps": counter.infeasible_steps,
         "learner_error_steps": counter.learner_error_steps,
-        "calibration_samples": counter.calibration_samples,
-        "calibration_misses": counter.calibration_misses,
-        "calibration_within_1std": counter.calibration_within_1std,
-        "calibration_within_2std": counter.calibration_within_2std,
-        "calibration_within_3std": counter.calibration_within_3std,
-        "true_band_samples": counter.true_band_samples,
-        "true_band_misses": counter.true_band_misses,
+        **{name: getattr(counter, name) for name in CALIBRATION_FIELDS},
         "tracking_error_mean": float(np.mean(track)) if track else math.nan,
         "tracking_error_max": float(np.max(track)) if track else math.nan,
         "unstable": counter.unstable,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import gymnasium as gym
 
-from afvsgp_gym.episode_counts import EpisodeCounter
+from afvsgp_gym.episode_counts import CALIBRATION_FIELDS, EpisodeCounter
 
 __all__ = ["EPISODE_SAFETY_FIELDS", "EpisodeSafetyStats"]
 
@@ -26,13 +26,7 @@ EPISODE_SAFETY_FIELDS = (
     "warmup_steps",
     "saturated_steps",
     "learner_error_steps",
-    "calibration_samples",
-    "calibration_misses",
-    "calibration_within_1std",
-    "calibration_within_2std",
-    "calibration_within_3std",
-    "true_band_samples",
-    "true_band_misses",
+    *CALIBRATION_FIELDS,
 )
 
 
