@@ -497,11 +497,11 @@ class SafetyController:
             delta_b_lower=lower,
         )
 
-    def _band(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
-        """The band's multiplier of barriers ``rows`` (``beta``, or the conformal one) and
-        its additive margin (None for none)."""
+    def _band(self, rows: np.ndarray) -> tuple[float | np.ndarray, np.ndarray | None]:
+        """The band's multiplier of barriers ``rows`` (``beta``, or the conformal one per
+        row) and its additive margin (None for none)."""
         if self.conformal is None:
-            return np.full(len(rows), float(self.config.beta)), None
+            return float(self.config.beta), None
         if self.conformal.additive:
             return self.conformal.multiplier(rows), self.conformal.margins(rows)
         return self.conformal.multiplier(rows), None
