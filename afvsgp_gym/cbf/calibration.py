@@ -46,8 +46,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-__all__ = ["CALIBRATION_MODES", "CalibrationCounts", "ConformalMultiplier", "miss_target",
-           "score_counts", "scores"]
+__all__ = ["CALIBRATION_MODES", "CalibrationCounts", "ConformalMultiplier",
+           "beta_for_miss_probability", "miss_target", "score_counts", "scores"]
 
 #: Values of ``FilterConfig.calibration``.
 CALIBRATION_MODES = ("off", "conformal", "conformal-additive")
@@ -56,6 +56,27 @@ CALIBRATION_MODES = ("off", "conformal", "conformal-additive")
 def miss_target(beta: float) -> float:
     """``alpha = Phi(-beta)``: the one-sided miss probability the band promises (eq. 49)."""
     return 0.5 * math.erfc(float(beta) / math.sqrt(2.0))
+
+
+def beta_for_miss_probability(miss_probability: float) -> float:
+    """``beta = Phi^-1(1 - p)``: the multiplier whose band promises the one-sided miss
+    probability ``p`` (the inverse of :func:`miss_target`; ``p = 0.5`` gives ``beta = 0``,
+    the mean-only program). ``ValueError`` naming ``miss_probability`` outside (0, 0.5].
+
+    Example:
+        >>> round(beta_for_miss_probability(0.0062097), 4)
+        2.5
+    """
+    from statistics import NormalDist
+
+    try:
+        p = float(miss_probability)
+    except (TypeError, ValueError):
+        raise ValueError(f"miss_probability must be a number in (0, 0.5]. "
+                         f"Got: {miss_probability!r}") from None
+    if not 0.0 < p <= 0.5:
+        raise ValueError(f"miss_probability must be in (0, 0.5]. Got: {miss_probability!r}")
+    return max(0.0, -NormalDist().inv_cdf(p))
 
 
 class CalibrationCounts(NamedTuple):

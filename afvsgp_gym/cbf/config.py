@@ -9,10 +9,11 @@ from dataclasses import dataclass, field, fields
 import numpy as np
 
 from afvsgp_gym._compiled import BACKENDS, Backend
-from afvsgp_gym.cbf.calibration import CALIBRATION_MODES
+from afvsgp_gym.cbf.calibration import CALIBRATION_MODES, beta_for_miss_probability, miss_target
 from afvsgp_gym.validation import check_count, check_real
 
-__all__ = ["DEFAULT_BETA", "DEFAULT_RESIDUAL_CORRECTION", "FilterConfig"]
+__all__ = ["DEFAULT_BETA", "DEFAULT_RESIDUAL_CORRECTION", "FilterConfig",
+           "resolve_miss_probability"]
 
 #: Confidence multiplier of the chance constraint (eq. 49 replaced by a constant, as in
 #: Castaneda et al. 2021; the choice: docs/filter.md, "Defaults that differ from the paper").
@@ -60,7 +61,10 @@ class FilterConfig:
         Linear class-K gains ``a_1..a_r`` of the HOCBF chain.
     beta : float
         Chance-constraint multiplier on the predicted standard deviation (eq. 49);
-        0 gives the mean-only QP.
+        0 gives the mean-only QP. The band promises a one-sided miss probability
+        ``Phi(-beta)`` per barrier and step (:attr:`miss_probability`); the controller and
+        the wrapper also take that probability as the option ``miss_probability`` in its
+        place (:func:`resolve_miss_probability`).
     calibration : str
         ``"off"`` (default): the band is ``beta`` predicted standard deviations, as the paper's;
         ``"conformal"``: each learner's multiplier is adapted online so that the long-run rate
@@ -246,5 +250,27 @@ class FilterConfig:
 
     @classmethod
     def option_names(cls) -> tuple[str, ...]:
-        """The keyword options accepted by the controller and the wrapper."""
-        return tuple(f.name for f in fields(cls))
+        """The keyword options accepted by the controller and the wrapper (the fields, and
+        ``miss_probability`` for ``beta``)."""
+        return (*(f.name for f in fields(cls)), "miss_probability")
+
+    @property
+    def miss_probability(self) -> float:
+        """``Phi(-beta)``: the one-sided miss probability the band promises per barrier and
+        step (eq. 49)."""
+        return miss_target(self.beta)
+
+
+def resolve_miss_probability(options: dict) -> dict:
+    """``options`` with ``miss_probability`` (the band's one-sided miss probability per barrier
+    and step, in (0, 0.5]) replaced by the ``beta = Phi^-1(1 - miss_probability)`` it means
+    (eq. 49); unchanged without it. ``ValueError`` when both are given (one would be lost)."""
+    if "miss_probability" not in options:
+        return options
+    options = dict(options)
+    p = options.pop("miss_probability")
+    if "beta" in options:
+        raise ValueError(f"give beta or miss_probability, not both. Got: beta={options['beta']!r}"
+                         f", miss_probability={p!r}")
+    options["beta"] = beta_for_miss_probability(p)
+    return options

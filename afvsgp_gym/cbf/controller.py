@@ -42,7 +42,7 @@ from afvsgp_gym.cbf.calibration import (
     score_counts,
     scores,
 )
-from afvsgp_gym.cbf.config import FilterConfig
+from afvsgp_gym.cbf.config import FilterConfig, resolve_miss_probability
 from afvsgp_gym.cbf.exploration import Exploration, exploration_scale
 from afvsgp_gym.cbf.hocbf import HOCBF, BarrierConstraints
 from afvsgp_gym.cbf.learners import REGISTRY, check_learner_name, make_bank
@@ -188,7 +188,8 @@ class SafetyController:
         The fields of :class:`~afvsgp_gym.cbf.config.FilterConfig` (``alpha``, ``beta``,
         ``activation_distance``, ``warmup_samples``, ``exploration_noise``,
         ``online_exploration``, ``residual_correction``, ``learner_kwargs``, ``online``,
-        ``seed``, ...), or ``config=FilterConfig(...)``.
+        ``seed``, ...), or ``config=FilterConfig(...)``; ``miss_probability=p`` in place of
+        ``beta`` sets ``beta = Phi^-1(1 - p)``.
     """
 
     def __init__(self, action_low, action_high, n_barriers: int = 1, learner: str = "afvsgp",
@@ -202,6 +203,7 @@ class SafetyController:
             hint = "".join(f" ({name} was replaced by {_REPLACED_OPTIONS[name]})"
                            for name in unknown if name in _REPLACED_OPTIONS)
             raise ValueError(f"unknown option(s) {unknown}; valid: {valid}{hint}")
+        options = resolve_miss_probability(options)
         self.config = cfg = replace(config or FilterConfig(), **options)
         #: the compiled extensions this filter runs (``cfg.backend`` resolved)
         self.backend = _compiled.resolve(cfg.backend)

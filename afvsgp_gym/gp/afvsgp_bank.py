@@ -117,7 +117,8 @@ _STACKED = ("inv_ls2", "var", "_var_diag", "log_var", "noise_variance", "jitter"
 class AFVSGPBank:
     """K AFVSGP learners in stacked arrays (see the module docstring).
 
-    Per learner ``k``: :meth:`inducing` (its inducing set), :meth:`statistics` (``S``, ``r``),
+    Per learner ``k``: :meth:`inducing` (its inducing set), :meth:`window_samples` (its window),
+    :meth:`statistics` (``S``, ``r``),
     :meth:`conditioning` (of ``K_oo`` and ``K_oo + S/s2``).
 
     Parameters
@@ -415,6 +416,15 @@ class AFVSGPBank:
         """Learner ``k``'s inducing set: features (M, b) and actions (M, m) (copies)."""
         m = int(self.n_inducing_[k])
         return self._ind_xi[k, :m].copy(), self._ind_ub[k, :m, 1:].copy()
+
+    def window_samples(self, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Learner ``k``'s window, oldest first: features (n, b), actions (n, m) and eq. 48
+        samples (n,), ``n <= window`` (copies; the data a re-fit of its hyperparameters
+        would see)."""
+        n, P = int(self._count[k]), self.window
+        slots = (int(self._head[k]) - n + 1 + np.arange(n)) % P
+        return (self._wxt[k][:, slots].T.copy(), self._wubt[k][1:, slots].T.copy(),
+                self._wz[k, slots].copy())
 
     def statistics(self, k: int) -> tuple[np.ndarray, np.ndarray]:
         """Learner ``k``'s weighted statistics (eq. 20): ``S = K_ox Lambda K_xo`` (M, M) and

@@ -9,6 +9,7 @@ import gymnasium as gym
 import numpy as np
 
 from afvsgp_gym.cbf import SafetyController
+from afvsgp_gym.cbf.config import resolve_miss_probability
 from afvsgp_gym.cbf.fastpath import clip
 from afvsgp_gym.cbf.learners import check_learner_name
 from afvsgp_gym.validation import check_choice
@@ -27,8 +28,8 @@ def with_env_suggestions(base: Any, learner: str, options: dict[str, Any]) -> di
     under the caller's ``learner_kwargs``; a ``learner_kwargs`` that is not a dict is left for
     the controller to refuse by name). A suggested ``calibration`` and its
     ``calibration_step`` are left out when the caller chooses ``calibration`` or sets
-    ``beta = 0`` (no band to calibrate)."""
-    options = dict(options)
+    ``beta = 0`` (no band to calibrate); ``miss_probability`` becomes its ``beta``."""
+    options = dict(resolve_miss_probability(options))
     suggested_options = dict(getattr(base, "filter_defaults", None) or {})
     if getattr(base, "activation_distance", None) is not None:
         suggested_options.setdefault("activation_distance", base.activation_distance)

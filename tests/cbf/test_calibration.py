@@ -7,10 +7,16 @@ import math
 
 import numpy as np
 import pytest
+from scipy.special import ndtri
 from scipy.stats import norm
 
 from afvsgp_gym.cbf import SafetyController
-from afvsgp_gym.cbf.calibration import ConformalMultiplier, miss_target, score_counts
+from afvsgp_gym.cbf.calibration import (
+    ConformalMultiplier,
+    beta_for_miss_probability,
+    miss_target,
+    score_counts,
+)
 from afvsgp_gym.cbf.config import FilterConfig
 from afvsgp_gym.types import BarrierTerms
 
@@ -20,6 +26,33 @@ BETA, ETA = 2.5, 0.5
 @pytest.mark.parametrize("beta", [0.0, 1.0, 2.5, 6.0, 9.0])
 def test_miss_target_is_the_normal_tail(beta):
     assert miss_target(beta) == pytest.approx(norm.sf(beta), rel=1e-12)
+
+
+@pytest.mark.parametrize("p", [1e-15, 1e-9, 1e-4, miss_target(2.5), 0.1, 0.3, 0.5])
+def test_miss_probability_gives_the_normal_quantile(p):
+    """Against scipy's ndtri (cephes, another algorithm), in the tail too: ``-ndtri(p)``,
+    never ``ndtri(1 - p)``, which loses ``p`` below 1e-16. d beta / d ln p = -1 / (beta's
+    hazard) is at most ~1 / beta, so 1e-12 relative in p is far below 1e-10 in beta."""
+    beta = beta_for_miss_probability(p)
+    assert beta == pytest.approx(max(0.0, -ndtri(p)), rel=1e-10, abs=1e-12)
+    assert miss_target(beta) == pytest.approx(p, rel=1e-9)
+
+
+@pytest.mark.parametrize("p", [0.0, -0.1, 0.51, 1.0, float("nan"), "a", None])
+def test_bad_miss_probability_is_refused_by_name(p):
+    with pytest.raises(ValueError, match="miss_probability"):
+        beta_for_miss_probability(p)
+
+
+def test_controller_takes_a_miss_probability_for_beta():
+    ctrl = SafetyController(-np.ones(2), np.ones(2), n_barriers=2, miss_probability=0.01)
+    assert ctrl.config.beta == pytest.approx(norm.isf(0.01), rel=1e-10)
+    assert ctrl.config.miss_probability == pytest.approx(0.01, rel=1e-10)
+    assert SafetyController(-np.ones(2), np.ones(2), miss_probability=0.5).config.beta == 0.0
+    with pytest.raises(ValueError, match="beta or miss_probability"):
+        SafetyController(-np.ones(2), np.ones(2), beta=2.0, miss_probability=0.01)
+    with pytest.raises(ValueError, match="miss_probability"):
+        SafetyController(-np.ones(2), np.ones(2), miss_probability=0.7)
 
 
 def test_score_counts_by_hand():

@@ -93,6 +93,24 @@ def test_bank_equals_the_batch_weighted_posterior():
     _assert_equals_batch_posterior(bank, streams, u, n, seed=5)
 
 
+def test_window_returns_each_learners_last_samples_oldest_first():
+    streams = _streams(P + P // 2 + 3)
+    u = streams[0][1]
+    bank = AFVSGPBank.from_learners(_learners(streams, u, n_fit=P // 2))
+    for k in range(K):  # the fit's samples, not yet full
+        xi, uu, z = bank.window_samples(k)
+        np.testing.assert_array_equal(z, streams[k][2][: P // 2])
+        np.testing.assert_array_equal(uu, u[: P // 2])
+    n = len(u)
+    for i in range(P // 2, n):  # the ring wraps: the last P samples
+        bank.update(*_rows(streams, i)[:1], u[i], _rows(streams, i)[1])
+    for k in range(K):
+        xi, uu, z = bank.window_samples(k)
+        np.testing.assert_array_equal(xi, streams[k][0][n - P : n])
+        np.testing.assert_array_equal(uu, u[n - P : n])
+        np.testing.assert_array_equal(z, streams[k][2][n - P : n])
+
+
 def test_subset_prediction_equals_full_prediction():
     streams = _streams(2 * P)
     u = streams[0][1]

@@ -85,3 +85,21 @@ def test_summary_of_records_without_calibration_fields():
     s = summarize([rec])
     assert s["calibration_samples"] == 0
     assert np.isnan(s["miss_rate"]) and np.isnan(s["coverage_1std"])
+
+
+def test_miss_probability_replaces_beta_under_the_envs_suggestions():
+    """The Franka envs suggest a conformal margin on the joint limits: a miss probability
+    keeps it (a band to calibrate), ``0.5`` (``beta = 0``, no band) drops it, and both
+    ``beta`` and ``miss_probability`` are refused."""
+    from scipy.stats import norm
+
+    franka = "afvsgp_gym/FrankaObstacleStatic-v0"
+    env = SafetyFilter(gym.make(franka), learner="afvsgp", miss_probability=0.02)
+    assert env.controller.config.beta == pytest.approx(norm.isf(0.02), rel=1e-10)
+    assert env.controller.config.calibration == "conformal-additive"
+    env.close()
+    env = SafetyFilter(gym.make(franka), learner="afvsgp", miss_probability=0.5)
+    assert env.controller.config.beta == 0.0 and env.controller.config.calibration == "off"
+    env.close()
+    with pytest.raises(ValueError, match="beta or miss_probability"):
+        SafetyFilter(gym.make(franka), learner="afvsgp", beta=2.0, miss_probability=0.02)
