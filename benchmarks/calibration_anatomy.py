@@ -137,11 +137,12 @@ def main() -> None:
     ap.add_argument("--json", type=Path,
                     default=Path(__file__).parent / "results" / "calibration_anatomy.json")
     args = ap.parse_args()
+    code = code_version()  # the code that runs, read before any later edit of the tree
     t0 = time.perf_counter()
     episodes = [episode(sc, 300 + s, refit) for refit in (False, True) for sc in SCENES
                 for s in range(args.seeds)]
     res = {"episodes": episodes, "seconds": time.perf_counter() - t0, "machine": cpu_model(),
-           "date": time.strftime("%Y-%m-%d"), "code": code_version(),
+           "date": time.strftime("%Y-%m-%d"), "code": code,
            "settings": {"binding": BINDING, "drift_window": DRIFT_WINDOW,
                         "drift_factor": DRIFT_FACTOR, "refit_gap": REFIT_GAP}}
     args.json.write_text(json.dumps(res, indent=1) + "\n")
