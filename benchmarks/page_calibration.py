@@ -7,6 +7,7 @@ Reads ``results/calibration.jsonl.gz``: ``afvsgp-gym sweep benchmarks/configs/ca
 (one sitting, one machine). To refresh it, run that sweep, then ``python
 benchmarks/page_calibration.py --refresh CALIBRATION.jsonl``: it keeps the fields the page
 reads (:data:`FIELDS`), compresses the records into the results file and writes the page.
+And ``results/calibration_anatomy.json``: ``python benchmarks/calibration_anatomy.py``.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from acceptance_tables import PRIORS, SCENARIOS, learner, prior, scenario, summa
 from docgen import DOCS, RESULTS, main, measured, provenance, read_jsonl, table
 
 SOURCE = RESULTS / "calibration.jsonl.gz"
+ANATOMY = RESULTS / "calibration_anatomy.json"
 PAGE = DOCS / "calibration.md"
 
 #: the record fields the page reads (the rest of a sweep's records is left out of the tree)
@@ -35,12 +37,19 @@ BETA = 2.5
 TARGET = 0.5 * math.erfc(BETA / math.sqrt(2.0))
 #: a cell meets the issue's acceptance when its miss rate is within this factor of TARGET
 TOLERANCE = 1.5
-BANDS = ("off", "conformal", "conformal-additive")
+BANDS = ("default", "off", "conformal", "conformal-additive (step 1)",
+         "conformal-additive (step 3)")
 ADVERSARIAL_AGENTS = ("greedy", "swing4", "swing6")
 
 
 def band(rec: dict) -> str:
-    return rec["config"].get("filter_kwargs", {}).get("calibration", "off")
+    """The record's band: its ``calibration`` option, ``default`` without one (the env's
+    suggestion)."""
+    kwargs = rec["config"].get("filter_kwargs") or {}
+    name = kwargs.get("calibration", "default")
+    if name == "conformal-additive":
+        name += f" (step {kwargs.get('calibration_step', 0.5):g})"
+    return name
 
 
 def meta(recs: list[dict]) -> dict:
@@ -107,12 +116,18 @@ def pooled_rows(recs: list[dict]) -> list[tuple]:
     return rows
 
 
+def present(recs: list[dict]) -> list[str]:
+    """The bands of :data:`BANDS` that ``recs`` hold, in that order."""
+    have = {band(r) for r in recs}
+    return [b for b in BANDS if b in have]
+
+
 def adversarial_rows(recs: list[dict]) -> list[tuple]:
     rows = []
     for agent in ADVERSARIAL_AGENTS:
         for pr in ("zero", "kinematic"):
             cells = [agent, pr]
-            for b in BANDS:
+            for b in present(recs):
                 g = [r for r in recs if r["config"]["agent"] == agent and prior(r) == pr
                      and band(r) == b]
                 if g:
@@ -125,13 +140,71 @@ def adversarial_rows(recs: list[dict]) -> list[tuple]:
     return rows
 
 
+ANATOMY_ROWS = (("all", "every pair"), ("kind=obstacle", "obstacle pairs"),
+                ("kind=speed", "joint speeds"), ("kind=range", "joint ranges"),
+                ("binding=True", "binding at the applied action"),
+                ("binding=False", "slack"), ("half=early", "first half after warm-up"),
+                ("half=late", "second half"))
+
+
+def anatomy_section() -> list[str]:
+    res = json.loads(ANATOMY.read_text())
+    plain = [e for e in res["episodes"] if not e["refit"]]
+    refit = [e for e in res["episodes"] if e["refit"]]
+
+    def pooled(eps: list[dict], key: str) -> list[int]:
+        return [sum(e["counts"].get(key, [0, 0, 0])[i] for e in eps) for i in range(3)]
+
+    rows = []
+    for key, label in ANATOMY_ROWS:
+        n, miss, miss_noise = pooled(plain, key)
+        if n:
+            rows.append((label, n, pct(miss / n), pct(miss_noise / n)))
+    n0, m0, _ = pooled(plain, "all")
+    n1, m1, _ = pooled(refit, "all")
+    refits = sum(e["refits"] for e in refit)
+    seconds = sum(e["refit_seconds"] for e in refit)
+    cost = (sum(e["cost_steps"] > 0 for e in plain), sum(e["cost_steps"] > 0 for e in refit))
+
+    def spread(eps: list[dict]) -> str:
+        rates = sorted(e["counts"]["all"][1] / e["counts"]["all"][0] for e in eps
+                       if e["counts"].get("all", [0])[0])
+        return f"{pct(rates[0])} to {pct(rates[-1])}" if rates else "-"
+
+    st = res["settings"]
+    scenes = sorted({e["scene"].lower() for e in plain})
+    return [
+        "## Where the band misses, and two model-side remedies", "",
+        f"`python benchmarks/calibration_anatomy.py`: {len(plain)} seeded episodes "
+        f"({', '.join(scenes)}; nothing known, the nominal tracker, the paper's band), "
+        "every scored (barrier, step) pair split by the barrier's kind, by whether its "
+        f"constraint was binding at the applied action (margin below {st['binding']:g}) and "
+        "by the half of the episode. `noise` counts the same steps against the band of the "
+        "eq. 48 *sample*, `sqrt(std^2 + s2)` with the learner's noise variance `s2`, in "
+        "place of the latent model error's `std`.", "",
+        measured({"machine": res["machine"], "date": res["date"], "code": res["code"]}), "",
+        table(("pairs", "scored", "miss", "miss, noise in the band"), rows), "",
+        f"Re-fitting the hyperparameters on the learners' windows whenever the miss rate of "
+        f"the last {st['drift_window']} pairs exceeds {st['drift_factor']:g} x "
+        f"{pct(TARGET)} (at most once per {st['refit_gap']} steps), on the same seeds: "
+        f"{refits} refits in {len(refit)} episodes, {seconds / max(refits, 1):.1f} s each "
+        f"(a stall of the loop), miss {pct(m1 / n1 if n1 else math.nan)} (per episode "
+        f"{spread(refit)}) against {pct(m0 / n0 if n0 else math.nan)} without "
+        f"({spread(plain)}); episodes with cost {cost[1]} and {cost[0]}. Neither remedy "
+        "comes near the promise: the band misses most where the filter leans on it (binding "
+        "constraints, obstacle pairs) and more as the episode goes on, which no refit of a "
+        "stationary kernel on the recent window corrects. The guarantee-side corrections "
+        "above are what meet the rate.", ""]
+
+
 def build() -> dict:
     recs = read_jsonl(SOURCE)
     tracker = [r for r in recs if r["config"]["agent"] == "nominal"]
     adversarial = [r for r in recs if r["config"]["agent"] != "nominal"]
     rows, met = tracker_rows(tracker)
     out = [provenance("benchmarks/page_calibration.py",
-                      ["benchmarks/results/calibration.jsonl.gz"]),
+                      ["benchmarks/results/calibration.jsonl.gz",
+                       "benchmarks/results/calibration_anatomy.json"]),
            "",
            "# Calibration: does the chance constraint mean what it says?",
            "",
@@ -140,8 +213,10 @@ def build() -> dict:
            f"error plus the residual observer's bias, minus `q` predicted standard deviations "
            f"(`q = beta = {BETA:g}` as in the paper, `calibration=\"off\"`; or the online "
            "conformal multiplier, `\"conformal\"`; or `beta` std and an online conformal "
-           "margin, `\"conformal-additive\"`, here with `calibration_step=1` noise std per "
-           "miss). The band promises that the model error "
+           "margin, `\"conformal-additive\"`, with `calibration_step` noise std per "
+           "miss; `default` is what the Franka envs suggest: the paper's band on the obstacle "
+           "pairs and the conformal margin on the joint limits). The band promises that the "
+           "model error "
            f"falls below its edge with probability `Phi(-beta)` = {pct(TARGET)} per barrier "
            "and step. After each step the eq. 48 sample of the same model error shows whether "
            "it did: a *miss*. `miss` is the share of the (barrier, step) pairs of the cone "
@@ -180,9 +255,11 @@ def build() -> dict:
                 "The three policies with the most episodes with cost in the adversarial "
                 "suite ([any policy](adversarial.md)), episodes with cost / episodes over the "
                 "three scenes, and the band's miss rate.", "",
-                table(("policy", "prior", *(f"{b}: {what}" for b in BANDS
+                table(("policy", "prior", *(f"{b}: {what}" for b in present(adversarial)
                                             for what in ("with cost", "miss"))),
                       adversarial_rows(adversarial)), ""]
+    if ANATOMY.exists():
+        out += anatomy_section()
     return {PAGE: "\n".join(out).rstrip("\n") + "\n"}
 
 
