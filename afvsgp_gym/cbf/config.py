@@ -138,7 +138,11 @@ class FilterConfig:
     relax_to_mean : bool
         When no action satisfies the chance constraints, apply the solution of the mean-only
         constraints (``beta = 0``) if it exists (status ``"relaxed:..."``, flagged
-        infeasible) instead of the backup action; False goes to the backup at once.
+        infeasible) instead of the backup action; False goes to the backup at once. The
+        barriers of relative degree 1 keep their band in the relaxation: they have no state
+        to absorb one control period's model error (a joint speed barrier relaxed to a
+        confidently wrong mean let a policy's full torque add 0.8 rad/s to joint 4 in one
+        period), and the backup brake always satisfies them.
     learner_kwargs : dict
         Passed to the learner's constructor, on top of the registry's defaults.
     learn_hyperparameters : bool

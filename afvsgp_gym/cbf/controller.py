@@ -463,7 +463,7 @@ class SafetyController:
         res = self.socp.solve(u_nom, a0, a, G, u_backup)
         if not res.feasible and G is not None and self.config.relax_to_mean:
             # graceful degradation: the mean-only constraints (beta = 0) before the backup
-            mean_res = self.socp.solve(u_nom, a0, a, None, None)
+            mean_res = self.socp.solve(u_nom, a0, a, self._relaxed_cones(G, rows), None)
             if mean_res.feasible:
                 res = replace(mean_res, feasible=False, status=f"relaxed:{res.status}",
                               margins=chance_margins(mean_res.u, a0, a, G))
@@ -498,6 +498,20 @@ class SafetyController:
             n_active=len(rows),
             delta_b_lower=lower,
         )
+
+    def _relaxed_cones(self, G: np.ndarray, rows: np.ndarray) -> np.ndarray | None:
+        """The cones the mean-only relaxation keeps (``relax_to_mean``): those of the
+        barriers of relative degree 1 in the program, none (None) without such barriers."""
+        if self._degrees is None:
+            if self.config.relative_degree != 1:
+                return None
+            return G
+        keep = self._degrees[rows] == 1
+        if not keep.any():
+            return None
+        out = G.copy()
+        out[~keep] = 0.0
+        return out
 
     def _band(self, rows: np.ndarray) -> tuple[float | np.ndarray, np.ndarray | None]:
         """The band's multiplier of barriers ``rows`` (``beta``, or the conformal one per

@@ -266,6 +266,11 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
     #: Gain of the joint speed barriers' class-K function (1/s): ``q'' <= a (V - q')``, a
     #: tenth of the control rate (the obstacle and range barriers keep ``alpha``'s a_1).
     SPEED_GAIN = 25.0
+    #: The brake yields to moving obstacles (:meth:`backup_action`): pairs closer than
+    #: ``EVADE_DISTANCE`` (m) whose obstacle approaches the sphere are given way at
+    #: ``EVADE_FACTOR`` times the approach speed, with joint speeds up to ``EVADE_SPEED_SHARE``
+    #: of the datasheet's.
+    EVADE_DISTANCE, EVADE_FACTOR, EVADE_SPEED_SHARE = 0.1, 1.5, 0.5
     #: Warm-up exploration suggested to the filter: around the brake (the policy does not act
     #: until the learners are fitted, so nothing it proposes can break the limits then), with
     #: a noise of 0.2 of the torque range (white torque noise of 0.3, the method's, drives the
@@ -922,6 +927,9 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         saturated spring back to where the brake engaged swung a 3 kg payload's wrist past
         its speed.)
 
+        It gives way to moving obstacles (:meth:`_give_way_velocity`): the hold point then
+        moves at that joint velocity and the brake tracks it, ``-2 w (q' - q'_give)``.
+
         ``M_cat`` is the catalogue inertia (the links unscaled, no payload, the plant's rotor
         inertia): the robot's own model, as its gravity compensation uses the catalogue
         masses, not the filter's (which may know nothing). Scaled by the inertia, the brake
@@ -939,19 +947,57 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         self._backup_step = self._steps
         w = self.brake_frequency
         inertia = self._catalogue_inertia()
-        acc = -(2.0 * w * d.qvel[:7] + w * w * (d.qpos[:7] - self._hold))
+        give_way = self._give_way_velocity()
+        if give_way is not None:  # the hold point moves out of the obstacles' way
+            lim = self.joint_limits  # (held inside the range barriers' margin)
+            self._hold = np.clip(self._hold + give_way * self._control_dt,
+                                 lim.lower + lim.range_margin, lim.upper - lim.range_margin)
+        target = 0.0 if give_way is None else give_way
+        acc = -(2.0 * w * (d.qvel[:7] - target) + w * w * (d.qpos[:7] - self._hold))
         brake = (inertia @ acc) / self._gear
         coriolis = self._catalogue_coriolis() / self._gear
         u = coriolis + brake
         if np.abs(u).max() > 1.0:  # saturated: damping only, and its largest share
             self._hold = d.qpos[:7].copy()  # (a spring back to where it engaged winds up)
-            brake = (inertia @ (-2.0 * w * d.qvel[:7])) / self._gear
+            brake = (inertia @ (-2.0 * w * (d.qvel[:7] - target))) / self._gear
             with np.errstate(divide="ignore", invalid="ignore"):
                 room = np.where(brake > 0, (1.0 - coriolis) / brake,
                                 np.where(brake < 0, (-1.0 - coriolis) / brake, np.inf))
             share = min(1.0, max(0.0, float(room.min())))
             u = np.clip(coriolis + share * brake, -1.0, 1.0)
         return u * (1.0 if self.normalize_action else self._gear)
+
+    def _give_way_velocity(self) -> np.ndarray | None:
+        """Joint velocity (7,) with which the brake gives way to moving obstacles, or None
+        (every obstacle static, or none approaching within ``EVADE_DISTANCE``).
+
+        A held arm is not safe from an obstacle that moves into it (``h' = n.(v_s - v_o)``
+        with ``v_s = 0``). For each pair closer than ``EVADE_DISTANCE`` whose obstacle
+        approaches the sphere (``n.v_o > 0``, ``n`` from the obstacle to the sphere) the
+        sphere is asked to recede along ``n`` at ``EVADE_FACTOR n.v_o``: the least-norm
+        joint velocity of those rows ``n' J_s`` (damped least squares), scaled into
+        ``EVADE_SPEED_SHARE`` of the joint speed limits. It is the robot's own reflex, with
+        the kinematics and the obstacles' measured motion, not the filter's model."""
+        static = self._obstacle_constants()[1]
+        if static is not None or not self._n_pairs:
+            return None
+        rad = self._obstacle_constants()[0]
+        p, _, jac, _ = self._spheres
+        st = np.array(self._obstacle_states)
+        n_s = p.shape[0]
+        d = (p[None, :, :] - st[:, None, 0, :]).reshape(-1, 3)
+        dist = np.linalg.norm(d, axis=1)
+        n = d / np.maximum(dist, 1e-9)[:, None]
+        approach = (n * np.repeat(st[:, 1], n_s, axis=0)).sum(axis=1)
+        rows = np.flatnonzero((dist - rad < self.EVADE_DISTANCE) & (approach > 0.0))
+        if not len(rows):
+            return None
+        a = np.einsum("ki,kij->kj", n[rows], jac[rows % n_s][:, :, :7])
+        b = self.EVADE_FACTOR * approach[rows]
+        qd = a.T @ np.linalg.solve(a @ a.T + 1e-4 * np.eye(len(rows)), b)
+        top = self.EVADE_SPEED_SHARE * self.joint_limits.max_speed
+        scale = float(np.max(np.abs(qd) / top))
+        return qd / scale if scale > 1.0 else qd
 
     # ------------------------------------------------------------------ gym API
     def _tracked_point(self) -> np.ndarray:

@@ -164,3 +164,57 @@ def test_infeasible_chance_constraint_relaxes_to_the_mean(relax):
     else:
         assert res.status.startswith("backup:")
         np.testing.assert_array_equal(res.u, [0.5, 0.5])
+
+
+def _mixed_controller(rng, **options):
+    """Two barriers learned from z = 1 + u . (2, -1): barrier 0 of relative degree 2,
+    barrier 1 of relative degree 1 (as a joint speed), fitted offline, frozen."""
+    from afvsgp_gym.types import BarrierLayout
+
+    xi = rng.normal(size=(120, 3))
+    u = rng.uniform(-1, 1, size=(120, 2))
+    z = 1.0 + u @ np.array([2.0, -1.0]) + 0.05 * rng.normal(size=120)
+    layout = BarrierLayout(np.array([2, 1]), np.array([0, 1]), np.ones(2), np.zeros(2, int))
+    return SafetyController(
+        -np.ones(2), np.ones(2), n_barriers=2, learner="afvsgp", layout=layout, alpha=2.0,
+        dataset=(xi, u, z), online=False, online_exploration=0.0, residual_correction=0.0,
+        seed=0, learner_kwargs={"num_inducing": 10}, **options)
+
+
+def _mixed_terms(xi_speed):
+    far = np.array([4.0, -4.0, 4.0])  # away from the data: the posterior std is large
+    return [BarrierTerms(np.array([0.05, 0.0]), 0.0, np.zeros(2), far),
+            BarrierTerms(np.array([0.3, 0.0]), 0.0, np.zeros(2), xi_speed)]
+
+
+def test_relaxation_keeps_the_band_of_relative_degree_one():
+    """The relaxed program drops the band of the degree-2 barrier only: the degree-1
+    barrier's chance constraint holds at the relaxed action."""
+    ctrl = _mixed_controller(np.random.default_rng(4), beta=60.0)
+    near = np.zeros(3)  # in the data: a small std, its band can be met
+    res = ctrl.filter(np.array([-1.0, 1.0]), _mixed_terms(near), u_backup=np.array([0.5, 0.5]))
+    assert res.status.startswith("relaxed:")
+    assert res.margins[1] >= -1e-6  # the speed-like barrier's band kept
+    assert res.margins[0] < 0  # the other's chance constraint relaxed
+
+
+def test_relaxation_that_cannot_keep_the_degree_one_band_brakes():
+    """Both barriers far from the data: the degree-1 band cannot be met, so the relaxation
+    is infeasible and the backup acts (dropping every band would have been feasible)."""
+    ctrl = _mixed_controller(np.random.default_rng(4), beta=200.0)
+    far = np.array([4.0, -4.0, 4.0])
+    res = ctrl.filter(np.array([-1.0, 1.0]), _mixed_terms(far), u_backup=np.array([0.5, 0.5]))
+    assert res.status.startswith("backup:")
+    np.testing.assert_array_equal(res.u, [0.5, 0.5])
+    mean_only = ctrl.socp.solve(np.array([-1.0, 1.0]), *_mean_constraints(ctrl, far), None,
+                                None)
+    assert mean_only.feasible
+
+
+def _mean_constraints(ctrl, far):
+    """The two barriers' mean-only constraints ``a0 + a u >= 0`` (learned mean, no band)."""
+    bset_terms = _mixed_terms(far)
+    c0, c = ctrl.constraints(bset_terms)
+    b, _ = ctrl.bank.predict_affine(np.array([t.xi for t in bset_terms]), np.arange(2))
+    c0 = c0 - ctrl.config.barrier_margin * ctrl.barriers.margin_gain
+    return c0 + b[:, 0], c + b[:, 1:]

@@ -603,6 +603,64 @@ def test_brake_never_drives_a_joint_past_its_speed_limit(payload):
         assert np.abs(env.data.qvel[:7]).max() < 0.02, trial
 
 
+def _moving_into_the_arm(**kwargs) -> FrankaObstacleEnv:
+    """A sphere (r = 5 cm) that moves at 0.1 m/s from 30 cm to the side into the arm at the
+    home pose, from t = 0."""
+    return FrankaObstacleEnv("static", obstacles=[
+        {"position": [0.45, 0.0, 0.55], "start": [0.45, 0.3, 0.55], "radius": 0.05,
+         "speed": 0.1, "start_time": 0.0}], warmup_steps=0, **kwargs)
+
+
+@pytest.mark.parametrize("payload", [0.0, 3.0])
+def test_brake_gives_way_to_an_obstacle_moving_into_the_arm(payload):
+    """Held in place, the arm is struck (h < 0 at the end of the sphere's path); the brake
+    moves its hold point out of the way, so h never falls below the give-way distance's
+    neighbourhood, within the speed limits, without the filter."""
+    env = _moving_into_the_arm(payload_mass=payload)
+    env.reset(seed=0)
+    hs, peak = [], 0.0
+    for _ in range(1500):  # 6 s: the sphere's move lasts 5.6 s
+        _, _, _, _, info = env.step(env.backup_action().astype(np.float32))
+        hs.append(info["h"])
+        peak = max(peak, float((np.abs(env.data.qvel[:7]) / env.joint_limits.max_speed).max()))
+        assert not info["limit_violation"]
+    assert min(hs) > 0.5 * env.EVADE_DISTANCE
+    assert peak <= env.EVADE_SPEED_SHARE * 1.2
+    # the same obstacle against the brake that only holds: struck
+    held = _moving_into_the_arm(payload_mass=payload)
+    held.reset(seed=0)
+    held._give_way_velocity = lambda: None
+    h_held = [held.step(held.backup_action().astype(np.float32))[4]["h"]
+              for _ in range(1500)]
+    assert min(h_held) < 0.0
+
+
+def test_brake_gives_way_only_to_approaching_moving_obstacles():
+    """Static obstacles, or a moving one that is far or receding: the brake only holds
+    (no give-way velocity)."""
+    env = FrankaObstacleEnv("static")
+    env.reset(seed=0)
+    assert env._give_way_velocity() is None
+    env = _moving_into_the_arm()
+    env.reset(seed=0)
+    assert env._give_way_velocity() is None  # far away at t = 0
+    top = env.EVADE_SPEED_SHARE * env.joint_limits.max_speed
+    end = int(env.obstacles[0].duration / env.dt)
+    giving_way = 0
+    for step in range(0, end, 25):
+        env.set_time_step(step)
+        v, h = env._obstacle_states[0][1], env.barrier_values()
+        qd = env._give_way_velocity()
+        if qd is not None:
+            giving_way += 1
+            assert h[: env.n_obstacle_barriers].min() < env.EVADE_DISTANCE
+            assert np.linalg.norm(v) > 0
+            assert np.all(np.abs(qd) <= top + 1e-12)
+    assert giving_way > 0
+    env.set_time_step(end + 10)  # arrived: at rest
+    assert env._give_way_velocity() is None
+
+
 @pytest.mark.parametrize("spheres", ["ee", "arm"])
 def test_static_obstacle_shortcut_equals_general_terms(spheres):
     """All obstacles static: the stacked states are cached and a_o = 0 drops out of lf; the
