@@ -95,8 +95,10 @@ def headline(recs: list[dict]) -> list[tuple]:
             sub = [r for r in group if pr is None or prior(r) == pr]
             if sub:
                 s = summary(sub)
+                code = " / ".join(sorted({str(r.get("code_version")) for r in sub}))
                 rows.append((label(sub[0]) + (f", prior \"{pr}\"" if pr else ""), s["n"],
-                             cost_cell(s), f"{100 * s['bound']:.3g} %", f"{s['min_h']:+.4f}"))
+                             cost_cell(s), f"{100 * s['bound']:.3g} %", f"{s['min_h']:+.4f}",
+                             f"`{code}`"))
     return rows
 
 
@@ -229,7 +231,7 @@ def build() -> dict:
            "",
            "## Episodes with cost",
            "",
-           table(("filter", "episodes", "with cost", "95 % bound", "min h [m]"),
+           table(("filter", "episodes", "with cost", "95 % bound", "min h [m]", "code"),
                  headline(recs)),
            "",
            "By policy (episodes with cost / episodes, the three scenarios):",

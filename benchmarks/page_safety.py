@@ -260,7 +260,8 @@ def build() -> dict:
             "away then.",
             "- When no action meets the chance constraints the filter degrades, first to the "
             "mean-only program's action, then to the environment's brake, which removes kinetic "
-            "energy but cannot move the arm out of the way of an obstacle that keeps coming.",
+            "energy and gives way to a moving obstacle within 10 cm, but certifies nothing: "
+            "giving way can lead into another obstacle or a joint's range.",
             "- The oracle takes the true model's joint friction at u = 0; with friction it is "
             "not an exact oracle (`oracle_terms=\"true_robust\"` bounds friction; "
             "`benchmarks/configs/oracle_friction*.toml` measure both).",
