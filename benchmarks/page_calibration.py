@@ -80,6 +80,7 @@ def tracker_rows(recs: list[dict]) -> tuple[list[tuple], dict]:
     oracle = {sc: summary(g) for sc in SCENARIOS
               if (g := [r for r in recs if learner(r) == "oracle" and scenario(r) == sc])}
     rows, met = [], {b: [0, 0] for b in BANDS}
+    verdict = {b: {"cost": 0, "n": 0, "ratios": []} for b in BANDS}
     for sc in SCENARIOS:
         for pr in PRIORS:
             for b in BANDS:
@@ -91,12 +92,76 @@ def tracker_rows(recs: list[dict]) -> tuple[list[tuple], dict]:
                 ok = c["miss"] <= TOLERANCE * TARGET
                 met[b][0] += ok
                 met[b][1] += 1
+                verdict[b]["cost"] += s["cost"]
+                verdict[b]["n"] += s["n"]
+                if sc in oracle:
+                    verdict[b]["ratios"].append(s["track"] / oracle[sc]["track"])
                 ratio = (f"{s['track'] / oracle[sc]['track']:.2f}" if sc in oracle else "-")
                 rows.append((sc, pr, b, s["n"], f"{s['cost']}", pct(c["miss"]),
                              pct(c["true_miss"]),
                              f"{pct(c['cov1'], 0)} / {pct(c['cov2'], 0)} / {pct(c['cov3'], 0)}",
                              f"{s['track']:.4f}", ratio, f"{s['backup']:.0f}"))
-    return rows, met
+    for b, (k, n) in met.items():
+        verdict[b].update(cells=k, of=n)
+    return rows, met, verdict
+
+
+#: the acceptance's tracking bound: at most this times the oracle's, in every cell
+TRACKING_BOUND = 1.5
+
+
+def decision(verdict: dict) -> list[str]:
+    """Which band meets which half of the acceptance (every cell's miss rate within
+    ``TOLERANCE`` of the target; no cost and tracking within ``TRACKING_BOUND`` of the
+    oracle's), and the default that follows."""
+    shown = {b: v for b, v in verdict.items() if v["of"]}
+    if not shown:
+        return []
+
+    def honest(v):
+        return v["cells"] == v["of"]
+
+    def tracks(v):
+        return v["cost"] == 0 and bool(v["ratios"]) and max(v["ratios"]) <= TRACKING_BOUND
+
+    lines = []
+    for b, v in shown.items():
+        ratios = (f"{min(v['ratios']):.2f} to {max(v['ratios']):.2f}" if v["ratios"]
+                  else "-")
+        lines.append((b, f"{v['cells']} of {v['of']}", f"{v['cost']} of {v['n']}", ratios,
+                      "yes" if honest(v) and tracks(v) else "no"))
+    both = [b for b, v in shown.items() if honest(v) and tracks(v)]
+    honest_bands = [b for b, v in shown.items() if honest(v)]
+    out = ["## The decision", "",
+           f"The issue's acceptance asks for both: every cell's miss rate within {TOLERANCE:g} "
+           f"x the target, and no episode with cost with tracking at most {TRACKING_BOUND:g} "
+           "x the oracle's in every cell.", "",
+           table(("band", "cells within the target", "episodes with cost",
+                  "tracking / oracle, per cell", "both"), lines), ""]
+    if both:
+        out += [f"`{both[0]}` meets both.", ""]
+    else:
+        out += ["No band meets both. An honest band is a wider one, and the HOCBF turns "
+                "width into distance: at rest the program asks `a_2 alpha_1(h) >= band`, so a "
+                "band (or margin) of `m` m/s^2 keeps a sphere about `m / (a_1 a_2)` further "
+                "out (`a_1 = a_2 = 4`: 6 cm per m/s^2), and the tracker's reference passes "
+                "within a few centimetres of the obstacle."
+                + (f" The honest band{'s' if len(honest_bands) > 1 else ''}: "
+                   + ", ".join(f"`{b}`" for b in honest_bands) + "." if honest_bands else ""),
+                "", "So the Franka envs' default stays `default` (the paper's band on the "
+                "obstacle pairs, whose probability it does not keep; the conformal margin on "
+                "the joint limits)"
+                + (f", and the honest band is one option away: `{options(honest_bands[0])}`."
+                   if honest_bands else "."), ""]
+    return out
+
+
+def options(name: str) -> str:
+    """The filter options of a band's label (:func:`band`)."""
+    if name.startswith("conformal-additive (step "):
+        step = name.removeprefix("conformal-additive (step ").removesuffix(")")
+        return f'calibration="conformal-additive", calibration_step={step}'
+    return f'calibration="{name}"'
 
 
 def pooled_rows(recs: list[dict]) -> list[tuple]:
@@ -190,18 +255,19 @@ def anatomy_section() -> list[str]:
         f"{refits} refits in {len(refit)} episodes, {seconds / max(refits, 1):.1f} s each "
         f"(a stall of the loop), miss {pct(m1 / n1 if n1 else math.nan)} (per episode "
         f"{spread(refit)}) against {pct(m0 / n0 if n0 else math.nan)} without "
-        f"({spread(plain)}); episodes with cost {cost[1]} and {cost[0]}. Neither remedy "
-        "comes near the promise: the band misses most where the filter leans on it (binding "
-        "constraints, obstacle pairs) and more as the episode goes on, which no refit of a "
-        "stationary kernel on the recent window corrects. The guarantee-side corrections "
-        "above are what meet the rate.", ""]
+        f"({spread(plain)}); episodes with cost {cost[1]} and {cost[0]}."
+        + (" Neither remedy comes near the promise: the band misses most where the filter "
+           "leans on it (binding constraints, obstacle pairs) and more as the episode goes "
+           "on, which no refit of a stationary kernel on the recent window corrects."
+           if min(m1 / n1 if n1 else 1.0, pooled(plain, "all")[2] / n0 if n0 else 1.0)
+           > TOLERANCE * TARGET else ""), ""]
 
 
 def build() -> dict:
     recs = read_jsonl(SOURCE)
     tracker = [r for r in recs if r["config"]["agent"] == "nominal"]
     adversarial = [r for r in recs if r["config"]["agent"] != "nominal"]
-    rows, met = tracker_rows(tracker)
+    rows, met, verdict = tracker_rows(tracker)
     out = [provenance("benchmarks/page_calibration.py",
                       ["benchmarks/results/calibration.jsonl.gz",
                        "benchmarks/results/calibration_anatomy.json"]),
@@ -249,7 +315,7 @@ def build() -> dict:
            "",
            table(("scene", "prior", "band", "episodes", "with cost", "miss", "true miss",
                   "coverage 1 / 2 / 3 std", "tracking [m]", "/ oracle", "backup"), rows),
-           ""]
+           ""] + decision(verdict)
     if adversarial:
         out += ["## Against the policies that defeat the filter with nothing known", "",
                 "The three policies with the most episodes with cost in the adversarial "
