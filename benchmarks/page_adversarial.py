@@ -234,6 +234,12 @@ def build() -> dict:
            table(("filter", "episodes", "with cost", "95 % bound", "min h [m]", "code"),
                  headline(recs)),
            "",
+           *(["Rows of two codes: the filters' rows were run again after the brake learned to "
+              "give way to moving obstacles (the hold point recedes from an obstacle that "
+              "approaches within 10 cm) and the mean-only relaxation to keep the joint speeds' "
+              "band; the others are from the suite's first run (the filter-free row depends on "
+              "neither, the nominal-only rows on the brake).", ""]
+             if len({r.get("code_version") for r in recs}) > 1 else []),
            "By policy (episodes with cost / episodes, the three scenarios):",
            "",
            table(("policy", "oracle", "AFVSGP zero", "AFVSGP kinematic", "AFVSGP perturbed",
@@ -259,7 +265,7 @@ def build() -> dict:
                 "\"kinematic\") against the policies that defeated it most often, on the "
                 "suite's seeds, with the brake that only damps when it saturates (the joint "
                 "accelerations keep their direction; clipping each joint's torque apart, as "
-                "the brake of the results above did, bent it through the coupled inertia and "
+                "the suite's first brake did, bent it through the coupled inertia and "
                 "drove joint 4 to 7 rad/s while braking): the defaults, without the mean-only "
                 "relaxation, and with the conformal additive margin of "
                 "[Calibration](calibration.md) on every barrier or on the joint-limit "
