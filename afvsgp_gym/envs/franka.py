@@ -978,18 +978,13 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         joint velocity of those rows ``n' J_s`` (damped least squares), scaled into
         ``EVADE_SPEED_SHARE`` of the joint speed limits. It is the robot's own reflex, with
         the kinematics and the obstacles' measured motion, not the filter's model."""
-        static = self._obstacle_constants()[1]
-        if static is not None or not self._n_pairs:
+        if self._obstacle_constants()[1] is not None or not self._n_pairs:
             return None
-        rad = self._obstacle_constants()[0]
-        p, _, jac, _ = self._spheres
-        st = np.array(self._obstacle_states)
-        n_s = p.shape[0]
-        d = (p[None, :, :] - st[:, None, 0, :]).reshape(-1, 3)
-        dist = np.linalg.norm(d, axis=1)
-        n = d / np.maximum(dist, 1e-9)[:, None]
-        approach = (n * np.repeat(st[:, 1], n_s, axis=0)).sum(axis=1)
-        rows = np.flatnonzero((dist - rad < self.EVADE_DISTANCE) & (approach > 0.0))
+        k = self._n_pairs  # the pairs' h and n of this step (the limit rows follow them)
+        h, n = self._geometry[0][:k, 0], self._geometry[1]
+        jac, n_s = self._spheres[2], len(self._spheres[0])
+        approach = (n * np.repeat(np.array(self._obstacle_states)[:, 1], n_s, axis=0)).sum(1)
+        rows = np.flatnonzero((h < self.EVADE_DISTANCE) & (approach > 0.0))
         if not len(rows):
             return None
         a = np.einsum("ki,kij->kj", n[rows], jac[rows % n_s][:, :, :7])
