@@ -463,8 +463,9 @@ class SafetyController:
         res = self.socp.solve(u_nom, a0, a, G, u_backup)
         if not res.feasible and G is not None and self.config.relax_to_mean:
             # graceful degradation: the mean-only constraints (beta = 0) before the backup
-            mean_res = self.socp.solve(u_nom, a0, a, self._relaxed_cones(G, rows), None)
-            if mean_res.feasible:
+            cones = self._relaxed_cones(G, rows)
+            mean_res = None if cones is G else self.socp.solve(u_nom, a0, a, cones, None)
+            if mean_res is not None and mean_res.feasible:
                 res = replace(mean_res, feasible=False, status=f"relaxed:{res.status}",
                               margins=chance_margins(mean_res.u, a0, a, G))
         u = res.u
@@ -501,14 +502,16 @@ class SafetyController:
 
     def _relaxed_cones(self, G: np.ndarray, rows: np.ndarray) -> np.ndarray | None:
         """The cones the mean-only relaxation keeps (``relax_to_mean``): those of the
-        barriers of relative degree 1 in the program, none (None) without such barriers."""
+        barriers of relative degree 1 in the program, none (None) without such barriers, and
+        ``G`` itself when every barrier of the program has relative degree 1 (nothing to
+        relax: the program is not solved again)."""
         if self._degrees is None:
-            if self.config.relative_degree != 1:
-                return None
-            return G
+            return None if self.config.relative_degree != 1 else G
         keep = self._degrees[rows] == 1
         if not keep.any():
             return None
+        if keep.all():
+            return G
         out = G.copy()
         out[~keep] = 0.0
         return out
