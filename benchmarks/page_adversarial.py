@@ -41,11 +41,15 @@ BRAKE_BLOCKS = {
     "conformal_margin": "the conformal additive margin (`calibration=\"conformal-additive\"`, "
                         "`calibration_step=1`)",
     "limit_margin": "the same margin on the 28 joint-limit barriers only (`calibration_step` 0 "
-                    "for the obstacle pairs): **the Franka envs' default since**",
+                    "for the obstacle pairs): the Franka envs' default until the multiplier",
+    "limit_multiplier": "the conformal multiplier on the joint-limit barriers only "
+                        "(`calibration=\"conformal\"`, `calibration_step` 1 std per miss, 0 "
+                        "for the obstacle pairs): **the Franka envs' default since**",
 }
 TRACKER_BLOCKS = {
     "tracker_defaults": "AFVSGP, the paper's band",
     "tracker_limit_margin": "AFVSGP, the margin on the joint-limit barriers only",
+    "tracker_limit_multiplier": "AFVSGP, the multiplier on the joint-limit barriers only",
     "tracker_oracle": "oracle (true model)",
 }
 PAGE = DOCS / "adversarial.md"
@@ -267,9 +271,10 @@ def build() -> dict:
                 "accelerations keep their direction; clipping each joint's torque apart, as "
                 "the suite's first brake did, bent it through the coupled inertia and "
                 "drove joint 4 to 7 rad/s while braking): the defaults, without the mean-only "
-                "relaxation, and with the conformal additive margin of "
+                "relaxation, with the conformal additive margin of "
                 "[Calibration](calibration.md) on every barrier or on the joint-limit "
-                "barriers only (`benchmarks/configs/brake.toml`).", ""]
+                "barriers only, and with the conformal multiplier on the joint-limit barriers "
+                "only (`benchmarks/configs/brake.toml`).", ""]
         out += brake(read_jsonl(BRAKE)) + [""]
     if AUTHORITY.exists():
         out += ["## Can the torque limits meet the demand?", "",
