@@ -55,12 +55,17 @@ class BarrierSet(Sequence):
     lf : ndarray of shape (K,)
     lg : ndarray of shape (K, action_dim)
     xi : ndarray of shape (K, feature_dim)
+    covariance : ndarray of shape (K, r + 1, r + 1) or None
+        Covariance of each barrier's measured ``[h, ..., h^(r-1), lf]`` from the sensing
+        (an obstacle estimate, noisy encoders); None where they are exact. The filter turns it
+        into a back-off of the constraint (:class:`~afvsgp_gym.cbf.SafetyController`).
     """
 
     derivatives: np.ndarray
     lf: np.ndarray
     lg: np.ndarray
     xi: np.ndarray
+    covariance: np.ndarray | None = None
 
     @classmethod
     def stack(cls, terms: Sequence[BarrierTerms]) -> BarrierSet:

@@ -415,6 +415,8 @@ class SafetyController:
         if self.config.barrier_margin:
             gain = self._margin_gain if self._plain else self.barriers.margin_gain
             c0 = c0 - self.config.barrier_margin * gain
+        if bset.covariance is not None and self.config.beta > 0:
+            c0 = c0 - self.config.beta * self.sensing_std(bset)
         ok = None
         rows = self._finite_active_rows(c0, c, bset)
         if rows is None:
@@ -533,6 +535,36 @@ class SafetyController:
         if self._plain:
             return self.hocbf.constraints(bset)
         return self.barriers.constraints(bset)
+
+    def sensing_std(self, terms) -> np.ndarray:
+        """Standard deviation (K,) of each constraint's ``c0`` (eq. 45) from the sensing:
+        ``sqrt(g' C g)`` with ``C`` the terms' ``covariance`` of ``[h, ..., h^(r-1), lf]`` and
+        ``g`` the gradient of ``c0`` in them (``dc0/dlf = 1``; the derivatives' by central
+        differences through :meth:`constraints`, so every class-K function is covered), to
+        first order. The filter backs each constraint off by ``beta`` of it: the chance
+        constraint on the sensing error alone, and with a learned band the two standard
+        deviations add (at least ``sqrt`` of the summed variances: conservative)."""
+        bset = BarrierSet.stack(terms)
+        cov = bset.covariance
+        if cov is None:
+            return np.zeros(len(bset))
+        d = bset.derivatives
+        r = d.shape[1]
+        if np.shape(cov) != (len(d), r + 1, r + 1):
+            raise ValueError(f"covariance must have shape ({len(d)}, {r + 1}, {r + 1}) (the "
+                             f"barriers' [h, ..., h^(r-1), lf]). Got: {np.shape(cov)}")
+        grad = np.empty((len(d), r + 1))
+        grad[:, r] = 1.0
+        for i in range(r):
+            step = 1e-6 * np.maximum(1.0, np.abs(d[:, i]))
+            up, down = d.copy(), d.copy()
+            up[:, i] += step
+            down[:, i] -= step
+            c_up = self.constraints(BarrierSet(up, bset.lf, bset.lg, bset.xi))[0]
+            c_down = self.constraints(BarrierSet(down, bset.lf, bset.lg, bset.xi))[0]
+            grad[:, i] = (c_up - c_down) / (2.0 * step)
+        var = np.einsum("ki,kij,kj->k", grad, cov, grad)
+        return np.sqrt(np.maximum(var, 0.0))
 
     def _excite(self, u_nom: np.ndarray, rows: np.ndarray, sig: np.ndarray, a0: np.ndarray,
                 a: np.ndarray) -> np.ndarray:

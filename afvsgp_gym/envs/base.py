@@ -120,9 +120,14 @@ class ObstacleTask:
         lf.flags.writeable = False
         return BarrierSet(true.derivatives, lf, true.lg, true.xi)
 
+    def true_state_terms(self, model: str = "true") -> BarrierSet:
+        """The terms at the true state (ground truth for evaluation); here the same as
+        :meth:`barrier_terms` (the state is known exactly)."""
+        return self.barrier_terms(model)
+
     def barrier_values(self) -> np.ndarray:
-        """``(n_barriers,)`` values of h at the current state."""
-        return self.barrier_terms("true").h
+        """``(n_barriers,)`` values of h at the true state."""
+        return self.true_state_terms("true").h
 
     def _reference_h(self) -> float:
         """Clearance of the reference point's sphere (``tracking_radius``) from every obstacle."""
@@ -177,8 +182,8 @@ class ObstacleTask:
         space = self.action_space
         # np.clip's wrapper costs more than the clipping (check_action has refused NaN)
         u = np.minimum(np.maximum(check_action(action, space.shape), space.low), space.high)
-        true = self.barrier_terms("true")
-        nom = self.barrier_terms("nominal")
+        true = self.true_state_terms("true")
+        nom = self.true_state_terms("nominal")
         delta = (true.lf - nom.lf) + (true.lg - nom.lg) @ u
         unstable = self._advance(u)
         reward, reward_info = self._get_rew(u)

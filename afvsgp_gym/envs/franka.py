@@ -5,7 +5,8 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Sequence
-from typing import Any
+from dataclasses import replace
+from typing import Any, NamedTuple
 
 import mujoco
 import numpy as np
@@ -25,6 +26,13 @@ from afvsgp_gym.envs.joint_limits import (
     FRANKA_MAX_SPEED,
     FRANKA_MAX_TORQUE_RATE,
     JointLimits,
+)
+from afvsgp_gym.envs.perception import (
+    JointEncoders,
+    ObstacleCamera,
+    Perception,
+    Pushes,
+    pair_covariance,
 )
 from afvsgp_gym.envs.safety_spheres import (
     PANDA_ARM_SPHERES,
@@ -50,6 +58,19 @@ _BAD_WARNINGS = np.array(
         int(mujoco.mjtWarning.mjWARN_BADQVEL),
     ]
 )
+
+
+class StateView(NamedTuple):
+    """One view of the state: the joint state (an ``MjData`` after ``mj_forward``), the
+    safety spheres' and end-effector's kinematics, every barrier's geometry and the obstacle
+    states ``(p, v, a)``. The env keeps the true view and the sensed one (the same object
+    when it senses exactly)."""
+
+    data: mujoco.MjData
+    spheres: tuple[np.ndarray, ...]
+    ee: tuple[np.ndarray, np.ndarray]
+    geometry: tuple[np.ndarray, ...]
+    obstacle_states: list
 
 
 class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
@@ -227,6 +248,9 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
     | limit_barriers | True | joint range and speed barriers after the obstacle ones |
     | range_margin, speed_margin | 0.1, 0.4 | rad, rad/s: the limit barriers' margins |
     | check_acceleration, check_torque_rate | False, False | optional limit checks (Cost) |
+    | obstacle_noise, obstacle_rate, obstacle_delay | 0.0, None, 0.0 | m, Hz, s: the camera |
+    | velocity_noise, position_noise | 0.0, 0.0 | rad/s, rad: the joint encoders |
+    | push | None | ``{"force": N, "duration": s, "rate": 1/s}``: random pushes on the links |
     | render_mode, width, height | None, 480, 480 | "rgb_array", "depth_array", "human" (display) |
 
     Custom ``obstacles`` replace the scenario's (the reference stays): each dict gives the
@@ -326,6 +350,12 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         speed_margin: float = 0.4,
         check_acceleration: bool = False,
         check_torque_rate: bool = False,
+        obstacle_noise: float = 0.0,
+        obstacle_rate: float | None = None,
+        obstacle_delay: float = 0.0,
+        velocity_noise: float = 0.0,
+        position_noise: float = 0.0,
+        push: dict | None = None,
         render_mode: str | None = None,
         width: int = 480,
         height: int = 480,
@@ -359,6 +389,8 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         self.limit_barriers = bool(limit_barriers)
         range_margin = check_real(range_margin, "range_margin", low=0.0)
         speed_margin = check_real(speed_margin, "speed_margin", low=0.0)
+        self.perception = Perception(obstacle_noise, obstacle_rate, obstacle_delay,
+                                     velocity_noise, position_noise, push)
         physics_dt = float(physics_dt)
         self._control_dt = physics_dt * n_skip
         self._user_obstacles = (
@@ -447,6 +479,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         self._zeros: tuple[np.ndarray, np.ndarray] | None = None
         self._step_rates: tuple[np.ndarray | None, np.ndarray | None] = (None, None)
         self._last_torque = np.zeros(7)
+        self._setup_sensing()
         self._build_scenario(None)
         self._steps = 0
         self._invalidate_barriers()
@@ -575,32 +608,32 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
             return {}
         return {k: dict(v) for k, v in self.ARM_LEARNER_DEFAULTS.items()}
 
-    def _catalogue_inertia(self) -> np.ndarray:
-        """``M_cat(q)`` (7, 7) of the catalogue model at the current joint angles (the model
-        is built on first use)."""
+    def _catalogue_inertia(self, state: mujoco.MjData) -> np.ndarray:
+        """``M_cat(q)`` (7, 7) of the catalogue model at the joint angles of ``state`` (the
+        model is built on first use)."""
         if self._brake_model is None:
             model = fm.build_model(fm.PlantParameters(armature=self.plant.armature), self._scene)
             self._brake_model = (model, mujoco.MjData(model))
         m, d = self._brake_model
-        d.qpos[:] = self.data.qpos
+        d.qpos[:] = state.qpos
         mujoco.mj_fwdPosition(m, d)
         inv = np.empty((m.nv, m.nv))
         mujoco.mj_solveM(m, d, inv, np.eye(m.nv))
         return np.linalg.inv(inv)[:7, :7]
 
-    def _catalogue_coriolis(self) -> np.ndarray:
-        """``C_cat(q, q') q'`` (7,) of the catalogue model at the current state: its bias
-        forces at the joint speeds minus those at rest (gravity cancels)."""
-        self._catalogue_inertia()  # the model, built on first use
+    def _catalogue_coriolis(self, state: mujoco.MjData) -> np.ndarray:
+        """``C_cat(q, q') q'`` (7,) of the catalogue model at ``state``: its bias forces at
+        the joint speeds minus those at rest (gravity cancels)."""
+        self._catalogue_inertia(state)  # the model, built on first use
         m, d = self._brake_model
-        d.qpos[:] = self.data.qpos
+        d.qpos[:] = state.qpos
         out = np.empty(m.nv)
         rest = np.empty(m.nv)
         d.qvel[:] = 0.0
         mujoco.mj_fwdPosition(m, d)
         mujoco.mj_comVel(m, d)
         mujoco.mj_rne(m, d, 0, rest)
-        d.qvel[:] = self.data.qvel
+        d.qvel[:] = state.qvel
         mujoco.mj_comVel(m, d)
         mujoco.mj_rne(m, d, 0, out)
         return (out - rest)[:7]
@@ -716,18 +749,26 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         d.ctrl[:] = 0.0
         self._place_markers()
         mujoco.mj_forward(self.model, d)
-        self._spheres, self._ee = self._kinematics()
-        self._geometry = self._geometry_of()
-        if self.limit_barriers:
-            self._geometry = self._with_limit_geometry(self._geometry)
+        self._spheres, self._ee = self._kinematics(d)
+        self._geometry = self._state_geometry(d, self._spheres, self._obstacle_states)
+        self._true_view = StateView(d, self._spheres, self._ee, self._geometry,
+                                    self._obstacle_states)
+        self._sensed_view = self._true_view if self.perception.exact else self._sense()
         self._invalidate_barriers()
 
-    def _with_limit_geometry(self, geometry: tuple[np.ndarray, ...]) -> tuple[np.ndarray, ...]:
+    def _state_geometry(self, d: mujoco.MjData, spheres, states) -> tuple[np.ndarray, ...]:
+        """``(derivs, n, curv, xi, a_obs)`` of every barrier at joint state ``d``, sphere
+        kinematics ``spheres`` and obstacle states ``states``."""
+        geometry = self._geometry_of(d, spheres, states)
+        return self._with_limit_geometry(geometry, d) if self.limit_barriers else geometry
+
+    def _with_limit_geometry(self, geometry: tuple[np.ndarray, ...],
+                             d: mujoco.MjData) -> tuple[np.ndarray, ...]:
         """The obstacle pairs' ``(derivs, n, curv, xi, a_obs)`` with the joint-limit
         barriers' derivatives and features appended (``n``, ``curv``, ``a_obs`` stay the
         pairs')."""
         derivs, n, curv, xi, a_obs = geometry
-        lim, q, qd = self.joint_limits, self.data.qpos, self.data.qvel
+        lim, q, qd = self.joint_limits, d.qpos[:7], d.qvel[:7]
         derivs = np.concatenate([derivs, lim.derivatives(q, qd)])
         xi = np.concatenate([xi, lim.features(q, qd, self.feature_dim)])
         derivs.flags.writeable = xi.flags.writeable = False
@@ -741,6 +782,155 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         self._ref_state = self.reference.state(t)
         self.data.mocap_pos[self._ref_mocap] = self._ref_state[0]
 
+    # ------------------------------------------------------------------ sensing
+    def _setup_sensing(self) -> None:
+        """The sensors and pushes of ``self.perception`` (:mod:`afvsgp_gym.envs.perception`;
+        none when it is exact)."""
+        per, m = self.perception, self.model
+        self._camera = (ObstacleCamera(per, self._control_dt, self.n_obstacles)
+                        if per.camera else None)
+        self._encoders = JointEncoders(per) if per.encoders else None
+        self._sensed_data = mujoco.MjData(m) if per.encoders else None
+        self._estimate: tuple[float, list, np.ndarray | None] | None = None
+        self._pushes = None
+        if per.pushes:  # a point on the surface of one of the link's arm spheres
+            bodies, offsets, radii = sphere_arrays(PANDA_ARM_SPHERES)
+            ids = sorted({m.body(b).id for b in bodies})
+            points = [np.array([[*off, r] for b, off, r in zip(bodies, offsets, radii,
+                                                                strict=True)
+                                if m.body(b).id == i]) for i in ids]
+            self._pushes = Pushes(per, self._control_dt, np.array(ids), points)
+
+    def _reseed_sensing(self) -> None:
+        """New noise and pushes for the episode, from the env's seeded generator (drawn only
+        when something is sensed or pushed, so exact envs keep their random streams)."""
+        seed = int(self.np_random.integers(1 << 62))
+        for part in (self._camera, self._encoders, self._pushes):
+            if part is not None:
+                part.reseed(seed)
+        self._estimate = None
+        self.data.xfrc_applied[:] = 0.0
+
+    def _sense(self) -> StateView:
+        """The state as the sensors give it: noisy encoders, and the obstacles from the
+        estimate set for this control period (:meth:`set_obstacle_estimate`) or else the
+        camera's raw reading."""
+        d = self.data
+        if self._sensed_data is not None:
+            ds = self._sensed_data
+            ds.qpos[:] = d.qpos
+            ds.qvel[:] = d.qvel
+            ds.qpos[:7], ds.qvel[:7] = self._encoders.measure(d.qpos[:7], d.qvel[:7])
+            ds.mocap_pos[:] = d.mocap_pos
+            ds.ctrl[:] = 0.0
+            mujoco.mj_forward(self.model, ds)
+            spheres, ee = self._kinematics(ds)
+        else:
+            ds, spheres, ee = d, self._spheres, self._ee
+        states = self._obstacle_states
+        if self._camera is not None:
+            est = self._estimate
+            states = (est[1] if est is not None and est[0] == self._steps
+                      else self._camera.raw_states(self.time, self.obstacles))
+        if ds is d and states is self._obstacle_states:
+            return self._true_view
+        return StateView(ds, spheres, ee, self._state_geometry(ds, spheres, states), states)
+
+    def obstacle_reading(self) -> tuple[np.ndarray, float]:
+        """The camera's newest sample of the obstacle centres (O, 3) and its sample time
+        (s); without a camera the true centres now."""
+        if self._camera is None:
+            return np.array([st[0] for st in self._obstacle_states]), self.time
+        pos, t = self._camera.reading(self.time, self.obstacles)
+        return pos.copy(), t
+
+    def set_obstacle_estimate(self, position: np.ndarray, velocity: np.ndarray,
+                              acceleration: np.ndarray,
+                              covariance: np.ndarray | None = None) -> None:
+        """Use an estimate of the obstacles for this control period's sensed terms (instead
+        of the camera's raw reading): ``position``, ``velocity``, ``acceleration`` (O, 3) and
+        the per-axis covariance (O, 3, 3) of ``[p, v, a]`` (None: taken as exact). The terms'
+        ``covariance`` then carries it (:func:`~afvsgp_gym.envs.perception.pair_covariance`)."""
+        o = self.n_obstacles
+        arrays = [np.asarray(x, dtype=np.float64) for x in (position, velocity, acceleration)]
+        for name, arr in zip(("position", "velocity", "acceleration"), arrays, strict=True):
+            if arr.shape != (o, 3) or not np.isfinite(arr).all():
+                raise ValueError(f"{name} must be a finite array of shape ({o}, 3). "
+                                 f"Got shape {arr.shape}")
+        if covariance is not None:
+            covariance = np.asarray(covariance, dtype=np.float64)
+            if covariance.shape != (o, 3, 3) or not np.isfinite(covariance).all():
+                raise ValueError(f"covariance must be a finite array of shape ({o}, 3, 3) or "
+                                 f"None. Got shape {covariance.shape}")
+        states = [(arrays[0][i], arrays[1][i], arrays[2][i]) for i in range(o)]
+        self._estimate = (self._steps, states, covariance)
+        self._sensed_view = self._sense()
+        self._invalidate_barriers()
+
+    def _sensed_covariance(self, view: StateView, sphere_acc: np.ndarray | None
+                           ) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """Covariance (K, 3, 3) of every barrier's ``[h, h', lf]`` as sensed, for a model
+        whose ``lf`` holds the spheres' accelerations ``sphere_acc`` (S, 3; None: ``lf = 0``):
+        the obstacle estimate's (when one with a covariance is set;
+        :func:`~afvsgp_gym.envs.perception.pair_covariance`) and the encoders' noise (to first
+        order: ``n' J_s`` times the joint noise for the pairs; ``q``, ``q'`` directly for the
+        joint limits); None when neither is known. And the mean of ``lf``'s error (K,) to
+        second order, which ``lf`` loses (None: none): the curvature ``|P v|^2 / |d|`` is
+        convex in the obstacle's velocity, so its estimate is high by ``tr(P Sigma_v) / |d| =
+        2 sigma_v^2 / |d|`` on average."""
+        est = self._estimate
+        obstacle_cov = est[2] if est is not None and est[0] == self._steps else None
+        enc = self._encoders
+        if obstacle_cov is None and enc is None:
+            return None, None
+        derivs, n, _, xi, _ = view.geometry
+        k = len(n)
+        cov = np.zeros((len(derivs), 3, 3))
+        bias = None
+        if obstacle_cov is not None and k:
+            n_s = len(view.spheres[0])
+            per_pair = np.repeat(obstacle_cov, n_s, axis=0)
+            dist = np.linalg.norm(xi[:k, 14:17], axis=1)
+            w = None
+            if sphere_acc is not None:
+                a_o = np.repeat(np.array([st[2] for st in view.obstacle_states]), n_s, axis=0)
+                w = np.tile(sphere_acc, (self.n_obstacles, 1)) - a_o
+            cov[:k] = pair_covariance(n, dist, xi[:k, 17:20], per_pair, w)
+            if sphere_acc is not None:
+                bias = np.zeros(len(derivs))
+                bias[:k] = 2.0 * per_pair[:, 1, 1] / dist
+        if enc is not None:
+            sq, sv = enc.position_noise ** 2, enc.velocity_noise ** 2
+            if k:
+                jac = view.spheres[2]
+                rows = np.einsum("ki,kij->kj", n, jac[np.arange(k) % len(jac)][:, :, :7])
+                gain = np.einsum("kj,kj->k", rows, rows)
+                cov[:k, 0, 0] += sq * gain
+                cov[:k, 1, 1] += sv * gain
+            if self.limit_barriers:
+                j = self.joint_limits.n_joints
+                cov[k : k + 2 * j, 0, 0] += sq
+                cov[k : k + 2 * j, 1, 1] += sv
+                cov[k + 2 * j :, 0, 0] += sv
+        cov.flags.writeable = False
+        return cov, bias
+
+    def sensing_errors(self) -> dict[str, float]:
+        """The sensed state's errors: the largest obstacle centre error (m) and joint
+        errors (rad, rad/s), 0.0 where sensed exactly."""
+        true, sensed = self._true_view, self._sensed_view
+        if sensed is true:
+            return {"obstacle_error": 0.0, "joint_position_error": 0.0,
+                    "joint_velocity_error": 0.0}
+        err = max((float(np.linalg.norm(np.asarray(a[0]) - b[0]))
+                   for a, b in zip(sensed.obstacle_states, true.obstacle_states, strict=True)),
+                  default=0.0)
+        return {"obstacle_error": err,
+                "joint_position_error": float(np.abs(sensed.data.qpos[:7]
+                                                     - true.data.qpos[:7]).max()),
+                "joint_velocity_error": float(np.abs(sensed.data.qvel[:7]
+                                                     - true.data.qvel[:7]).max())}
+
     # ------------------------------------------------------------------ barriers
     def _sphere_centres(self, data: mujoco.MjData) -> np.ndarray:
         """(S, 3) safety-sphere centres at the kinematics of ``data``."""
@@ -749,12 +939,14 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         p += data.xpos[body]
         return p
 
-    def _point_kinematics(self) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, np.ndarray]]:
+    def _point_kinematics(self, d: mujoco.MjData
+                          ) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, np.ndarray]]:
         """Safety spheres ``(p (S, 3), v (S, 3), J (S, 3, nv), J' q' (S, 3))`` from MuJoCo's
         point Jacobian and its time derivative at each centre (``mj_jac``, ``mj_jacDot``),
-        and the end-effector site's ``(p, v)``. The Jacobians share one fresh buffer
-        (``_ee_jac`` is its last block), so one product with ``q'`` gives every velocity."""
-        m, d = self.model, self.data
+        and the end-effector site's ``(p, v)``, at the state of ``d``. The Jacobians share
+        one fresh buffer (``_ee_jac`` is its last block), so one product with ``q'`` gives
+        every velocity."""
+        m = self.model
         p = self._sphere_centres(d)
         n_s = p.shape[0]
         jac = np.empty((2 * n_s + 1, 3, m.nv))  # [J_s ..., J_s' ..., J_ee]
@@ -767,10 +959,11 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         spheres = (p, vel[:n_s], jac[:n_s], vel[n_s : 2 * n_s])
         return spheres, (d.site_xpos[self._site].copy(), vel[-1])
 
-    def _site_kinematics(self) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, np.ndarray]]:
+    def _site_kinematics(self, d: mujoco.MjData
+                         ) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, np.ndarray]]:
         """:meth:`_point_kinematics` when the one sphere is the end-effector site: its
         Jacobian is the site's (``mj_jacSite`` is ``mj_jac`` at ``site_xpos``)."""
-        m, d = self.model, self.data
+        m = self.model
         p = d.site_xpos[self._site].copy()
         jac = np.empty((2, 3, m.nv))  # [J_s, J_s']: numpy multiplies block by block, so the
         # velocities are those of the general path's stack
@@ -797,13 +990,16 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
             self._obstacle_key = key
         return self._obstacle_const
 
-    def _pair_geometry(self) -> tuple[np.ndarray, ...]:
+    def _pair_geometry(self, data: mujoco.MjData, spheres,
+                       states) -> tuple[np.ndarray, ...]:
         """Kinematic part of every (sphere, obstacle) barrier, shared by all models:
         ``[h, h']`` (K, 2), ``n``, curvature, features ``xi`` (K, 20) and the obstacle
-        accelerations per pair (None when every obstacle is static)."""
-        p, v, _, _ = self._spheres
+        accelerations per pair (None when every obstacle is static and seen exactly)."""
+        p, v, _, _ = spheres
         rad, static = self._obstacle_constants()[:2]
-        st = np.array(self._obstacle_states) if static is None else static
+        if states is not self._obstacle_states:
+            static = None  # measured: not the scenario's constants
+        st = np.array(states) if static is None else static
         n_s = p.shape[0]
         d = (p[None, :, :] - st[:, None, 0, :]).reshape(-1, 3)
         vr = (v[None, :, :] - st[:, None, 1, :]).reshape(-1, 3)
@@ -813,24 +1009,26 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         derivs[:, 0] = h
         derivs[:, 1] = hd
         xi = np.empty((k, 20))
-        xi[:, :7] = self.data.qpos
-        xi[:, 7:14] = self.data.qvel
+        xi[:, :7] = data.qpos
+        xi[:, 7:14] = data.qvel
         xi[:, 14:17] = d
         xi[:, 17:] = vr
         derivs.flags.writeable = xi.flags.writeable = False
         a_obs = None if static is not None else np.repeat(st[:, 2], n_s, axis=0)
         return derivs, n, curv, xi, a_obs
 
-    def _one_pair_geometry(self) -> tuple[np.ndarray, ...]:
+    def _one_pair_geometry(self, data: mujoco.MjData, spheres,
+                           states) -> tuple[np.ndarray, ...]:
         """:meth:`_pair_geometry` for one sphere and one obstacle, in Python floats."""
-        p, v, _, _ = self._spheres
-        po, vo, ao = self._obstacle_states[0]
+        p, v, _, _ = spheres
+        po, vo, ao = states[0]
         d, vr = (p[0] - po).tolist(), (v[0] - vo).tolist()
         h, hd, n, curv = sphere_barrier(d, vr, float(self._obstacle_constants()[0][0]))
         derivs = np.array([[h, hd]])
-        xi = np.array([self.data.qpos.tolist() + self.data.qvel.tolist() + d + vr])
+        xi = np.array([data.qpos.tolist() + data.qvel.tolist() + d + vr])
         derivs.flags.writeable = xi.flags.writeable = False
-        a_obs = None if self.obstacles[0].duration == 0.0 else ao[None]
+        exact_static = self.obstacles[0].duration == 0.0 and states is self._obstacle_states
+        a_obs = None if exact_static else np.asarray(ao, dtype=np.float64)[None]
         return derivs, np.array([n]), np.array([curv]), xi, a_obs
 
     def _zero_terms(self, k: int) -> tuple[np.ndarray, np.ndarray]:
@@ -842,24 +1040,52 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
                 arr.flags.writeable = False
         return zero
 
-    def _compute_barriers(self, kind: str) -> BarrierSet:
-        return self._torque_terms(kind)
+    def _compute_barriers(self, kind: str, truth: bool = False) -> BarrierSet:
+        return self._torque_terms(kind, truth)
 
-    def _torque_terms(self, kind: str) -> BarrierSet:
-        """The terms of model ``kind`` per unit of the joint-torque action (``action_scale``),
-        computed once per state (subclasses with another action compose them)."""
-        key = "torque:" + kind
+    def _torque_terms(self, kind: str, truth: bool = False) -> BarrierSet:
+        """The terms of model ``kind`` per unit of the joint-torque action (``action_scale``)
+        at the sensed state (``truth``: the true one), computed once per state (subclasses
+        with another action compose them)."""
+        view = self._true_view if truth else self._sensed_view
+        key = ("torque:" if view is self._true_view else "sensed:") + kind
         terms = self._barrier_cache.get(key)
         if terms is None:
-            terms = self._barrier_cache[key] = self._joint_torque_barriers(kind)
+            terms, sphere_acc = self._joint_torque_barriers(kind, view)
+            if view is not self._true_view:
+                cov, bias = self._sensed_covariance(view, sphere_acc)
+                if bias is not None:
+                    lf = terms.lf - bias
+                    lf.flags.writeable = False
+                    terms = replace(terms, lf=lf)
+                terms = replace(terms, covariance=cov)
+            self._barrier_cache[key] = terms
         return terms
 
-    def _joint_torque_barriers(self, kind: str) -> BarrierSet:
-        derivs, n, curv, xi, a_obs = self._geometry
+    def true_state_terms(self, model: str = "true") -> BarrierSet:
+        """The terms of ``model`` at the true state, as exact perception would give them
+        (ground truth for evaluation: ``info["delta_b_true"]``; the filter never sees them).
+        The same as :meth:`barrier_terms` when the env senses exactly."""
+        if self._sensed_view is self._true_view:
+            return self.barrier_terms(model)
+        kind = {"true": "exact", "nominal": self.nominal_model}.get(model)
+        if kind is None:
+            check_choice("model", model, ("nominal", "true"))
+        key = "truth:" + kind
+        terms = self._barrier_cache.get(key)
+        if terms is None:
+            terms = self._barrier_cache[key] = self._compute_barriers(kind, truth=True)
+        return terms
+
+    def _joint_torque_barriers(self, kind: str,
+                               view: StateView) -> tuple[BarrierSet, np.ndarray | None]:
+        """The terms of model ``kind`` at ``view``, and the spheres' accelerations at zero
+        action (S, 3) that their ``lf`` holds (None for the zero model)."""
+        derivs, n, curv, xi, a_obs = view.geometry
         k = len(curv)  # obstacle pairs; the joint-limit barriers follow
         if kind == "zero":
-            return BarrierSet(derivs, *self._zero_terms(len(derivs)), xi)
-        _, _, jac, bias = self._spheres
+            return BarrierSet(derivs, *self._zero_terms(len(derivs)), xi), None
+        _, _, jac, bias = view.spheres
         n_s = jac.shape[0]
         ns = n.reshape(-1, n_s, 3)  # (obstacles, spheres, 3)
         limits = None
@@ -869,11 +1095,11 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
                 limits = (np.zeros(self.joint_limits.n_barriers),
                           np.zeros((self.joint_limits.n_barriers, 7)))
         else:
-            m, d = self.model, self.data
+            m, d = self.model, view.data
             if kind == "perturbed" and self.nominal_mj_data is not None:
                 m, d = self.nominal_mj_model, self.nominal_mj_data
-                d.qpos[:] = self.data.qpos
-                d.qvel[:] = self.data.qvel
+                d.qpos[:] = view.data.qpos
+                d.qvel[:] = view.data.qvel
                 d.ctrl[:] = 0.0
                 mujoco.mj_forward(m, d)
             flat = jac.reshape(3 * n_s, -1)
@@ -905,7 +1131,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
             lf = np.concatenate([lf, limits[0]])
             lg = np.concatenate([lg, limits[1]])
         lf.flags.writeable = lg.flags.writeable = False
-        return BarrierSet(derivs, lf, lg, xi)
+        return BarrierSet(derivs, lf, lg, xi), acc
 
     def true_terms_error_bound(self) -> np.ndarray:
         """``(n_barriers,)`` bound on ``|h''_true(u) - (lf + lg u)|`` of the ``"true"`` terms
@@ -945,12 +1171,12 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         ``residual torque / (M w^2)``, a few mrad). Far from rest it saturates: the torque
         limits brake, at the largest deceleration of that direction.
         """
-        d = self.data
+        d = self._sensed_view.data  # the robot's own sensors
         if self._backup_step != self._steps - 1 or self._hold is None:
             self._hold = d.qpos[:7].copy()
         self._backup_step = self._steps
         w = self.brake_frequency
-        inertia = self._catalogue_inertia()
+        inertia = self._catalogue_inertia(d)
         give_way = self._give_way_velocity()
         if give_way is not None:  # the hold point moves out of the obstacles' way
             lim = self.joint_limits  # (held inside the range barriers' margin)
@@ -959,7 +1185,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         target = 0.0 if give_way is None else give_way
         acc = -(2.0 * w * (d.qvel[:7] - target) + w * w * (d.qpos[:7] - self._hold))
         brake = (inertia @ acc) / self._gear
-        coriolis = self._catalogue_coriolis() / self._gear
+        coriolis = self._catalogue_coriolis(d) / self._gear
         u = coriolis + brake
         if np.abs(u).max() > 1.0:  # saturated: damping only, and its largest share
             self._hold = d.qpos[:7].copy()  # (a spring back to where it engaged winds up)
@@ -982,12 +1208,16 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         joint velocity of those rows ``n' J_s`` (damped least squares), scaled into
         ``EVADE_SPEED_SHARE`` of the joint speed limits. It is the robot's own reflex, with
         the kinematics and the obstacles' measured motion, not the filter's model."""
-        if self._obstacle_constants()[1] is not None or not self._n_pairs:
+        view = self._sensed_view
+        exact_static = (self._obstacle_constants()[1] is not None
+                        and view.obstacle_states is self._obstacle_states)
+        if exact_static or not self._n_pairs:
             return None
         k = self._n_pairs  # the pairs' h and n of this step (the limit rows follow them)
-        h, n = self._geometry[0][:k, 0], self._geometry[1]
-        jac, n_s = self._spheres[2], len(self._spheres[0])
-        approach = (n * np.repeat(np.array(self._obstacle_states)[:, 1], n_s, axis=0)).sum(1)
+        h, n = view.geometry[0][:k, 0], view.geometry[1]
+        jac, n_s = view.spheres[2], len(view.spheres[0])
+        approach = (n * np.repeat(np.array([st[1] for st in view.obstacle_states]), n_s,
+                                  axis=0)).sum(1)
         rows = np.flatnonzero((h < self.EVADE_DISTANCE) & (approach > 0.0))
         if not len(rows):
             return None
@@ -1003,12 +1233,13 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         return self._ee[0]
 
     def _get_obs(self) -> np.ndarray:
-        p, v = self._ee
+        view = self._sensed_view  # what the sensors give
+        p, v = view.ee
         r, rd, rdd = self._ref_state
         obs = np.concatenate(
-            [self.data.qpos, self.data.qvel, p, v]
-            + [s[0] for s in self._obstacle_states]
-            + [s[1] for s in self._obstacle_states]
+            [view.data.qpos, view.data.qvel, p, v]
+            + [s[0] for s in view.obstacle_states]
+            + [s[1] for s in view.obstacle_states]
             + [r, rd, rdd]
         )
         np.minimum(np.maximum(obs, self._obs_low, out=obs), self._obs_high, out=obs)  # clip
@@ -1039,11 +1270,21 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         self._step_rates = (None, None)
         self._last_torque = np.zeros(7)
         self._hold, self._backup_step = None, -2
+        if not self.perception.exact:
+            self._reseed_sensing()
         self._after_state_change()
         return self._get_obs()
 
     def _get_reset_info(self) -> dict[str, Any]:
         return self._reset_info()
+
+    def _safety_info(self) -> dict[str, Any]:
+        """The base's (from the true state), and the sensing errors (:meth:`sensing_errors`)
+        and whether a push acts."""
+        info = super()._safety_info()
+        info.update(self.sensing_errors())
+        info["push_active"] = self._pushes is not None and self._pushes.body >= 0
+        return info
 
     def _limit_violation(self) -> bool:
         """A joint at its range stop or above its speed (or, with ``check_acceleration`` /
@@ -1059,6 +1300,9 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
             torque = u * self.action_scale  # Nm on top of the gravity compensation
             qd_before = d.qvel[:7].copy()
         d.ctrl[:] = u * self._ctrl_per_action
+        if self._pushes is not None:
+            self._pushes.step(self.time)
+            self._pushes.apply(d.xfrc_applied, d.xpos, d.xmat, d.xipos)
         mujoco.mj_step(m, d, nstep=self.frame_skip)
         if lim.max_acceleration is not None or lim.max_torque_rate is not None:
             dt = self._control_dt

@@ -345,10 +345,10 @@ class FrankaObstacleReachEnv(FrankaObstacleEnv):
         self._saturated = bool(np.any(np.abs(tau) > limit))
         return super()._advance(np.clip(tau, -limit, limit))
 
-    def _compute_barriers(self, kind: str) -> BarrierSet:
-        torque = self._torque_terms(kind)
+    def _compute_barriers(self, kind: str, truth: bool = False) -> BarrierSet:
+        torque = self._torque_terms(kind, truth)
         lf, lg = compose_affine(torque.lf, torque.lg, self._A, self._c)
-        terms = BarrierSet(torque.derivatives, lf, lg, torque.xi)
+        terms = BarrierSet(torque.derivatives, lf, lg, torque.xi, torque.covariance)
         for arr in (lf, lg):
             arr.flags.writeable = False
         return terms

@@ -13,6 +13,7 @@ from afvsgp_gym.cbf.config import resolve_miss_probability
 from afvsgp_gym.cbf.fastpath import clip
 from afvsgp_gym.cbf.learners import check_learner_name
 from afvsgp_gym.validation import check_choice
+from afvsgp_gym.wrappers.obstacle_tracking import ObstacleTracking
 
 __all__ = ["ORACLE_TERMS", "SafetyFilter", "with_env_suggestions"]
 
@@ -93,6 +94,15 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
             ``"true"`` (default) or ``"true_robust"`` (lowered by the env's
             ``true_terms_error_bound()``, e.g. the Franka's joint friction); only with
             ``learner="oracle"``.
+        obstacle_estimator: how the filter sees the obstacles of an env with a camera
+            (``obstacle_noise``/``obstacle_rate``/``obstacle_delay``): ``"auto"`` (default:
+            ``"kalman"`` with a camera), ``"kalman"`` (constant velocity) or ``"kalman-ca"``
+            (constant acceleration), whose estimate, predicted over the delay, and covariance
+            enter the constraints (each backed off by ``beta`` standard deviations of its
+            sensing error, :meth:`~afvsgp_gym.cbf.SafetyController.sensing_std`), or ``"raw"``:
+            the camera's reading (and the encoders') taken as the truth
+            (:mod:`afvsgp_gym.wrappers.obstacle_tracking`).
+        estimator_process_std: the Kalman filter's process noise (default 0.1, m s^-1.5).
         **options: ``dataset`` and the options of :class:`~afvsgp_gym.cbf.FilterConfig`
             (``alpha``, ``beta``, ``activation_distance``, ``warmup_samples``,
             ``exploration_noise``, ``learner_kwargs``, ``online``, ``qp_solver``, ``seed``, ...).
@@ -107,9 +117,9 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
     barrier, the lower edge of the band each constraint used: mean plus residual bias minus
     the multiplier times the std; NaN where not predicted), ``"calibration"`` (None, or this
     step's band against its eq. 48 samples: ``samples``, ``misses`` below the band,
-    ``within_1std/2std/3std``; :mod:`afvsgp_gym.cbf.calibration`); ``"delta_b_true"`` comes from the
-    env. ``filter_fallbacks`` counts infeasible steps since
-    the last reset.
+    ``within_1std/2std/3std``; :mod:`afvsgp_gym.cbf.calibration`), with an estimator
+    ``"obstacle_estimate_error"`` (m, the estimate's largest centre error); ``"delta_b_true"``
+    comes from the env. ``filter_fallbacks`` counts infeasible steps since the last reset.
 
     Example:
         >>> import gymnasium as gym
@@ -130,10 +140,13 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
 
     def __init__(
         self, env: gym.Env, learner: str = "afvsgp", backup: Any = "env",
-        oracle_terms: str = "true", **options: Any
+        oracle_terms: str = "true", obstacle_estimator: str = "auto",
+        estimator_process_std: float = 0.1, **options: Any
     ):
-        gym.utils.RecordConstructorArgs.__init__(self, learner=learner, backup=backup,
-                                                 oracle_terms=oracle_terms, **options)
+        gym.utils.RecordConstructorArgs.__init__(
+            self, learner=learner, backup=backup, oracle_terms=oracle_terms,
+            obstacle_estimator=obstacle_estimator,
+            estimator_process_std=estimator_process_std, **options)
         gym.Wrapper.__init__(self, env)
         check_learner_name(learner)
         check_choice("oracle_terms", oracle_terms, ORACLE_TERMS)
@@ -142,6 +155,7 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
                              f"Got: learner={learner!r}")
         self.oracle_terms = oracle_terms
         base = env.unwrapped
+        self.tracking = ObstacleTracking(base, obstacle_estimator, estimator_process_std)
         needed = ("barrier_terms", "dt", "relative_degree", "n_barriers")
         if oracle_terms != "true":
             needed += ("true_terms_error_bound",)
@@ -197,7 +211,9 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.controller.reset_residuals()
         if seed is not None:
             self.controller.reseed(seed)
+        self.tracking.reset()
         obs, info = self.env.reset(seed=seed, options=options)
+        self.tracking.sense(self.env.unwrapped)
         self._last_obs = obs
         return obs, info
 
@@ -209,18 +225,21 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
             if proposed.size != math.prod(shape):
                 raise ValueError(f"action must have shape {shape}, got {proposed.shape}")
             proposed = proposed.reshape(shape)
-        terms = base.barrier_terms("nominal")
+        terms = self.tracking.terms(base.barrier_terms("nominal"))
         true_terms = (
-            base.barrier_terms(self.oracle_terms) if self.controller.uses_true_terms else None
+            self.tracking.terms(base.barrier_terms(self.oracle_terms))
+            if self.controller.uses_true_terms else None
         )
         res = self.controller.filter(proposed, terms, true_terms, self._backup)
         applied = res.u.astype(self._dtype)
         true_margin = self._true_margin(base, proposed)
         obs, reward, terminated, truncated, info = self.env.step(applied)
         self._last_obs = obs
+        self.tracking.hold(base)  # the eq. 48 sample: the estimate without the new sample
         self.controller.observe(
             terms, applied.astype(np.float64), base.barrier_terms("nominal"), float(base.dt)
         )
+        self.tracking.sense(base)  # the next step's terms: the newest sample fused
         if not res.feasible:
             self.filter_fallbacks += 1
         info = dict(info)
@@ -241,14 +260,17 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
             calibration=(None if self.controller.last_calibration is None
                          else self.controller.last_calibration.as_dict()),
         )
+        if self.tracking.estimator is not None:
+            info["obstacle_estimate_error"] = base.sensing_errors()["obstacle_error"]
         return obs, reward, terminated, truncated, info
 
     def _true_margin(self, base, proposed: np.ndarray) -> float:
         """Ground truth for evaluation (the filter never sees it): the smallest HOCBF
         constraint value (eq. 44, m/s^2 for the provided envs) of the proposal under the true
         model, over all barriers; NaN where the env has no true terms."""
+        terms = getattr(base, "true_state_terms", base.barrier_terms)("true")
         try:
-            c0, c = self.controller.constraints(base.barrier_terms("true"))
+            c0, c = self.controller.constraints(terms)
         except (ValueError, TypeError):
             return float("nan")
         margin = c0 + c.dot(clip(proposed, self.controller.low, self.controller.high))

@@ -661,6 +661,22 @@ def test_brake_gives_way_only_to_approaching_moving_obstacles():
     assert env._give_way_velocity() is None
 
 
+def _use_geometry(env, geometry, spheres=None, ee=None):
+    """Make ``geometry`` (and the kinematics, if given) the env's true and sensed view."""
+    new = {"geometry": geometry}
+    if spheres is not None:
+        new.update(spheres=spheres, ee=ee)
+        env._spheres, env._ee = spheres, ee
+    env._geometry = geometry
+    env._true_view = env._sensed_view = env._true_view._replace(**new)
+    env._invalidate_barriers()
+
+
+def _pairs(env):
+    """The batched pair geometry at the true state."""
+    return env._pair_geometry(env.data, env._spheres, env._obstacle_states)
+
+
 @pytest.mark.parametrize("spheres", ["ee", "arm"])
 def test_static_obstacle_shortcut_equals_general_terms(spheres):
     """All obstacles static: the stacked states are cached and a_o = 0 drops out of lf; the
@@ -668,14 +684,12 @@ def test_static_obstacle_shortcut_equals_general_terms(spheres):
     env = FrankaObstacleEnv("static", safety_spheres=spheres, nominal_model="kinematic")
     env.reset(seed=0)
     env.set_state(fm.Q_HOME + 0.05, np.full(7, 0.3))
-    env._geometry = env._pair_geometry()  # the batched path also for one sphere ("ee")
-    env._invalidate_barriers()
+    _use_geometry(env, _pairs(env))  # the batched path also for one sphere ("ee")
     fast = [env.barrier_terms(m) for m in ("true", "nominal")]
     rad, static, reach2 = env._obstacle_constants()
     assert static is not None
     env._obstacle_const = (rad, None, reach2)  # force the general path at the same state
-    env._geometry = env._pair_geometry()
-    env._invalidate_barriers()
+    _use_geometry(env, _pairs(env))
     for t, m in zip(fast, ("true", "nominal"), strict=True):
         g = env.barrier_terms(m)
         for a, b in ((t.derivatives, g.derivatives), (t.lf, g.lf), (t.lg, g.lg), (t.xi, g.xi)):
@@ -722,8 +736,9 @@ def test_one_sphere_shortcuts_equal_general_path(spheres, scenario):
             continue
         fast = (*env._spheres, *env._ee, *env._geometry)
         fast_terms = [env._compute_barriers(k) for k in kinds]
-        env._spheres, env._ee = env._point_kinematics()
-        env._geometry = env._pair_geometry()
+        spheres, ee = env._point_kinematics(env.data)
+        _use_geometry(env, env._pair_geometry(env.data, spheres, env._obstacle_states),
+                      spheres, ee)
         general = (*env._spheres, *env._ee, *env._geometry)
         for a, b in zip(fast, general, strict=True):
             assert (a is None) == (b is None)
