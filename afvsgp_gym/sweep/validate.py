@@ -36,16 +36,20 @@ _RESERVED = {
 
 
 def filter_kwarg_names() -> tuple[str, ...]:
-    """Keyword options a grid may sweep in ``filter_kwargs``: the wrapper's ``backup`` and
-    ``oracle_terms``, the controller's ``dataset`` and the fields of
-    :class:`~afvsgp_gym.cbf.FilterConfig`."""
+    """Keyword options a grid may sweep in ``filter_kwargs``: the wrapper's own (``backup``,
+    ``oracle_terms``, ``obstacle_estimator``, ...), the controller's ``dataset`` and the
+    fields of :class:`~afvsgp_gym.cbf.FilterConfig`."""
     from afvsgp_gym.cbf import FilterConfig, SafetyController
+    from afvsgp_gym.wrappers import SafetyFilter
+
+    wrapper = [n for n, p in inspect.signature(SafetyFilter.__init__).parameters.items()
+               if n not in ("self", "env", "learner") and p.kind == p.POSITIONAL_OR_KEYWORD]
 
     params = inspect.signature(SafetyController.__init__).parameters
     names = [n for n, p in params.items()
              if n not in _RESERVED and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)]
     names += [n for n in FilterConfig.option_names() if n not in _RESERVED]
-    return ("backup", "oracle_terms", *names)
+    return (*wrapper, *names)
 
 
 def _one_axis_at_a_time(axes: Mapping[str, list]) -> list[dict[str, Any]]:
