@@ -41,10 +41,10 @@ BRAKE_BLOCKS = {
     "conformal_margin": "the conformal additive margin (`calibration=\"conformal-additive\"`, "
                         "`calibration_step=1`)",
     "limit_margin": "the same margin on the 28 joint-limit barriers only (`calibration_step` 0 "
-                    "for the obstacle pairs): the Franka envs' default until the multiplier",
+                    "for the obstacle pairs): **the Franka envs' default since**",
     "limit_multiplier": "the conformal multiplier on the joint-limit barriers only "
                         "(`calibration=\"conformal\"`, `calibration_step` 1 std per miss, 0 "
-                        "for the obstacle pairs): **the Franka envs' default since**",
+                        "for the obstacle pairs)",
 }
 TRACKER_BLOCKS = {
     "tracker_defaults": "AFVSGP, the paper's band",

@@ -114,18 +114,3 @@ def test_the_oracle_with_the_robots_limits_holds_and_no_filter_does_not(name):
     assert unfiltered["cost_steps"] > 0
     kinds = [unfiltered[k] for k in ("violation_steps", "contact_steps", "limit_steps")]
     assert max(kinds) <= unfiltered["cost_steps"] <= sum(kinds)  # every cost step has a kind
-
-
-def test_afvsgp_with_nothing_known_keeps_a_swung_joint_below_its_speed():
-    """``swing4`` from seed 3009 of the suite (zero prior): after the warm-up the swing drives
-    joint 4 through poses its data never covered and the learned gain of its acceleration
-    falls 4x below the true one with a std of a few percent; the limits-only margin let
-    joint 4 pass its datasheet speed at step 464. The Franka envs' default (the conformal
-    multiplier on the joint-limit barriers) widens the band with the torque: no limit step
-    in 700 steps, and the multiplier of joint 4's learner has grown above ``beta``."""
-    env = SafetyFilter(gym.make(STATIC, nominal_model="zero"), learner="afvsgp")
-    counts, _ = run_episode(env, make_policy("swing4", env, seed=3009), 3009, max_steps=700)
-    assert counts["limit_steps"] == 0 and counts["cost_steps"] == 0
-    controller = env.controller
-    joint4 = env.unwrapped.n_barriers - 28 + 2 * 7 + 2 * 3  # its lower speed barrier
-    assert controller.conformal.multiplier(np.array([joint4]))[0] > 2 * controller.config.beta
