@@ -103,8 +103,9 @@ def build() -> dict:
            "one, with `obstacle_error`, `joint_position_error`, `joint_velocity_error` and "
            "`push_active` beside them.", "",
            "`SafetyFilter` estimates the obstacles with a Kalman filter (constant velocity, "
-           "process noise `estimator_process_std` = 0.1 m s^-1.5; `obstacle_estimator="
-           "\"kalman-ca\"` for constant acceleration) that fuses each sample when it arrives "
+           "process noise `estimator_process_std` = 0.03 m s^-1.5, the smallest that is "
+           "consistent on the scenarios' obstacles; `obstacle_estimator=\"kalman-ca\"` for "
+           "constant acceleration) that fuses each sample when it arrives "
            "and predicts over the delay to the current period. Its covariance goes to the "
            "barrier terms as the first-order covariance of each pair's `[h, h', lf]` "
            "(`afvsgp_gym.envs.perception.pair_covariance`, with `lf`'s second-order mean "

@@ -37,13 +37,15 @@ class ObstacleTracking:
         One of :data:`OBSTACLE_ESTIMATORS`.
     process_std : float
         The estimator's process noise (white acceleration, m s^-1.5, constant velocity; white
-        jerk for constant acceleration). The default 0.1 suits obstacles that accelerate at
-        up to ~0.5 m/s^2 (the scenarios'): over their episodes the estimate's normalised error
-        squared is 0.4-0.5 per degree of freedom (conservative) at 1-2 cm, 30-60 Hz and 30-100
-        ms; a larger value widens the band, a smaller one lags a manoeuvre.
+        jerk for constant acceleration). The default 0.03 is the smallest whose estimate is
+        consistent on the scenarios' obstacles (accelerations up to ~0.1 m/s^2): normalised
+        error squared 0.44-0.74 per degree of freedom, while they move too, at 1-2 cm, 30-250
+        Hz and 0-100 ms (0.01: 3.3-4.8 while they move, overconfident). A livelier obstacle
+        needs more; more widens the band (0.1 triples the velocity std, ~6 cm/s at 2 cm,
+        30 Hz, 100 ms, which backs a constraint off by ~1.5 m/s^2).
     """
 
-    def __init__(self, base: Any, estimator: str = "auto", process_std: float = 0.1):
+    def __init__(self, base: Any, estimator: str = "auto", process_std: float = 0.03):
         check_choice("obstacle_estimator", estimator, OBSTACLE_ESTIMATORS)
         process_std = check_real(process_std, "estimator_process_std", low=0.0, low_open=True)
         perception = getattr(base, "perception", None)

@@ -102,7 +102,7 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
             sensing error, :meth:`~afvsgp_gym.cbf.SafetyController.sensing_std`), or ``"raw"``:
             the camera's reading (and the encoders') taken as the truth
             (:mod:`afvsgp_gym.wrappers.obstacle_tracking`).
-        estimator_process_std: the Kalman filter's process noise (default 0.1, m s^-1.5).
+        estimator_process_std: the Kalman filter's process noise (default 0.03, m s^-1.5).
         **options: ``dataset`` and the options of :class:`~afvsgp_gym.cbf.FilterConfig`
             (``alpha``, ``beta``, ``activation_distance``, ``warmup_samples``,
             ``exploration_noise``, ``learner_kwargs``, ``online``, ``qp_solver``, ``seed``, ...).
@@ -141,7 +141,7 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
     def __init__(
         self, env: gym.Env, learner: str = "afvsgp", backup: Any = "env",
         oracle_terms: str = "true", obstacle_estimator: str = "auto",
-        estimator_process_std: float = 0.1, **options: Any
+        estimator_process_std: float = 0.03, **options: Any
     ):
         gym.utils.RecordConstructorArgs.__init__(
             self, learner=learner, backup=backup, oracle_terms=oracle_terms,

@@ -110,7 +110,7 @@ def test_learning_property_and_constructor_args():
     env.learning = False
     assert not env.controller.learning
     assert env._saved_kwargs == {"learner": "none", "backup": "env", "oracle_terms": "true",
-                                 "obstacle_estimator": "auto", "estimator_process_std": 0.1,
+                                 "obstacle_estimator": "auto", "estimator_process_std": 0.03,
                                  "alpha": 2.0}
     assert env.controller.config.warmup_samples == 200
 
