@@ -33,22 +33,11 @@ from pathlib import Path
 import numpy as np
 
 from afvsgp_gym.cbf.estimation import ObstacleEstimator, discrete_process_noise, transition
+from afvsgp_gym.evaluation.version import cpu_model
 
 MODEL = "constant-velocity"
 SIGMA, PROCESS_STD, INITIAL_VELOCITY_STD = 0.01, 1.0, 0.5
 RATE, DELAY, CONTROL = 30, 0.06, 1000       # camera Hz, camera latency s, control Hz
-
-
-def cpu_name() -> str:
-    """The CPU's model name from /proc/cpuinfo (else the platform's)."""
-    try:
-        with open("/proc/cpuinfo") as fh:
-            for line in fh:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
 
 
 def _samples(n_obstacles: int, n_frames: int, seed: int) -> np.ndarray:
@@ -199,7 +188,7 @@ def main(argv: list[str] | None = None) -> dict:
         print(f"largest difference of the final estimates (ours - filterpy): {diff:.1e}")
 
     result = {
-        "machine": {"cpu": cpu_name(), "cores": os.cpu_count(),
+        "machine": {"cpu": cpu_model(), "cores": os.cpu_count(),
                     "python": platform.python_version(), "numpy": np.__version__,
                     "filterpy": fp_version,
                     "openblas_num_threads": os.environ.get("OPENBLAS_NUM_THREADS")},

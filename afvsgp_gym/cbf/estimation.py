@@ -39,6 +39,8 @@ import math
 
 import numpy as np
 
+from afvsgp_gym.validation import check_real
+
 __all__ = ["ESTIMATOR_MODELS", "TIME_TOLERANCE", "ObstacleEstimator", "discrete_process_noise",
            "transition"]
 
@@ -84,23 +86,11 @@ def _models(dt: np.ndarray, s: int, q: float) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _check_dt(dt) -> float:
-    try:
-        v = float(dt)
-    except (TypeError, ValueError):
-        raise ValueError(f"dt must be a finite number >= 0. Got: {dt!r}") from None
-    if not (math.isfinite(v) and v >= 0.0):
-        raise ValueError(f"dt must be a finite number >= 0. Got: {dt!r}")
-    return v
+    return check_real(dt, "dt", low=0.0)
 
 
 def _positive(value, name: str) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be finite and > 0. Got: {value!r}") from None
-    if not (math.isfinite(v) and v > 0.0):
-        raise ValueError(f"{name} must be finite and > 0. Got: {value!r}")
-    return v
+    return check_real(value, name, low=0.0, low_open=True)
 
 
 def transition(dt: float, model: str) -> np.ndarray:

@@ -29,6 +29,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from afvsgp_gym.validation import check_real
+
 __all__ = ["PUSH_KEYS", "JointEncoders", "ObstacleCamera", "Perception", "Pushes",
            "pair_covariance"]
 
@@ -37,23 +39,11 @@ PUSH_KEYS = ("force", "duration", "rate")
 
 
 def _nonnegative(value, name: str) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a finite number >= 0. Got: {value!r}") from None
-    if not (math.isfinite(v) and v >= 0.0):
-        raise ValueError(f"{name} must be a finite number >= 0. Got: {value!r}")
-    return v
+    return check_real(value, name, low=0.0)
 
 
 def _positive(value, name: str) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a finite number > 0. Got: {value!r}") from None
-    if not (math.isfinite(v) and v > 0.0):
-        raise ValueError(f"{name} must be a finite number > 0. Got: {value!r}")
-    return v
+    return check_real(value, name, low=0.0, low_open=True)
 
 
 @dataclass(frozen=True)
