@@ -787,7 +787,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
                         if per.camera else None)
         self._encoders = JointEncoders(per) if per.encoders else None
         self._sensed_data = mujoco.MjData(m) if per.encoders else None
-        self._estimate: tuple[float, list, np.ndarray | None] | None = None
+        self._estimate: tuple[int, list, np.ndarray | None] | None = None
         self._pushes = None
         if per.pushes:  # a point on the surface of one of the link's arm spheres
             bodies, offsets, radii = sphere_arrays(PANDA_ARM_SPHERES)
@@ -860,7 +860,10 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
                                  f"None. Got shape {covariance.shape}")
         states = [(arrays[0][i], arrays[1][i], arrays[2][i]) for i in range(o)]
         self._estimate = (self._steps, states, covariance)
-        self._sensed_view = self._sense()
+        view = self._sensed_view  # the same joint reading: only the obstacles change
+        self._sensed_view = StateView(view.data, view.spheres, view.ee,
+                                      self._state_geometry(view.data, view.spheres, states),
+                                      states)
         self._invalidate_barriers()
 
     def _sensed_covariance(self, view: StateView, sphere_acc: np.ndarray | None

@@ -181,3 +181,22 @@ def test_pair_covariance_is_the_first_order_propagation():
     np.testing.assert_array_equal(nothing_known[:, 2], 0.0)
     np.testing.assert_allclose(nothing_known[:, :2, :2] / scale, expected[:, :2, :2] / scale,
                                atol=1e-7)
+
+
+def test_an_estimate_changes_the_obstacles_not_the_joint_reading():
+    """Setting an obstacle estimate within a control period keeps that period's encoder
+    reading (one draw per period) and moves only the obstacle terms."""
+    env = gym.make(STATIC, velocity_noise=0.05, obstacle_noise=0.01)
+    base = env.unwrapped
+    env.reset(seed=4)
+    env.step(np.zeros(7, dtype=np.float32))
+    before = base._sensed_view.data.qvel.copy()
+    h_before = base.barrier_terms("nominal").h.copy()
+    p = np.array([base._obstacle_states[0][0]]) + 0.02
+    base.set_obstacle_estimate(p, np.zeros((1, 3)), np.zeros((1, 3)), np.eye(3)[None] * 1e-4)
+    np.testing.assert_array_equal(base._sensed_view.data.qvel, before)
+    after = base.barrier_terms("nominal")
+    k = base.n_obstacle_barriers
+    np.testing.assert_array_equal(after.h[k:], h_before[k:])  # joint limits: same reading
+    assert not np.allclose(after.h[:k], h_before[:k])
+    assert after.covariance is not None and after.covariance[:k, 0, 0].min() > 0
