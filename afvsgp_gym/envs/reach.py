@@ -131,6 +131,8 @@ class FrankaObstacleReachEnv(FrankaObstacleEnv):
     | payload_mass, mass_scale, damping, friction, armature, plant_seed | as Franka | plant |
     | physics_dt, frame_skip | 0.002, 2 | MuJoCo step and steps per action (4 ms) |
     | reset_noise | 0.02 | rad |
+    | obstacle_noise, obstacle_rate, obstacle_delay | as Franka | the camera |
+    | velocity_noise, position_noise, push | as Franka | encoders, pushes |
     | render_mode, width, height | None, 480, 480 | |
 
     ## Version History
@@ -177,6 +179,12 @@ class FrankaObstacleReachEnv(FrankaObstacleEnv):
         plant_seed: int = _FRANKA["plant_seed"],
         physics_dt: float = _FRANKA["physics_dt"],
         frame_skip: int = _FRANKA["frame_skip"],
+        obstacle_noise: float = _FRANKA["obstacle_noise"],
+        obstacle_rate: float | None = _FRANKA["obstacle_rate"],
+        obstacle_delay: float = _FRANKA["obstacle_delay"],
+        velocity_noise: float = _FRANKA["velocity_noise"],
+        position_noise: float = _FRANKA["position_noise"],
+        push: dict | None = _FRANKA["push"],
         render_mode: str | None = _FRANKA["render_mode"],
         width: int = _FRANKA["width"],
         height: int = _FRANKA["height"],
@@ -205,6 +213,9 @@ class FrankaObstacleReachEnv(FrankaObstacleEnv):
             friction=friction, armature=armature, plant_seed=plant_seed, physics_dt=physics_dt,
             frame_skip=frame_skip, obstacles=parked, warmup_steps=warmup_steps,
             control_weight=control_weight, reset_noise=reset_noise, normalize_action=True,
+            obstacle_noise=obstacle_noise, obstacle_rate=obstacle_rate,
+            obstacle_delay=obstacle_delay, velocity_noise=velocity_noise,
+            position_noise=position_noise, push=push,
             render_mode=render_mode, width=width, height=height)
         # the parent's barrier terms are computed per Nm of joint torque and composed here
         self.action_scale = np.ones(7)
@@ -325,6 +336,8 @@ class FrankaObstacleReachEnv(FrankaObstacleEnv):
         self._set_task(self.goal, self._user_obstacles)  # parked while drawing
         self._after_state_change()
         goal, obstacles = self._draw_task(self.np_random)
+        if not self.perception.exact:  # after the task's draws: the same task either way
+            self._reseed_sensing()
         self._set_task(goal, obstacles)
         self._after_state_change()
         self._prev_distance = self._goal_distance()
@@ -334,7 +347,7 @@ class FrankaObstacleReachEnv(FrankaObstacleEnv):
     def _after_state_change(self) -> None:
         super()._after_state_change()
         if getattr(self, "_task_ready", False):
-            d = self.data
+            d = self._sensed_view.data  # the inner loop reads the encoders (its Jacobian too)
             self._A, self._c = self.loop.affine_torque(
                 self._ee_jac, d.qpos, d.qvel, self.q_home
             )
@@ -360,10 +373,11 @@ class FrankaObstacleReachEnv(FrankaObstacleEnv):
 
     # ------------------------------------------------------------------ gym API
     def _get_obs(self) -> np.ndarray:
-        p, v = self._ee
+        view = self._sensed_view  # what the sensors give
+        p, v = view.ee
         g = self.goal
-        parts = [self.data.qpos, self.data.qvel, p, v, g, g - p]
-        for ob, (po, _, _) in zip(self.obstacles, self._obstacle_states, strict=True):
+        parts = [view.data.qpos, view.data.qvel, p, v, g, g - p]
+        for ob, (po, _, _) in zip(self.obstacles, view.obstacle_states, strict=True):
             parts += [po - p, [ob.radius]]
         obs = np.concatenate(parts)
         np.clip(obs, -self._obs_high, self._obs_high, out=obs)

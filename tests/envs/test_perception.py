@@ -200,3 +200,20 @@ def test_an_estimate_changes_the_obstacles_not_the_joint_reading():
     np.testing.assert_array_equal(after.h[k:], h_before[k:])  # joint limits: same reading
     assert not np.allclose(after.h[:k], h_before[:k])
     assert after.covariance is not None and after.covariance[:k, 0, 0].min() > 0
+
+
+@pytest.mark.parametrize("env_id", [STATIC, DYNAMIC, "afvsgp_gym/FrankaObstacleRandom-v0",
+                                    "afvsgp_gym/FrankaObstacleReach-v0"])
+def test_every_franka_id_takes_the_sensing_options(env_id):
+    """Each id senses through the camera and the encoders and refuses a bad option; the
+    same seed draws the same task with and without sensing."""
+    kwargs = {"obstacle_noise": 0.01, "obstacle_rate": 30.0, "obstacle_delay": 0.03,
+              "velocity_noise": 0.01, "push": {"force": 5.0, "duration": 0.1, "rate": 1.0}}
+    env, exact = gym.make(env_id, **kwargs), gym.make(env_id)
+    env.reset(seed=5)
+    exact.reset(seed=5)
+    np.testing.assert_array_equal(env.unwrapped.data.qpos, exact.unwrapped.data.qpos)
+    info = env.step(env.action_space.sample())[4]
+    assert info["joint_velocity_error"] > 0 and info["obstacle_error"] > 0
+    with pytest.raises(ValueError, match="obstacle_delay"):
+        gym.make(env_id, obstacle_delay=-1.0)
