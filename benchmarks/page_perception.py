@@ -154,16 +154,16 @@ def build() -> dict:
            "measurement update. `obstacle_estimator=\"raw\"` is the baseline: the camera's "
            "reading (the newest sample, the difference of the last two, zero acceleration) "
            "taken as the truth.", "",
-           "**Pushes.** A push `F` at a point `p` of a link adds the joint torques `J_p' F`, "
-           "so each barrier's `h''` is off by `n' J_s M^-1 J_p' F` while it lasts, which no "
-           "filter that does not measure the force can see beforehand. What holds is input-to-"
-           "state safety (Kolathaya and Ames 2019): with a bounded error `delta` in `h''` the "
+           "**Pushes.** A push `F` at a point `p` of a link adds the joint torques `J_p' F`, so "
+           "each barrier's `h''` is off by `n' J_s M^-1 J_p' F` while it lasts, which no filter "
+           "that does not measure the force can see beforehand. What holds is input-to-state "
+           "safety (Kolathaya and Ames 2019): with a bounded error `delta` in `h''` the linear "
            "HOCBF chain keeps `h >= -delta / (a_1 a_2)` at worst, and a push that lasts `T` "
-           "moves a sphere at most about `delta T^2 / 2` before the filter brakes the speed "
-           "it left (a 10 N, 0.1 s push on a few kilograms of effective mass: a few "
-           "centimetres), inside the 15 cm activation distance and the braking margin. The "
-           "learners do not absorb a push (it is over before a window of samples sees it); "
-           "it reaches them as a few outlying eq. 48 samples. The grid measures it.", ""]
+           "moves a sphere at most about `delta T^2 / 2` before the filter brakes the speed it "
+           "left (a 10 N, 0.1 s push on a few kilograms of effective mass: a few centimetres), "
+           "inside the 15 cm activation distance and the braking margin. The learners do not "
+           "absorb a push (it is over before a window of samples sees it); it reaches them as a "
+           "few outlying eq. 48 samples. The grid measures it.", ""]
     if CONSISTENCY.exists():
         out += consistency(read_json(CONSISTENCY))
     if ENCODERS.exists():
