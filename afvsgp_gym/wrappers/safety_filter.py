@@ -268,8 +268,8 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
         """Ground truth for evaluation (the filter never sees it): the smallest HOCBF
         constraint value (eq. 44, m/s^2 for the provided envs) of the proposal under the true
         model, over all barriers; NaN where the env has no true terms."""
-        terms = getattr(base, "true_state_terms", base.barrier_terms)("true")
         try:
+            terms = getattr(base, "true_state_terms", base.barrier_terms)("true")
             c0, c = self.controller.constraints(terms)
         except (ValueError, TypeError):
             return float("nan")
