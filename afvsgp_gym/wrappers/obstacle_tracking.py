@@ -6,6 +6,8 @@ from __future__ import annotations
 from dataclasses import replace
 from typing import Any
 
+import numpy as np
+
 from afvsgp_gym.cbf.estimation import ObstacleEstimator
 from afvsgp_gym.types import BarrierSet
 from afvsgp_gym.validation import check_choice, check_real
@@ -54,6 +56,7 @@ class ObstacleTracking:
             estimator = "kalman" if camera else "raw"
         self.name = estimator
         self.raw = estimator == "raw"
+        self._held_at: float | None = None  # the time of the estimate last set
         self.estimator = None
         if not self.raw and camera:
             model = "constant-acceleration" if estimator == "kalman-ca" else "constant-velocity"
@@ -62,15 +65,20 @@ class ObstacleTracking:
                 process_std=process_std, model=model)
 
     def reset(self) -> None:
+        self._held_at = None
         if self.estimator is not None:
             self.estimator.reset()
 
     def sense(self, base: Any) -> None:
-        """Fuse the camera's newest sample and set the estimate for the current period."""
+        """Fuse the camera's newest sample and set the estimate for the current period (left
+        as :meth:`hold` set it when no new sample arrived: the same prediction)."""
         if self.estimator is None:
             return
         position, sample_time = base.obstacle_reading()
+        fused = self.estimator.last_sample_time
         self.estimator.update(position, sample_time)
+        if self._held_at == base.time and np.array_equal(fused, self.estimator.last_sample_time):
+            return
         self.hold(base)
 
     def hold(self, base: Any) -> None:
@@ -83,6 +91,7 @@ class ObstacleTracking:
             return
         p, v, a, cov = self.estimator.predict(base.time)
         base.set_obstacle_estimate(p, v, a, cov)
+        self._held_at = base.time
 
     def terms(self, terms: BarrierSet) -> BarrierSet:
         """``terms`` as the filter takes them (the raw baseline: without covariance)."""
