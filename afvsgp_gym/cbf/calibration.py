@@ -149,9 +149,10 @@ class ConformalMultiplier:
         a sample inside the band lowers it by ``eta alpha``); for the margin, noise standard
         deviations per miss. Per barrier: each learner takes the largest of its barriers'
         (0: that learner's band stays the paper's).
-    additive : bool
+    additive : bool or array_like of bool, shape (K,)
         Adapt the margin ``m`` (``margin``, from 0) instead of the multiplier ``q`` (which
-        stays ``beta``).
+        stays ``beta``), for all barriers or per barrier: a learner's multiplier adapts from
+        its multiplier barriers' scores, its margin from its margin barriers'.
 
     Example:
         >>> import numpy as np
@@ -161,10 +162,15 @@ class ConformalMultiplier:
         array([2.997, 2.997, 2.5  ])
     """
 
-    def __init__(self, groups: np.ndarray, beta: float, step, additive: bool = False):
+    def __init__(self, groups: np.ndarray, beta: float, step, additive=False):
         self.groups = np.asarray(groups, dtype=np.intp)
         self.beta = float(beta)
-        self.additive = bool(additive)
+        #: (K,) whether each barrier's band takes the margin (else the multiplier)
+        self.additive = np.broadcast_to(np.asarray(additive, dtype=bool),
+                                        self.groups.shape).copy()
+        #: whether some band takes a multiplier / a margin
+        self.any_multiplier = bool((~self.additive).any())
+        self.any_margin = bool(self.additive.any())
         self.target = miss_target(beta)
         n = int(self.groups.max()) + 1 if self.groups.size else 0
         per_barrier = np.broadcast_to(np.asarray(step, dtype=np.float64), self.groups.shape)
@@ -178,12 +184,14 @@ class ConformalMultiplier:
         self.unit = np.full(n, np.nan)
 
     def multiplier(self, rows: np.ndarray) -> np.ndarray:
-        """The multipliers of barriers ``rows`` (a copy)."""
-        return self.q[self.groups[rows]]
+        """The multipliers of barriers ``rows`` (a copy; ``beta`` for the margin's)."""
+        q = self.q[self.groups[rows]]
+        return np.where(self.additive[rows], self.beta, q) if self.any_margin else q
 
     def margins(self, rows: np.ndarray) -> np.ndarray:
-        """The additive margins of barriers ``rows`` (a copy; zeros for the multiplier)."""
-        return self.margin[self.groups[rows]]
+        """The additive margins of barriers ``rows`` (a copy; zeros for the multiplier's)."""
+        m = self.margin[self.groups[rows]]
+        return np.where(self.additive[rows], m, 0.0) if self.any_multiplier else m
 
     def update(self, rows: np.ndarray, scores: np.ndarray, std: np.ndarray | None = None,
                noise_std: np.ndarray | None = None) -> None:
@@ -193,16 +201,24 @@ class ConformalMultiplier:
         ok = ~np.isnan(scores)
         if not ok.any():
             return
-        g = self.groups[rows[ok]]
-        if not self.additive:
-            miss = scores[ok] < -self.q[g]
-            np.add.at(self.q, g, self.step[g] * (miss - self.target))
-            np.maximum(self.q, self.beta, out=self.q)
-            return
+        if self.any_multiplier:
+            mult = ok & ~self.additive[rows]
+            if mult.any():
+                g = self.groups[rows[mult]]
+                miss = scores[mult] < -self.q[g]
+                np.add.at(self.q, g, self.step[g] * (miss - self.target))
+                np.maximum(self.q, self.beta, out=self.q)
+        if self.any_margin:
+            marg = ok & self.additive[rows]
+            if marg.any():
+                self._update_margin(rows[marg], scores[marg], std[marg], noise_std[marg])
+
+    def _update_margin(self, rows, scores, std, noise_std) -> None:
+        g = self.groups[rows]
         unset = np.isnan(self.unit[g])
         if unset.any():
-            self.unit[g[unset]] = noise_std[ok][unset]
+            self.unit[g[unset]] = noise_std[unset]
         # below mean + bias - beta std - m, in the model error's unit
-        miss = scores[ok] * std[ok] < -self.beta * std[ok] - self.margin[g]
+        miss = scores * std < -self.beta * std - self.margin[g]
         np.add.at(self.margin, g, self.step[g] * self.unit[g] * (miss - self.target))
         np.maximum(self.margin, 0.0, out=self.margin)

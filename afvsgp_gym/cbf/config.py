@@ -65,7 +65,9 @@ class FilterConfig:
         ``Phi(-beta)`` per barrier and step (:attr:`miss_probability`); the controller and
         the wrapper also take that probability as the option ``miss_probability`` in its
         place (:func:`resolve_miss_probability`).
-    calibration : str
+    calibration : str or tuple of str
+        One mode for all barriers or one per barrier (a learner's barriers may mix the
+        multiplier and the margin; ``"off"`` rows keep the paper's band).
         ``"off"`` (default): the band is ``beta`` predicted standard deviations, as the paper's;
         ``"conformal"``: each learner's multiplier is adapted online so that the long-run rate
         of eq. 48 samples below the band meets ``Phi(-beta)`` whatever the model's
@@ -171,7 +173,7 @@ class FilterConfig:
     relative_degree: int = 2
     alpha: float | tuple[float, ...] = 4.0
     beta: float = DEFAULT_BETA
-    calibration: str = "off"
+    calibration: str | tuple[str, ...] = "off"
     calibration_step: float | tuple[float, ...] = 0.5
     barrier_margin: float = 1e-3
     activation_distance: float | tuple[float, ...] = float("inf")
@@ -199,10 +201,19 @@ class FilterConfig:
                 raise ValueError(f"alpha must be a float or a sequence of floats, got {self.alpha}")
             object.__setattr__(self, "alpha", tuple(float(a) for a in self.alpha))
         check_real(self.beta, "beta", low=0.0)
-        if self.calibration not in CALIBRATION_MODES:
-            raise ValueError(f"calibration must be one of {list(CALIBRATION_MODES)}. "
-                             f"Got: {self.calibration!r}")
-        if self.calibration != "off" and not self.beta > 0:
+        modes = self.calibration
+        if isinstance(modes, (list, tuple, np.ndarray)):
+            modes = tuple(modes)
+            if not modes:
+                raise ValueError("calibration must be a mode or one mode per barrier. Got: ()")
+            object.__setattr__(self, "calibration", modes)
+        else:
+            modes = (modes,)
+        for mode in modes:
+            if not isinstance(mode, str) or mode not in CALIBRATION_MODES:
+                raise ValueError(f"calibration must be one of {list(CALIBRATION_MODES)} or one "
+                                 f"of them per barrier. Got: {self.calibration!r}")
+        if self.calibrates and not self.beta > 0:
             raise ValueError(f"calibration={self.calibration!r} needs beta > 0. "
                              f"Got: beta={self.beta!r}")
         object.__setattr__(self, "calibration_step", _per_barrier(
@@ -251,6 +262,23 @@ class FilterConfig:
                                  f"Got: {len(value)} values")
             return np.array(value, dtype=np.float64)
         return np.full(n_barriers, float(value))
+
+    @property
+    def calibrates(self) -> bool:
+        """Whether some barrier's band is corrected online (``calibration`` not all off)."""
+        modes = self.calibration if isinstance(self.calibration, tuple) else (self.calibration,)
+        return any(mode != "off" for mode in modes)
+
+    def calibration_modes(self, n_barriers: int) -> np.ndarray:
+        """``calibration`` as an array of ``n_barriers`` modes; ``ValueError`` when a tuple
+        has another length."""
+        modes = self.calibration
+        if isinstance(modes, tuple):
+            if len(modes) != n_barriers:
+                raise ValueError(f"calibration must be one mode or {n_barriers} (one per "
+                                 f"barrier). Got: {len(modes)} modes")
+            return np.array(modes, dtype=object)
+        return np.full(n_barriers, modes, dtype=object)
 
     @classmethod
     def option_names(cls) -> tuple[str, ...]:

@@ -242,11 +242,13 @@ class SafetyController:
         self.residuals = ResidualObserver(self.n_barriers, cfg.residual_correction,
                                           self.backend)
         self.learning = bool(cfg.online)
-        #: the online multiplier (``calibration="conformal"``), else None
-        self.conformal = (ConformalMultiplier(layout.learner, cfg.beta,
-                                              cfg.per_barrier("calibration_step", K),
-                                              additive=cfg.calibration == "conformal-additive")
-                          if self.learns and cfg.calibration != "off" else None)
+        #: the online multiplier or margin (``calibration`` not off), else None
+        self.conformal = None
+        if self.learns and cfg.calibrates:
+            modes = cfg.calibration_modes(K)
+            steps = np.where(modes == "off", 0.0, cfg.per_barrier("calibration_step", K))
+            self.conformal = ConformalMultiplier(layout.learner, cfg.beta, steps,
+                                                 additive=modes == "conformal-additive")
         self._scored: tuple | None = None  # (z, center, std, lower) of the last observed step
         self._calibration: CalibrationCounts | None = None
         self.fitted = not self.learns
@@ -440,7 +442,7 @@ class SafetyController:
                 bvec, sig = self.bank.predict_affine(bset.xi[pred_rows], pred_rows)
                 bias = self.residuals.bias[pred_rows]  # (a copy) the bias this step uses
                 mult, marg = self._band(pred_rows)
-                sig_cone = (sig if self.conformal is None or self.conformal.additive
+                sig_cone = (sig if self.conformal is None or not self.conformal.any_multiplier
                             else sig * ((mult / self.config.beta) ** 2)[:, None, None])
                 done, G = (self._learned_terms(a0, a, bvec, pred_rows, sig_cone)
                            if ok is None else (False, None))
@@ -523,7 +525,7 @@ class SafetyController:
         row) and its additive margin (None for none)."""
         if self.conformal is None:
             return float(self.config.beta), None
-        if self.conformal.additive:
+        if self.conformal.any_margin:
             return self.conformal.multiplier(rows), self.conformal.margins(rows)
         return self.conformal.multiplier(rows), None
 
@@ -669,7 +671,7 @@ class SafetyController:
             self._scored = (z[pred.rows], pred.center, pred.std, pred.lower)
             if self.conformal is not None:
                 noise = (np.sqrt(self.bank.noise_variance(pred.rows))
-                         if self.conformal.additive else None)
+                         if self.conformal.any_margin else None)
                 self.conformal.update(pred.rows, scores(*self._scored[:3]), pred.std, noise)
         ubar = np.concatenate([[1.0], u])
         self.residuals.update(pred.rows, pred.mean @ ubar, z=z)

@@ -114,3 +114,21 @@ def test_the_oracle_with_the_robots_limits_holds_and_no_filter_does_not(name):
     assert unfiltered["cost_steps"] > 0
     kinds = [unfiltered[k] for k in ("violation_steps", "contact_steps", "limit_steps")]
     assert max(kinds) <= unfiltered["cost_steps"] <= sum(kinds)  # every cost step has a kind
+
+
+def test_afvsgp_with_nothing_known_keeps_a_swung_joint_below_its_speed():
+    """``swing4`` from seed 3009 of the suite (zero prior): after the warm-up the swing drives
+    joint 4 through poses its data never covered and the learned gain of its acceleration
+    falls 4x below the true one with a std of a few percent; an additive margin on the
+    speed barriers let joint 4 pass its datasheet speed at step 464. The Franka envs'
+    default (the conformal multiplier on the speed barriers) widens their band with the
+    torque: no limit step in 700 steps, and joint 4's multiplier has grown above ``beta``
+    while the range barriers of the same learner keep ``beta``."""
+    env = SafetyFilter(gym.make(STATIC, nominal_model="zero"), learner="afvsgp")
+    counts, _ = run_episode(env, make_policy("swing4", env, seed=3009), 3009, max_steps=700)
+    assert counts["limit_steps"] == 0 and counts["cost_steps"] == 0
+    controller = env.controller
+    first = env.unwrapped.n_barriers - 28
+    speed4, range4 = first + 14 + 2 * 3, first + 2 * 3  # joint 4's lower speed and range
+    mult = controller.conformal.multiplier(np.array([speed4, range4]))
+    assert mult[0] > 2 * controller.config.beta and mult[1] == controller.config.beta

@@ -159,13 +159,39 @@ def test_controller_takes_per_barrier_steps():
     ctrl = SafetyController(-np.ones(2), np.ones(2), n_barriers=3, calibration="conformal",
                             calibration_step=(0.0, 0.5, 2.0))
     np.testing.assert_array_equal(ctrl.conformal.step, [0.0, 0.5, 2.0])
+    with pytest.raises(ValueError, match="calibration must be one mode or 3"):
+        SafetyController(-np.ones(2), np.ones(2), n_barriers=3,
+                         calibration=("conformal", "off"))
     with pytest.raises(ValueError, match="calibration_step must be one value or 3"):
         SafetyController(-np.ones(2), np.ones(2), n_barriers=3, calibration="conformal",
                          calibration_step=(0.0, 0.5))
 
 
+def test_one_learner_mixes_the_multiplier_and_the_margin():
+    """Learner 0 serves barrier 0 (multiplier) and barrier 1 (margin): the multiplier adapts
+    from barrier 0's misses only, the margin from barrier 1's only (in the learner's noise
+    std), each band keeps the other's at rest (``beta``, 0), and an "off" barrier of the
+    controller (step 0) stays the paper's."""
+    alpha = miss_target(BETA)
+    cm = ConformalMultiplier(np.array([0, 0]), BETA, 1.0, additive=[False, True])
+    std, noise = np.array([0.1, 0.1]), np.array([0.5, 0.5])
+    cm.update(np.arange(2), np.array([-10.0, 0.0]), std, noise)  # only the multiplier's miss
+    np.testing.assert_allclose(cm.multiplier(np.arange(2)), [BETA + 1 - alpha, BETA])
+    np.testing.assert_allclose(cm.margins(np.arange(2)), [0.0, 0.0])
+    cm.update(np.arange(2), np.array([0.0, -10.0]), std, noise)  # only the margin's miss
+    np.testing.assert_allclose(cm.multiplier(np.arange(2)), [BETA + 1 - 2 * alpha, BETA])
+    np.testing.assert_allclose(cm.margins(np.arange(2)), [0.0, 0.5 * (1 - alpha)])
+    ctrl = SafetyController(-np.ones(2), np.ones(2), n_barriers=3, calibration_step=2.0,
+                            calibration=("off", "conformal", "conformal-additive"))
+    np.testing.assert_array_equal(ctrl.conformal.additive, [False, False, True])
+    np.testing.assert_array_equal(ctrl.conformal.step, [0.0, 2.0, 2.0])
+
+
 @pytest.mark.parametrize(("options", "match"), [
     ({"calibration": "bayes"}, "calibration must be one of"),
+    ({"calibration": ("off", "bayes")}, "calibration must be one of"),
+    ({"calibration": ()}, "calibration must be a mode"),
+    ({"calibration": ("off", "conformal"), "beta": 0.0}, "needs beta > 0"),
     ({"calibration": "conformal", "beta": 0.0}, "needs beta > 0"),
     ({"calibration_step": 0.0}, "calibration_step"),
     ({"calibration_step": float("nan")}, "calibration_step"),

@@ -88,7 +88,8 @@ def test_summary_of_records_without_calibration_fields():
 
 
 def test_miss_probability_replaces_beta_under_the_envs_suggestions():
-    """The Franka envs suggest a conformal margin on the joint limits: a miss probability
+    """The Franka envs suggest a conformal correction on the joint limits (the margin on the
+    ranges, the multiplier on the speeds, the pairs off): a miss probability
     keeps it (a band to calibrate), ``0.5`` (``beta = 0``, no band) drops it, and both
     ``beta`` and ``miss_probability`` are refused."""
     from scipy.stats import norm
@@ -96,7 +97,9 @@ def test_miss_probability_replaces_beta_under_the_envs_suggestions():
     franka = "afvsgp_gym/FrankaObstacleStatic-v0"
     env = SafetyFilter(gym.make(franka), learner="afvsgp", miss_probability=0.02)
     assert env.controller.config.beta == pytest.approx(norm.isf(0.02), rel=1e-10)
-    assert env.controller.config.calibration == "conformal-additive"
+    modes = env.controller.config.calibration
+    pairs = env.unwrapped.n_barriers - 28
+    assert modes == ("off",) * pairs + ("conformal-additive",) * 14 + ("conformal",) * 14
     env.close()
     env = SafetyFilter(gym.make(franka), learner="afvsgp", miss_probability=0.5)
     assert env.controller.config.beta == 0.0 and env.controller.config.calibration == "off"
