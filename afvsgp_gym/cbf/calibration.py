@@ -23,6 +23,10 @@ inference, Gibbs and Candes 2021; the P term of conformal PID control, Angelopou
   (a small ``std``) a multiplier must grow large, and then also widens the band where the
   model is uncertain; a margin does not.
 
+A learner's barriers may mix the two (``additive`` per barrier): its multiplier adapts from
+the scores of its multiplier barriers only, its margin from those of its margin barriers, and
+the guarantee below holds for each of the two sets apart.
+
 **Guarantee** (deterministic, for any sequence of states, actions and model errors, however
 misspecified the GP): if every score of a learner's barriers satisfies ``e_k >= -Q``, then
 over its first ``N`` scored samples the misses number at most

@@ -1212,7 +1212,8 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         with ``v_s = 0``). For each pair closer than ``EVADE_DISTANCE`` whose obstacle
         approaches the sphere (``n.v_o > 0``, ``n`` from the obstacle to the sphere) the
         sphere is asked to recede along ``n`` at ``EVADE_FACTOR n.v_o``: the least-norm
-        joint velocity of those rows ``n' J_s`` (damped least squares), scaled into
+        joint velocity of those rows ``n' J_s`` (damped least squares) over the joints not
+        held at their range margin (:meth:`_free_joint_velocity`), scaled into
         ``EVADE_SPEED_SHARE`` of the joint speed limits. It is the robot's own reflex, with
         the kinematics and the obstacles' measured motion, not the filter's model."""
         view = self._sensed_view
@@ -1229,11 +1230,34 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         if not len(rows):
             return None
         a = np.einsum("ki,kij->kj", n[rows], jac[rows % n_s][:, :, :7])
-        b = self.EVADE_FACTOR * approach[rows]
-        qd = a.T @ np.linalg.solve(a @ a.T + 1e-4 * np.eye(len(rows)), b)
+        qd = self._free_joint_velocity(a, self.EVADE_FACTOR * approach[rows])
+        if qd is None:
+            return None
         top = self.EVADE_SPEED_SHARE * self.joint_limits.max_speed
         scale = float(np.max(np.abs(qd) / top))
         return qd / scale if scale > 1.0 else qd
+
+    def _free_joint_velocity(self, a: np.ndarray, b: np.ndarray) -> np.ndarray | None:
+        """The least-norm joint velocity with ``a qd = b`` (damped least squares) over the
+        joints free to move that way: a joint whose hold point (or angle) would pass its
+        range barriers' margin within one period is locked and the rest solved again (a
+        hold point clipped at the margin left joint 4 still while the sphere struck the
+        arm). None when every joint is locked."""
+        lim, dt = self.joint_limits, self._control_dt
+        q = self._hold if self._hold is not None else self._sensed_view.data.qpos[:7]
+        low, high = lim.lower + lim.range_margin, lim.upper - lim.range_margin
+        free = np.ones(len(q), dtype=bool)
+        damping = 1e-4 * np.eye(len(b))
+        while free.any():
+            af = a[:, free]
+            qd = np.zeros(len(q))
+            qd[free] = af.T @ np.linalg.solve(af @ af.T + damping, b)
+            ahead = q + qd * dt
+            locked = free & (((ahead <= low) & (qd < 0.0)) | ((ahead >= high) & (qd > 0.0)))
+            if not locked.any():
+                return qd
+            free &= ~locked
+        return None
 
     # ------------------------------------------------------------------ gym API
     def _tracked_point(self) -> np.ndarray:

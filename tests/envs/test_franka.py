@@ -661,6 +661,34 @@ def test_brake_gives_way_only_to_approaching_moving_obstacles():
     assert env._give_way_velocity() is None
 
 
+def test_give_way_locks_joints_at_their_range_margin():
+    """The give-way velocity moves no joint whose hold point would pass its range barriers'
+    margin within a period; the other joints carry the retreat (a hold point clipped at
+    joint 4's margin left the arm still while a sphere struck it: random policy, dynamic
+    scene, seed 3005 of the adversarial suite). Locking joints 1 and 3, which carry most of
+    this retreat, still makes every approaching pair recede."""
+    env = _moving_into_the_arm()
+    env.reset(seed=0)
+    env.set_time_step(800)
+    free = env._give_way_velocity()
+    assert free is not None and free[0] < 0 and free[2] < 0
+    lim = env.joint_limits
+    hold = env.data.qpos[:7].copy()
+    hold[[0, 2]] = lim.lower[[0, 2]] + lim.range_margin + 1e-4  # at the margin, moving down
+    env._hold = hold
+    locked = env._give_way_velocity()
+    assert locked[0] == 0.0 and locked[2] == 0.0
+    assert np.abs(locked).max() > 0.0
+    h, n = env.barrier_values(), env._sensed_view.geometry[1]
+    jac, n_s = env._sensed_view.spheres[2], len(env._sensed_view.spheres[0])
+    rows = np.flatnonzero(h[: env.n_obstacle_barriers] < env.EVADE_DISTANCE)
+    recede = np.einsum("ki,kij,j->k", n[rows], jac[rows % n_s][:, :, :7], locked)
+    assert np.all(recede > 0.0)
+    hold[[0, 2]] = lim.upper[[0, 2]] - lim.range_margin  # the other end: free that way
+    env._hold = hold
+    np.testing.assert_allclose(env._give_way_velocity(), free, rtol=1e-12, atol=1e-15)
+
+
 def _use_geometry(env, geometry, spheres=None, ee=None):
     """Make ``geometry`` (and the kinematics, if given) the env's true and sensed view."""
     new = {"geometry": geometry}
