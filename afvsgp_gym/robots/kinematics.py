@@ -58,7 +58,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["FRANKA_PANDA", "GYMNASIUM_PANDA", "DHChain", "SphereKinematics"]
+__all__ = ["END_EFFECTOR_OFFSET", "FRANKA_PANDA", "GYMNASIUM_PANDA", "DHChain",
+           "SphereKinematics"]
+
+#: The end-effector point in link 7's frame (m): the simulation's ``end_effector`` site,
+#: on the real arm the flange (0.107 m) plus the Franka Hand's 0.1034 m.
+END_EFFECTOR_OFFSET = (0.0, 0.0, 0.21)
 
 
 def _array7(value, name: str) -> np.ndarray:
@@ -172,8 +177,10 @@ class SphereKinematics:
         self.links = link.astype(np.int64)
         self.offsets = off.copy()
         self._frame = self.links - 1
-        # mask[s, i]: joint i moves point s
-        self._mask = (np.arange(7)[None, :] <= self._frame[:, None]).astype(np.float64)
+        # [i, s, 0]: 1 where joint i moves point s
+        self._mask_cols = (np.arange(7)[:, None] <= self._frame[None, :]).astype(
+            np.float64)[:, :, None]
+        self._offset_cols = np.ascontiguousarray(self.offsets[:, :, None])
 
     @classmethod
     def from_spheres(cls, chain: DHChain, spheres: Sequence) -> SphereKinematics:
@@ -192,50 +199,61 @@ class SphereKinematics:
         """``(S, 3)`` point positions at ``q``."""
         rot, org = self.chain.frames(q)
         f = self._frame
-        return np.einsum("sij,sj->si", rot[f], self.offsets) + org[f]
+        return np.matmul(rot[f], self._offset_cols)[:, :, 0] + org[f]
 
     def __call__(self, q: np.ndarray, qd: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """``(p (S, 3), v (S, 3), J (S, 3, 7), J' q' (S, 3))`` at joint angles ``q`` and
-        velocities ``qd`` (module docstring for the formulas)."""
+        velocities ``qd`` (module docstring for the formulas; ``v`` and ``J' q'`` through the
+        frames' velocities and velocity-product accelerations, summed over the chain once)."""
         q = np.asarray(q, dtype=np.float64)
         qd = np.asarray(qd, dtype=np.float64)
         rot, org = self.chain.frames(q)
         f = self._frame
-        p = np.einsum("sij,sj->si", rot[f], self.offsets) + org[f]
+        p = np.matmul(rot[f], self._offset_cols)[:, :, 0] + org[f]
         z = rot[:, :, 2]  # (7, 3) joint axes
-        r = p[None, :, :] - org[:, None, :]  # (7, S, 3) p - o_i
-        # row-wise z_i x r = r [z_i]_x^T: one batched product over the joints
-        cols = np.matmul(r, _skew(z).transpose(0, 2, 1))  # (7, S, 3)
-        cols *= self._mask.T[:, :, None]
+        # J: row-wise z_i x (p - o_i) = (p - o_i) [z_i]_x^T, one batched product
+        cols = np.matmul(p[None, :, :] - org[:, None, :], _skew(z).transpose(0, 2, 1))
+        cols *= self._mask_cols  # (7, S, 3), 0 where joint i does not move point s
         jac = cols.transpose(1, 2, 0)  # (S, 3, 7)
-        v = jac @ qd
-        w = np.cumsum(qd[:, None] * z, axis=0)  # (7, 3) w_i
-        zdot = _cross(w, z)
+        # frames: w_i = sum_{j<=i} q'_j z_j, bias angular acceleration
+        # b_i = sum_{j<=i} q'_j (w_j x z_j), origins' velocity and bias acceleration
+        # (o_1 fixed; o_{i+1} rides on frame i: + w_i x e_i, + b_i x e_i + w_i x (w_i x e_i))
+        w = np.cumsum(qd[:, None] * z, axis=0)
+        b = np.cumsum(qd[:, None] * _cross(w, z), axis=0)
+        e = org[1:] - org[:-1]
+        we = _cross(w[:-1], e)
         vo = np.zeros((7, 3))
-        np.cumsum(_cross(w[:-1], org[1:] - org[:-1]), axis=0, out=vo[1:])
-        terms = np.matmul(r, _skew(zdot).transpose(0, 2, 1))
-        terms += np.matmul(v[None, :, :] - vo[:, None, :], _skew(z).transpose(0, 2, 1))
-        # sum over the joints that move each point, weighted by q'_i
-        acc = np.einsum("is,isk->sk", self._mask.T * qd[:, None], terms)
+        ao = np.zeros((7, 3))
+        np.cumsum(we, axis=0, out=vo[1:])
+        np.cumsum(_cross(b[:-1], e) + _cross(w[:-1], we), axis=0, out=ao[1:])
+        # the points: v = v_o + w x r, J' q' = a_o + b x r + w x (w x r), r = p - o_k
+        r = p - org[f]
+        wk = w[f]
+        wr = _cross(wk, r)
+        v = vo[f] + wr
+        acc = ao[f] + _cross(b[f], r) + _cross(wk, wr)
         return p, v, jac, acc
 
 
+_P1 = np.array([1, 2, 0])
+_P2 = np.array([2, 0, 1])
+
+
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise ``a x b`` of two (n, 3) arrays (``np.cross`` costs ~10x more on small ones)."""
-    out = np.empty(a.shape)
-    a0, a1, a2 = a[:, 0], a[:, 1], a[:, 2]
-    b0, b1, b2 = b[:, 0], b[:, 1], b[:, 2]
-    out[:, 0] = a1 * b2 - a2 * b1
-    out[:, 1] = a2 * b0 - a0 * b2
-    out[:, 2] = a0 * b1 - a1 * b0
-    return out
+    """Row-wise ``a x b`` of two (n, 3) arrays (``np.cross`` costs several times more on
+    small ones)."""
+    return a[:, _P1] * b[:, _P2] - a[:, _P2] * b[:, _P1]
+
+
+#: Where ``[a]_x`` (flattened 3 x 3) takes which component of ``a``, with which sign.
+_SKEW_AT = np.array([1, 2, 3, 5, 6, 7])
+_SKEW_OF = np.array([2, 1, 2, 0, 1, 0])
+_SKEW_SIGN = np.array([-1.0, 1.0, 1.0, -1.0, -1.0, 1.0])
 
 
 def _skew(a: np.ndarray) -> np.ndarray:
     """``[a]_x`` (n, 3, 3) of the rows of ``a`` (n, 3): ``[a]_x b = a x b``."""
-    out = np.zeros((a.shape[0], 3, 3))
-    out[:, 0, 1], out[:, 0, 2] = -a[:, 2], a[:, 1]
-    out[:, 1, 0], out[:, 1, 2] = a[:, 2], -a[:, 0]
-    out[:, 2, 0], out[:, 2, 1] = -a[:, 1], a[:, 0]
-    return out
+    out = np.zeros((a.shape[0], 9))
+    out[:, _SKEW_AT] = a[:, _SKEW_OF] * _SKEW_SIGN
+    return out.reshape(-1, 3, 3)

@@ -97,6 +97,13 @@ class BarrierModel:
         The joint range and speed barriers (and their margins); None: obstacle pairs only.
     action_scale : float or array_like of shape (7,)
         Nm per action unit (1: the action is the torque).
+    torque_error : float or array_like of shape (7,)
+        A bound ``tau_bar`` (Nm, per joint) on the torque the model misses (``|tau_res_j|
+        <= tau_bar_j``: an undeclared payload's weight, friction): every barrier's ``lf`` is
+        lowered by the most it can change ``h^(r)``, ``sum_j |lg_j| tau_bar_j /
+        action_scale_j``, so the filter holds for every such residual (the simulation's
+        ``"true_robust"`` terms do the same for friction). 0 (default): the model is taken
+        as exact.
     """
 
     #: The filter settings :class:`~afvsgp_gym.envs.franka.FrankaObstacleEnv` suggests
@@ -107,7 +114,7 @@ class BarrierModel:
     LIMIT_CALIBRATION_STEP = 1.0
 
     def __init__(self, kinematics: SphereKinematics, sphere_radii, obstacle_radii,
-                 limits: JointLimits | None, action_scale=1.0) -> None:
+                 limits: JointLimits | None, action_scale=1.0, torque_error=0.0) -> None:
         if not isinstance(kinematics, SphereKinematics):
             raise ValueError(f"kinematics must be a SphereKinematics. Got: {kinematics!r}")
         n_s = len(kinematics.links)
@@ -122,6 +129,11 @@ class BarrierModel:
         scale = np.broadcast_to(np.asarray(action_scale, dtype=np.float64), (7,)).copy()
         if not np.all(np.isfinite(scale) & (scale > 0)):
             raise ValueError(f"action_scale must be > 0. Got: {action_scale!r}")
+        err = np.broadcast_to(np.asarray(torque_error, dtype=np.float64), (7,)).copy()
+        if not np.all(np.isfinite(err) & (err >= 0)):
+            raise ValueError(f"torque_error must be >= 0. Got: {torque_error!r}")
+        self.torque_error = err
+        self._error_per_action = err / scale
         self.kinematics = kinematics
         self.sphere_radii, self.obstacle_radii = rs, ro
         self.limits = limits
@@ -171,10 +183,12 @@ class BarrierModel:
                                                   np.full(4 * n, self.LIMIT_CALIBRATION_STEP)])
         return out
 
-    def terms(self, q, qd, mass, coriolis, obstacles: ObstacleEstimate) -> BarrierSet:
+    def terms(self, q, qd, mass, coriolis, obstacles: ObstacleEstimate,
+              spheres: tuple | None = None) -> BarrierSet:
         """The barriers' terms at joint angles ``q`` (7,) and velocities ``qd`` (7,), with the
         robot model's mass matrix ``mass`` (7, 7) and Coriolis vector ``coriolis`` (7,)
-        (``C(q, q') q'``, Nm) and the obstacle estimate ``obstacles`` (O of them)."""
+        (``C(q, q') q'``, Nm) and the obstacle estimate ``obstacles`` (O of them).
+        ``spheres``: the spheres' ``kinematics(q, qd)`` when already computed."""
         q = _rows(q, (7,), "q")
         qd = _rows(qd, (7,), "qd")
         mass = _rows(mass, (7, 7), "mass")
@@ -183,7 +197,7 @@ class BarrierModel:
                 or obstacles.position.shape[0] != self.n_obstacles:
             raise ValueError(f"obstacles must be an ObstacleEstimate of {self.n_obstacles} "
                              f"obstacles. Got: {obstacles!r}")
-        p, v, jac, bias = self.kinematics(q, qd)
+        p, v, jac, bias = self.kinematics(q, qd) if spheres is None else spheres
         n_s, n_o, k = self.n_spheres, self.n_obstacles, self.n_pairs
         # one solve for M^-1 itself: q''_0 = -M^-1 c and the gains J M^-1 (M symmetric)
         minv = np.linalg.solve(mass, np.eye(7))
@@ -216,6 +230,8 @@ class BarrierModel:
             lg = np.concatenate([lg, lg_lim])
             derivs = np.concatenate([derivs, lim.derivatives(q, qd)])
             xi = np.concatenate([xi, lim.features(q, qd, FEATURE_DIM)])
+        if self._error_per_action.any():  # the worst residual torque within the bound
+            lf = lf - np.abs(lg) @ self._error_per_action
         return BarrierSet(derivs, lf, lg, xi, cov)
 
     def sphere_clearance(self, q, obstacle_positions) -> np.ndarray:

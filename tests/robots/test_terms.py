@@ -114,3 +114,26 @@ def test_bad_input_names_the_argument(env):
     with pytest.raises(ValueError, match="obstacles"):
         model.terms(np.zeros(7), np.zeros(7), np.eye(7), np.zeros(7),
                     ObstacleEstimate(np.zeros((2, 3)), np.zeros((2, 3)), np.zeros((2, 3))))
+
+
+def test_torque_error_lowers_lf_by_the_worst_residual(env):
+    base = env.unwrapped
+    exact = _bridge_model(base)
+    bound = np.array([3.0, 3.0, 3.0, 3.0, 1.0, 1.0, 1.0])
+    robust = BarrierModel(exact.kinematics, exact.sphere_radii, exact.obstacle_radii,
+                          exact.limits, torque_error=bound)
+    rng = np.random.default_rng(9)
+    q, qd = base.q_home + rng.uniform(-0.2, 0.2, 7), rng.uniform(-1, 1, 7)
+    mass = np.diag(rng.uniform(0.5, 2.0, 7))
+    est = ObstacleEstimate([[0.4, 0.1, 0.4]], np.zeros((1, 3)), np.zeros((1, 3)))
+    a = exact.terms(q, qd, mass, np.ones(7), est)
+    b = robust.terms(q, qd, mass, np.ones(7), est)
+    np.testing.assert_allclose(b.lf, a.lf - np.abs(a.lg) @ bound, rtol=1e-12, atol=1e-12)
+    # the worst residual within the bound, per barrier: tau_res = -bound sign(lg_k)
+    for k in range(len(a.lf)):
+        residual = -bound * np.sign(a.lg[k])
+        assert a.lf[k] + a.lg[k] @ residual == pytest.approx(b.lf[k], abs=1e-12)
+    np.testing.assert_array_equal(b.lg, a.lg)
+    with pytest.raises(ValueError, match="torque_error"):
+        BarrierModel(exact.kinematics, exact.sphere_radii, exact.obstacle_radii, exact.limits,
+                     torque_error=-1.0)
