@@ -65,7 +65,7 @@ MIN_SUCCESS_RATE = 0.8
 #: spins (spinning the whole wait there meets the kernel's real-time throttling, 50 ms in
 #: every second); at normal priority it spins the whole wait (a sleeping process on a busy
 #: machine gets the CPU back milliseconds late).
-SPIN = 3e-4
+SPIN = 1e-4
 
 
 class ControlException(RuntimeError):

@@ -142,6 +142,14 @@ class BarrierModel:
         self.n_pairs = n_s * len(ro)
         self._radius = (ro[:, None] + rs[None, :]).ravel()
         self.n_barriers = self.n_pairs + (0 if limits is None else limits.n_barriers)
+        if limits is not None:  # h = sign * [q, q'][source] + offset for every limit row
+            n = limits.n_joints
+            self._limit_source = limits.joint + np.repeat([0, n], 2 * n)
+            top = limits.max_speed - limits.speed_margin
+            self._limit_offset = np.concatenate([
+                np.ravel(np.column_stack([-(limits.lower + limits.range_margin),
+                                          limits.upper - limits.range_margin])),
+                np.repeat(top, 2)])
 
     @property
     def layout(self) -> BarrierLayout:
@@ -200,7 +208,7 @@ class BarrierModel:
         p, v, jac, bias = self.kinematics(q, qd) if spheres is None else spheres
         n_s, n_o, k = self.n_spheres, self.n_obstacles, self.n_pairs
         # one solve for M^-1 itself: q''_0 = -M^-1 c and the gains J M^-1 (M symmetric)
-        minv = np.linalg.solve(mass, np.eye(7))
+        minv = np.linalg.inv(mass)
         qacc0 = -(minv @ coriolis)
         d = (p[None, :, :] - obstacles.position[:, None, :]).reshape(k, 3)
         vr = (v[None, :, :] - obstacles.velocity[:, None, :]).reshape(k, 3)
@@ -208,30 +216,39 @@ class BarrierModel:
         acc = jac @ qacc0 + bias  # (S, 3) sphere accelerations at zero action
         a_obs = np.repeat(obstacles.acceleration, n_s, axis=0)
         ns = n.reshape(n_o, n_s, 3)
-        lf = np.einsum("osi,si->os", ns, acc).ravel() - np.einsum("ki,ki->k", n, a_obs) + curv
+        nb = self.n_barriers  # the pairs' rows, then the joint limits' (filled in place)
+        lf = np.empty(nb)
+        lg = np.empty((nb, 7))
+        derivs = np.empty((nb, 2))
+        xi = np.empty((nb, FEATURE_DIM))
+        lf[:k] = np.einsum("osi,si->os", ns, acc).ravel()
+        lf[:k] -= np.einsum("ki,ki->k", n, a_obs)
+        lf[:k] += curv
         gain = np.matmul(jac, minv) * self.action_scale  # (S, 3, 7)
-        lg = np.einsum("osi,sij->osj", ns, gain).reshape(k, 7)
-        derivs = np.empty((k, 2))
-        derivs[:, 0], derivs[:, 1] = h, hd
-        xi = np.empty((k, FEATURE_DIM))
-        xi[:, :7], xi[:, 7:14], xi[:, 14:17], xi[:, 17:] = q, qd, d, vr
+        lg[:k] = np.einsum("osi,sij->osj", ns, gain).reshape(k, 7)
+        derivs[:k, 0], derivs[:k, 1] = h, hd
+        xi[:, :7], xi[:, 7:14] = q, qd
+        xi[:k, 14:17], xi[:k, 17:] = d, vr
         cov = None
         if obstacles.covariance is not None:
             per_pair = np.repeat(obstacles.covariance, n_s, axis=0)
             dist = np.linalg.norm(d, axis=1)
             w = np.tile(acc, (n_o, 1)) - a_obs
-            cov = np.zeros((self.n_barriers, 3, 3))
+            cov = np.zeros((nb, 3, 3))
             cov[:k] = pair_covariance(n, dist, vr, per_pair, w)
-            lf = lf - 2.0 * per_pair[:, 1, 1] / dist
+            lf[:k] -= 2.0 * per_pair[:, 1, 1] / dist
         lim = self.limits
-        if lim is not None:
-            lf_lim, lg_lim = lim.terms(qacc0, minv * self.action_scale)
-            lf = np.concatenate([lf, lf_lim])
-            lg = np.concatenate([lg, lg_lim])
-            derivs = np.concatenate([derivs, lim.derivatives(q, qd)])
-            xi = np.concatenate([xi, lim.features(q, qd, FEATURE_DIM)])
+        if lim is not None:  # JointLimits.terms, .derivatives and .features, in place
+            joint, sign = lim.joint, lim.sign
+            lf[k:] = sign * qacc0[joint]
+            lg[k:] = sign[:, None] * (minv * self.action_scale)[joint]
+            derivs[k:, 0] = sign * np.concatenate((q, qd))[self._limit_source] + self._limit_offset
+            r = k + 2 * lim.n_joints
+            derivs[k:r, 1] = sign[: r - k] * qd[joint[: r - k]]
+            derivs[r:, 1] = 0.0
+            xi[k:, 14:] = 0.0
         if self._error_per_action.any():  # the worst residual torque within the bound
-            lf = lf - np.abs(lg) @ self._error_per_action
+            lf -= np.abs(lg) @ self._error_per_action
         return BarrierSet(derivs, lf, lg, xi, cov)
 
     def sphere_clearance(self, q, obstacle_positions) -> np.ndarray:
