@@ -451,6 +451,11 @@ def _cmd_robot(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int
                      f"{', '.join(ROBOT_AGENTS)} (the subset of evaluate's agents that needs "
                      "no simulation: docs/robot.md)")
     _check_learner(parser, args.learner)
+    from afvsgp_gym.cbf.learners import REGISTRY
+
+    if REGISTRY[args.learner].true_terms:
+        parser.error(f"--learner {args.learner} needs the true terms, which a robot does not "
+                     "have")
     torque_error = _floats(parser, args.torque_error, "--torque-error", 7)
     if any(v < 0 for v in torque_error):
         parser.error(f"--torque-error must be >= 0, got {args.torque_error!r}")

@@ -188,7 +188,8 @@ class Bridge:
     policy : callable
         ``policy(Observation) -> torque (7,)`` (Nm, on top of the gravity compensation).
     obstacles : callable
-        ``obstacles(t) -> ObstacleEstimate`` (the perception callback, ``t`` in s).
+        ``obstacles(t) -> ObstacleEstimate`` (the perception callback; ``t``, like the
+        policy's ``Observation.t``, is the time in s since the run's first state).
     limits : JointLimits
         The robot's joint ranges and speeds: the stop's check of the measured state.
     torques : callable
@@ -332,7 +333,7 @@ class Bridge:
         pay for allocations and caches, which must not happen inside the 1 kHz loop. A stop
         condition of that state raises ``RuntimeError`` with its reason (nothing starts)."""
         state = self.robot.read_once()
-        t = float(state.time.to_sec())
+        t = 0.0
         self._last_tau, self._last_finite, self._on_time = np.zeros(7), None, False
         self.report = BridgeReport()
         for _ in range(int(steps)):
@@ -356,6 +357,7 @@ class Bridge:
         observe_times = np.empty(n_max)
         self._last_tau, self._last_finite, self._on_time = None, None, False
         prev: tuple | None = None  # (terms, torque) of the previous tick, for observe
+        t_first = None
         k_pairs = self.barriers.n_pairs
         gc_was_enabled = gc.isenabled()
         gc.collect()
@@ -381,7 +383,9 @@ class Bridge:
                     rep.late_reads += 1
                 rate = getattr(state, "control_command_success_rate", 1.0)
                 rep.min_success_rate = min(rep.min_success_rate, float(rate))
-                t = float(state.time.to_sec())
+                if t_first is None:  # the robot's clock counts from its start
+                    t_first = float(state.time.to_sec())
+                t = float(state.time.to_sec()) - t_first
                 try:
                     u, on_time, terms = self._step(state, t, t0)
                 except _Stop as stop:

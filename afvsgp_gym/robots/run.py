@@ -51,8 +51,12 @@ def make_controller(barriers: BarrierModel, learner: str = "none", **filter_kwar
     if learner == "none":  # no band to correct
         options.pop("calibration", None)
         options.pop("calibration_step", None)
-    return SafetyController(-TAU_MAX, TAU_MAX, barriers.n_barriers, learner,
+    ctrl = SafetyController(-TAU_MAX, TAU_MAX, barriers.n_barriers, learner,
                             layout=barriers.layout, relative_degree=2, **options)
+    if ctrl.uses_true_terms:
+        raise ValueError(f"learner {learner!r} needs the true terms, which a robot does not "
+                         "have; use a learner or 'none'")
+    return ctrl
 
 
 def build_bridge(robot: Any, model: Any, torques: Callable, *, chain: DHChain,

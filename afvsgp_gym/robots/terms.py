@@ -207,7 +207,7 @@ class BarrierModel:
                              f"obstacles. Got: {obstacles!r}")
         p, v, jac, bias = self.kinematics(q, qd) if spheres is None else spheres
         n_s, n_o, k = self.n_spheres, self.n_obstacles, self.n_pairs
-        # one solve for M^-1 itself: q''_0 = -M^-1 c and the gains J M^-1 (M symmetric)
+        # M^-1 itself: q''_0 = -M^-1 c and the gains J M^-1 (M symmetric)
         minv = np.linalg.inv(mass)
         qacc0 = -(minv @ coriolis)
         d = (p[None, :, :] - obstacles.position[:, None, :]).reshape(k, 3)

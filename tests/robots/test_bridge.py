@@ -5,11 +5,13 @@ NaN state, a limit violation, the robot's reflex, a NaN policy)."""
 import numpy as np
 import pytest
 
+from afvsgp_gym.envs.safety_spheres import sphere_arrays
 from afvsgp_gym.robots.bridge import Brake
 from afvsgp_gym.robots.kinematics import GYMNASIUM_PANDA, SphereKinematics
 from afvsgp_gym.robots.libfranka import as_matrix, limit_rate
-from afvsgp_gym.robots.run import build_bridge
+from afvsgp_gym.robots.run import build_bridge, make_controller
 from afvsgp_gym.robots.simulated import SimulatedFranka, Torques
+from afvsgp_gym.robots.terms import BarrierModel
 
 DT = 1e-3
 
@@ -52,6 +54,11 @@ class FakeClock:
 
     def __call__(self):
         return self.now
+
+
+def bridge_model(robot):
+    kin = SphereKinematics.from_spheres(robot.kinematics, robot.spheres)
+    return BarrierModel(kin, sphere_arrays(robot.spheres)[2], [0.05], robot.joint_limits)
 
 
 def _bridge(robot=None, agent="hold", budget=0.9e-3, on_read=None, on_state=None, **kwargs):
@@ -202,8 +209,23 @@ def test_the_stand_ins_model_has_libfrankas_shapes_and_the_kinematics_jacobian()
     np.testing.assert_allclose(jac[:3], ee(state.q, np.zeros(7))[2][0], rtol=0, atol=1e-9)
 
 
+def test_a_learner_observes_every_step_after_the_write():
+    bridge, rec, _ = _bridge(agent="hold")
+    seen = []
+    inner = bridge.controller.observe
+    bridge.controller.observe = lambda *a: seen.append(a) or inner(*a)
+    bridge.learn = True
+    report = bridge.run(0.05)
+    assert report.stop_reason == "completed" and len(seen) == report.steps - 1
+    terms_before, tau, terms_after, dt = seen[10]
+    np.testing.assert_array_equal(tau, rec.commands[10][0])  # the torque as written
+    assert dt == pytest.approx(DT) and terms_before is seen[9][2]
+
+
 def test_bad_arguments_name_the_argument():
     robot = SimulatedFranka(realtime=False)
+    with pytest.raises(ValueError, match="learner 'oracle'"):
+        make_controller(bridge_model(robot), "oracle")
     with pytest.raises(ValueError, match="payload_mass"):
         SimulatedFranka(payload_mass=-1.0)
     with pytest.raises(ValueError, match="budget"):

@@ -39,6 +39,7 @@ def test_host_without_pylibfranka_says_how_to_install_it(monkeypatch, capsys):
     (["robot", "--simulate", "--seconds", "0"], "--seconds"),
     (["robot", "--simulate", "--agent", "ram"], "--agent"),
     (["robot", "--simulate", "--learner", "nope"], "--learner"),
+    (["robot", "--simulate", "--learner", "oracle"], "--learner oracle needs the true terms"),
     (["robot", "--simulate", "--torque-error", "1,2"], "--torque-error"),
     (["robot", "--simulate", "--budget", "2"], "--budget"),
     (["robot", "--host", "1.2.3.4", "--obstacle", "0.5,0,0.4"], "--obstacle"),
