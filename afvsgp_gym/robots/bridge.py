@@ -234,7 +234,10 @@ class Bridge:
 
     # ------------------------------------------------------------------ one tick
     def _violation(self, q: np.ndarray, dq: np.ndarray) -> str | None:
+        """Which joint is at its range stop or above its speed (None: none)."""
         lim = self.limits
+        if not lim.violation(q, dq):
+            return None
         for j in range(lim.n_joints):
             if q[j] <= lim.lower[j] or q[j] >= lim.upper[j]:
                 return f"joint{j + 1} at its range stop (q = {q[j]:.4f} rad)"
