@@ -307,13 +307,13 @@ class Bridge:
             self.report.filter_active_steps += 1
         if not res.feasible:
             self.report.filter_infeasible_steps += 1
-        if res.status.startswith("backup"):
-            pass  # the brake engaged inside the filter
-        else:
+        if not res.status.startswith("backup"):  # (else the brake engaged inside the filter)
             self.brake.release()
         return res.u, True, terms
 
     def _stop_torque(self) -> np.ndarray:
+        """The stop's command: the brake from the last finite state, rate limited from the
+        last command (that command itself when no state was finite)."""
         last = np.zeros(7) if self._last_tau is None else self._last_tau
         if self._last_finite is None:
             return last

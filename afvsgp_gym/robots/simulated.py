@@ -26,8 +26,8 @@ The robot's own checks, as the real one's reflexes: a commanded torque step abov
 (``controller_torque_discontinuity``), a joint at its range stop or above its datasheet
 speed (``joint_position_limits_violation``, ``joint_velocity_violation``), an unstable
 simulation (``instability_detected``) or a success rate below 80 %
-(``communication_constraints_violation``) abort the motion: the next ``readOnce`` raises
-:class:`ControlException`, ``robot_mode`` becomes ``"Reflex"`` and ``current_errors`` names
+(``communication_constraints_violation``) abort the motion: the ``readOnce`` of that tick
+raises :class:`ControlException`, ``robot_mode`` becomes ``"Reflex"`` and ``current_errors`` names
 the flags (``reflex=False`` turns the limit reflexes off, to test the bridge's own checks).
 """
 
@@ -47,7 +47,12 @@ from afvsgp_gym.envs import franka_model as fm
 from afvsgp_gym.envs.joint_limits import FRANKA_MAX_SPEED, FRANKA_MAX_TORQUE_RATE, JointLimits
 from afvsgp_gym.envs.safety_spheres import PANDA_ARM_SPHERES, SafetySphere, sphere_arrays
 from afvsgp_gym.envs.scenario import ObstacleSpec
-from afvsgp_gym.robots.kinematics import GYMNASIUM_PANDA, DHChain
+from afvsgp_gym.robots.kinematics import (
+    END_EFFECTOR_OFFSET,
+    GYMNASIUM_PANDA,
+    DHChain,
+    SphereKinematics,
+)
 from afvsgp_gym.robots.libfranka import CONTROL_PERIOD, TAU_MAX
 from afvsgp_gym.robots.terms import ObstacleEstimate
 from afvsgp_gym.validation import check_real
@@ -287,12 +292,9 @@ class SimulatedFranka:
         if q0.shape != (7,) or not np.isfinite(q0).all():
             raise ValueError(f"q0 must be 7 finite joint angles. Got: {q0!r}")
         self.realtime, self.reflex = bool(realtime), bool(reflex)
-        scene_probe = fm.build_model(fm.PlantParameters(), fm.SceneOptions(physics_dt=0.001))
-        probe = mujoco.MjData(scene_probe)
-        probe.qpos[:] = q0
-        mujoco.mj_kinematics(scene_probe, probe)
         #: The end-effector site at ``q0`` (m): the centre of the default reference.
-        self.reference_center = probe.site_xpos[scene_probe.site(fm.EE_SITE).id].copy()
+        self.reference_center = SphereKinematics(self.kinematics, [7], [END_EFFECTOR_OFFSET]
+                                                 ).positions(q0)[0]
         if obstacles is None:
             obstacles = [dynamic_obstacle(self.reference_center)]
         self.obstacles = tuple(obstacles)
