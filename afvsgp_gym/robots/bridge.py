@@ -123,7 +123,8 @@ class BridgeReport:
     the steps that wrote the fallback (``skipped_filters`` of them before the filter ran);
     ``late_reads`` the reads more than 1.5 periods after the last; ``lost_commands`` (a
     stand-in's) the ticks the robot went without a new command; ``min_h`` the smallest
-    measured obstacle barrier (m)."""
+    measured obstacle barrier (m); ``kinematics_error`` the start's check of the kinematics
+    against the robot's own."""
 
     steps: int = 0
     seconds: float = 0.0
@@ -142,6 +143,7 @@ class BridgeReport:
     min_success_rate: float = 1.0
     min_h: float = math.inf
     lost_commands: int | None = None
+    kinematics_error: dict[str, float] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         out = asdict(self)
@@ -227,6 +229,8 @@ class Bridge:
         self.cost, self.learn = cost, bool(learn)
         self.brake = Brake() if brake is None else brake
         self.clock = clock
+        #: The kinematics check's figures, reported (``build_bridge`` sets them).
+        self.kinematics_error: dict[str, float] | None = None
         kin = barriers.kinematics  # the spheres and the end-effector point in one pass
         self._kinematics = SphereKinematics(kin.chain, [*kin.links, 7],
                                             np.vstack([kin.offsets, END_EFFECTOR_OFFSET]))
@@ -355,7 +359,8 @@ class Bridge:
             self.warm_up(warm_up)
         n_max = int(round(seconds / CONTROL_PERIOD))
         self.report = rep = BridgeReport(cost_source="measured" if self.cost is None
-                                         else "true_state")
+                                         else "true_state",
+                                         kinematics_error=self.kinematics_error)
         step_times = np.empty(n_max)
         observe_times = np.empty(n_max)
         self._last_tau, self._last_finite, self._on_time = None, None, False

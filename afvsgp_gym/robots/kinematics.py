@@ -38,7 +38,11 @@ with the table above at random joint angles (tests/robots/test_kinematics.py):
 spheres of :data:`~afvsgp_gym.envs.safety_spheres.PANDA_ARM_SPHERES` are given in the
 gymnasium-robotics body frames, which are the DH frames of the same link, so the same offsets
 serve both chains: on a real robot use :data:`FRANKA_PANDA` with the angles the robot
-reports. (A gymnasium-robotics angle ``q`` is Franka's ``q + (0, 0, 0, 0, 0, 1.57, 0.7854)``.)
+reports. (A gymnasium-robotics angle ``q`` is Franka's ``q + (0, 0, 0, 0, 0, 1.57, 0.7854)``:
+the MJCF's joint-6 range is Franka's shifted by 1.57 rad, to 0.07 rad, and its hand is
+mounted -45 degrees about z from link 7 as Franka's is from the flange; its joint-7 range was
+not shifted. :func:`~afvsgp_gym.robots.libfranka.check_kinematics` compares the table with a
+connected robot's own flange pose and Jacobian before the bridge starts.)
 
 Velocities (frame ``i`` has axis ``z_i`` and origin ``o_i`` in the base frame, ``S`` a sphere
 centre ``p`` on link ``k``):
@@ -58,12 +62,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["END_EFFECTOR_OFFSET", "FRANKA_PANDA", "GYMNASIUM_PANDA", "DHChain",
+__all__ = ["END_EFFECTOR_OFFSET", "FLANGE_OFFSET", "FRANKA_PANDA", "GYMNASIUM_PANDA", "DHChain",
            "SphereKinematics"]
 
 #: The end-effector point in link 7's frame (m): the simulation's ``end_effector`` site,
 #: on the real arm the flange (0.107 m) plus the Franka Hand's 0.1034 m.
 END_EFFECTOR_OFFSET = (0.0, 0.0, 0.21)
+#: The flange frame F: frame 7 moved this far (m) along its z axis (Franka's table).
+FLANGE_OFFSET = 0.107
 
 
 def _array7(value, name: str) -> np.ndarray:
@@ -129,6 +135,15 @@ class DHChain:
         org[1:] = np.einsum("kij,kj->ki", rot[:-1], shift[1:])
         np.cumsum(org, axis=0, out=org)
         return rot, org
+
+    def flange(self, q: np.ndarray) -> np.ndarray:
+        """The flange frame's pose ``O_T_F`` (4, 4) at ``q``: frame 7 moved
+        :data:`FLANGE_OFFSET` along its z axis."""
+        rot, org = self.frames(q)
+        out = np.eye(4)
+        out[:3, :3] = rot[6]
+        out[:3, 3] = org[6] + FLANGE_OFFSET * rot[6][:, 2]
+        return out
 
 
 #: Franka's documented table (Panda and FR3): the robot's own angles.

@@ -28,10 +28,12 @@ from typing import Any, Protocol
 import numpy as np
 
 from afvsgp_gym.envs.joint_limits import FRANKA_MAX_SPEED, FRANKA_MAX_TORQUE_RATE, JointLimits
+from afvsgp_gym.robots.kinematics import FLANGE_OFFSET, DHChain, SphereKinematics
 
-__all__ = ["CONTROL_PERIOD", "INSTALL_HINT", "PANDA_LOWER", "PANDA_UPPER", "TAU_MAX",
-           "ActiveControl", "Model", "MissingExtraError", "Robot", "RobotState",
-           "as_matrix", "connect", "limit_rate", "panda_limits"]
+__all__ = ["CONTROL_PERIOD", "INSTALL_HINT", "KINEMATICS_TOLERANCE", "PANDA_LOWER",
+           "PANDA_UPPER", "TAU_MAX", "ActiveControl", "Model", "MissingExtraError", "Robot",
+           "RobotState", "as_matrix", "check_kinematics", "connect", "kinematics_error",
+           "limit_rate", "panda_limits"]
 
 #: libfranka's control period (s): one state and one command every millisecond.
 CONTROL_PERIOD = 1e-3
@@ -40,6 +42,9 @@ TAU_MAX = np.array([87.0, 87.0, 87.0, 87.0, 12.0, 12.0, 12.0])
 #: Franka Panda joint ranges (rad, datasheet), in the robot's own angles (FR3: its own).
 PANDA_LOWER = np.array([-2.8973, -1.7628, -2.8973, -3.0718, -2.8973, -0.0175, -2.8973])
 PANDA_UPPER = np.array([2.8973, 1.7628, 2.8973, -0.0698, 2.8973, 3.7525, 2.8973])
+#: Largest disagreement :func:`check_kinematics` accepts: flange position (m), flange
+#: orientation (rad), end-effector Jacobian entry (m/rad).
+KINEMATICS_TOLERANCE = (1e-3, 1e-2, 1e-3)
 #: What to run when pylibfranka is missing.
 INSTALL_HINT = "pip install 'afvsgp-gym[robot]'  (pylibfranka >= 0.21, Python 3.11 wheel)"
 
@@ -108,3 +113,37 @@ def connect(host: str) -> tuple[Any, Any, Any]:
         raise MissingExtraError(f"--host needs pylibfranka: {INSTALL_HINT}") from None
     robot = pylibfranka.Robot(str(host))
     return robot, robot.load_model(), pylibfranka.Torques
+
+
+def kinematics_error(state: Any, model: Any, chain: DHChain) -> dict[str, float]:
+    """How far ``chain`` is from the robot's own kinematics at ``state``: the flange
+    position (m) and orientation (rad) against ``O_T_EE F_T_EE^-1`` (the state's 4 x 4
+    column-major poses) and the end-effector point's translational Jacobian against
+    ``Model.zero_jacobian(state)`` (its first three rows; the largest entry difference).
+    On a connected robot this is the check that the package's DH table, joint offsets and
+    frames are the robot's."""
+    q = np.asarray(state.q, dtype=np.float64)
+    o_t_ee = as_matrix(state.O_T_EE, 4, 4)
+    f_t_ee = as_matrix(state.F_T_EE, 4, 4)
+    robot_flange = o_t_ee @ np.linalg.inv(f_t_ee)
+    mine = chain.flange(q)
+    rel = robot_flange[:3, :3].T @ mine[:3, :3]
+    skew = np.array([rel[2, 1] - rel[1, 2], rel[0, 2] - rel[2, 0], rel[1, 0] - rel[0, 1]])
+    angle = float(np.arctan2(0.5 * np.linalg.norm(skew), 0.5 * (np.trace(rel) - 1.0)))
+    ee = f_t_ee[:3, 3] + np.array([0.0, 0.0, FLANGE_OFFSET])  # EE point in frame 7
+    jac = SphereKinematics(chain, [7], [ee])(q, np.zeros(7))[2][0]
+    robot_jac = as_matrix(model.zero_jacobian(state), 6, 7)[:3]
+    return {"flange_position_m": float(np.linalg.norm(robot_flange[:3, 3] - mine[:3, 3])),
+            "flange_rotation_rad": angle,
+            "jacobian": float(np.abs(jac - robot_jac).max())}
+
+
+def check_kinematics(state: Any, model: Any, chain: DHChain) -> dict[str, float]:
+    """:func:`kinematics_error`, or ``RuntimeError`` when it exceeds
+    :data:`KINEMATICS_TOLERANCE` (the bridge does not start on kinematics that are not the
+    robot's)."""
+    err = kinematics_error(state, model, chain)
+    if any(v > tol for v, tol in zip(err.values(), KINEMATICS_TOLERANCE, strict=True)):
+        raise RuntimeError(f"the kinematics {chain.name!r} are not the robot's: {err} "
+                           f"(tolerances {KINEMATICS_TOLERANCE})")
+    return err

@@ -14,7 +14,7 @@ from afvsgp_gym.envs.joint_limits import JointLimits
 from afvsgp_gym.envs.safety_spheres import PANDA_ARM_SPHERES, SafetySphere, sphere_arrays
 from afvsgp_gym.robots.bridge import Bridge, BridgeReport
 from afvsgp_gym.robots.kinematics import FRANKA_PANDA, DHChain, SphereKinematics
-from afvsgp_gym.robots.libfranka import TAU_MAX, connect, panda_limits
+from afvsgp_gym.robots.libfranka import TAU_MAX, check_kinematics, connect, panda_limits
 from afvsgp_gym.robots.policies import make_robot_policy
 from afvsgp_gym.robots.terms import BarrierModel, ObstacleEstimate
 
@@ -68,15 +68,21 @@ def build_bridge(robot: Any, model: Any, torques: Callable, *, chain: DHChain,
     """The :class:`~afvsgp_gym.robots.bridge.Bridge` of one robot: its kinematics ``chain``,
     safety ``spheres``, joint ``limits``, the obstacles' radii and perception callback, the
     policy ``agent`` (:data:`~afvsgp_gym.robots.policies.ROBOT_AGENTS`) from the robot's
-    current pose and a filter with ``learner``."""
+    current pose and a filter with ``learner``. ``chain`` is first checked against the
+    robot's own flange pose and Jacobian (:func:`~afvsgp_gym.robots.libfranka.
+    check_kinematics`; ``RuntimeError`` when they disagree)."""
+    state = robot.read_once()
+    checked = check_kinematics(state, model, chain)  # RuntimeError: not the robot's
     kin = SphereKinematics.from_spheres(chain, spheres)
     barriers = BarrierModel(kin, sphere_arrays(spheres)[2], obstacle_radii, limits,
                             torque_error=torque_error)
     controller = make_controller(barriers, learner, **(filter_kwargs or {}))
-    q0 = np.asarray(robot.read_once().q, dtype=np.float64)
+    q0 = np.asarray(state.q, dtype=np.float64)
     policy = make_robot_policy(agent, chain, q0)
-    return Bridge(robot, model, barriers, controller, policy, obstacles, limits, torques,
-                  budget=budget, cost=cost, learn=learner != "none")
+    bridge = Bridge(robot, model, barriers, controller, policy, obstacles, limits, torques,
+                    budget=budget, cost=cost, learn=learner != "none")
+    bridge.kinematics_error = checked
+    return bridge
 
 
 def run_simulated(seconds: float, *, agent: str = "nominal", learner: str = "none",

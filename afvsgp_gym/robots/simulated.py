@@ -49,6 +49,7 @@ from afvsgp_gym.envs.safety_spheres import PANDA_ARM_SPHERES, SafetySphere, sphe
 from afvsgp_gym.envs.scenario import ObstacleSpec
 from afvsgp_gym.robots.kinematics import (
     END_EFFECTOR_OFFSET,
+    FLANGE_OFFSET,
     GYMNASIUM_PANDA,
     DHChain,
     SphereKinematics,
@@ -119,6 +120,8 @@ class RobotState:
     tau_J: np.ndarray  # noqa: N815 (libfranka's names)
     tau_J_d: np.ndarray  # noqa: N815
     time: Duration
+    O_T_EE: list = field(default_factory=list)  # noqa: N815 (4 x 4, column-major)
+    F_T_EE: list = field(default_factory=list)  # noqa: N815
     robot_mode: str = "Move"
     current_errors: Errors = field(default_factory=Errors)
     control_command_success_rate: float = 1.0
@@ -316,6 +319,14 @@ class SimulatedFranka:
         bodies, self._offsets, self.sphere_radii = sphere_arrays(self.spheres)
         self._sphere_bodies = np.array([m.body(b).id for b in bodies])
         self._obstacle_radii = np.array([o.radius for o in self.obstacles])
+        self._site = m.site(fm.EE_SITE).id
+        f_t_ee = np.eye(4)  # the site in the flange frame (link 7 moved 0.107 m along z)
+        quat = m.site_quat[self._site]
+        mat = np.empty(9)
+        mujoco.mju_quat2Mat(mat, quat)
+        f_t_ee[:3, :3] = mat.reshape(3, 3)
+        f_t_ee[:3, 3] = m.site_pos[self._site] - np.array([0.0, 0.0, FLANGE_OFFSET])
+        self._f_t_ee = f_t_ee.ravel(order="F").tolist()
         self.data.qpos[:] = q0
         self.data.qvel[:] = 0.0
         mujoco.mj_forward(m, self.data)
@@ -346,10 +357,14 @@ class SimulatedFranka:
     def read_once(self) -> RobotState:
         d = self.data
         rate = (sum(self._received) / len(self._received)) if self._received else 1.0
+        ee = np.eye(4)  # the end-effector site's frame (kinematics fresh after each tick)
+        ee[:3, :3] = d.site_xmat[self._site].reshape(3, 3)
+        ee[:3, 3] = d.site_xpos[self._site]
         return RobotState(q=d.qpos[:7].copy(), dq=d.qvel[:7].copy(),
                           tau_J=self._applied.copy(), tau_J_d=self._applied.copy(),
-                          time=Duration(self.ticks * CONTROL_PERIOD), robot_mode=self.mode,
-                          current_errors=Errors(self._errors),
+                          time=Duration(self.ticks * CONTROL_PERIOD),
+                          O_T_EE=ee.ravel(order="F").tolist(), F_T_EE=self._f_t_ee,
+                          robot_mode=self.mode, current_errors=Errors(self._errors),
                           control_command_success_rate=rate)
 
     def stop(self) -> None:
@@ -382,8 +397,7 @@ class SimulatedFranka:
     def clearance(self) -> np.ndarray:
         """``h`` (O S,) of every (sphere, obstacle) pair at the true state, from MuJoCo's
         body frames."""
-        d = self.data
-        mujoco.mj_kinematics(self.model, d)
+        d = self.data  # (its frames are the state's: _advance and set_state refresh them)
         b = self._sphere_bodies
         p = np.einsum("sij,sj->si", d.xmat[b].reshape(-1, 3, 3), self._offsets) + d.xpos[b]
         pos = self.obstacle_estimate().position
@@ -435,6 +449,7 @@ class SimulatedFranka:
         d.ctrl[:] = np.clip(command / TAU_MAX, -1.0, 1.0)
         warnings = int(d.warning.number[_BAD_WARNINGS].sum())
         mujoco.mj_step(m, d)  # (MuJoCo resets a state that goes non-finite, and warns)
+        mujoco.mj_kinematics(m, d)  # the frames of the new state (mj_step leaves the old)
         self.ticks += 1
         q, dq = d.qpos[:7], d.qvel[:7]
         if int(d.warning.number[_BAD_WARNINGS].sum()) > warnings or not (

@@ -13,6 +13,8 @@ from afvsgp_gym.robots.kinematics import (
     DHChain,
     SphereKinematics,
 )
+from afvsgp_gym.robots.libfranka import check_kinematics
+from afvsgp_gym.robots.simulated import SimulatedFranka
 
 EPS = np.finfo(np.float64).eps
 
@@ -107,3 +109,20 @@ def test_bad_input_names_the_argument():
     with pytest.raises(ValueError, match="body"):
         SphereKinematics.from_spheres(FRANKA_PANDA, [PANDA_ARM_SPHERES[0].__class__(
             "panda0_hand", (0.0, 0.0, 0.0), 0.1)])
+
+
+def test_the_stand_ins_flange_and_jacobian_check_the_kinematics():
+    """``check_kinematics`` (the bridge's check at the start) against the stand-in's own
+    ``O_T_EE``, ``F_T_EE`` and ``Model.zero_jacobian`` (MuJoCo's): the simulated model's
+    table agrees to rounding, Franka's table at the simulated angles does not."""
+    robot = SimulatedFranka(realtime=False)
+    model = robot.load_model()
+    rng = np.random.default_rng(7)
+    for _ in range(20):
+        lim = robot.joint_limits
+        robot.set_state(rng.uniform(lim.lower, lim.upper), np.zeros(7))
+        state = robot.read_once()
+        err = check_kinematics(state, model, GYMNASIUM_PANDA)
+        assert max(err.values()) < 1e-9
+    with pytest.raises(RuntimeError, match="'franka' are not the robot's"):
+        check_kinematics(state, model, FRANKA_PANDA)
