@@ -8,14 +8,15 @@ The shapes are pylibfranka 0.21's (the official bindings; ``pip install
 - ``ActiveControl.readOnce() -> (RobotState, Duration)`` blocks until the robot's next state
   (every 1 ms); ``ActiveControl.writeOnce(Torques)`` sends the torques for that period, on
   top of the robot's own gravity compensation; ``Torques(tau_J)`` with ``motion_finished``.
-- ``RobotState``: ``q``, ``dq``, ``tau_J``, ``tau_J_d`` (7 each), ``robot_mode``,
-  ``current_errors`` (truthy when some error flag is set), ``control_command_success_rate``,
-  ``time`` (a ``Duration``, ``to_sec()``).
+- ``RobotState``: ``q``, ``dq``, ``tau_J``, ``tau_J_d`` (7 each), ``O_T_EE``, ``F_T_EE``
+  (4 x 4 poses, 16 column-major), ``robot_mode``, ``current_errors`` (truthy when some error
+  flag is set), ``control_command_success_rate``, ``time`` (a ``Duration``, ``to_sec()``).
 - ``Model.mass(state)`` (49, column-major, or (7, 7)), ``Model.coriolis(state)`` (7,),
   ``Model.gravity(state)`` (7,), ``Model.zero_jacobian(state)`` (42, column-major, or
   (6, 7)). In pylibfranka 0.21 neither ``Model`` nor ``RobotState`` has a constructor: a
   ``Model`` comes only from ``Robot.load_model()`` of a connected robot, so its
-  ``zero_jacobian`` cannot be compared with the package's kinematics without one.
+  ``zero_jacobian`` cannot be compared with the package's kinematics without one;
+  :func:`check_kinematics` compares them (and the flange pose) on the robot, at the start.
 - Errors: ``ControlException`` (the robot aborted the motion: a reflex, a limit, a torque
   discontinuity, too many lost commands) and ``NetworkException`` (the connection), both
   ``RuntimeError``.
