@@ -466,6 +466,10 @@ def _cmd_robot(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int
         parser.error("--obstacle is for --host (the stand-in has its own moving sphere)")
     if args.payload < 0:
         parser.error(f"--payload must be >= 0, got {args.payload}")
+    if not args.obstacle_noise >= 0:
+        parser.error(f"--obstacle-noise must be >= 0, got {args.obstacle_noise}")
+    if args.host is not None and args.obstacle_noise:
+        parser.error("--obstacle-noise is for --simulate (a robot's obstacles are its own)")
     if args.rt_priority is not None and not 1 <= args.rt_priority <= 99:
         parser.error(f"--rt-priority must be in 1..99, got {args.rt_priority}")
     filter_kwargs = json_object_arg(parser, args.filter_kwargs, "--filter-kwargs")
@@ -485,7 +489,8 @@ def _cmd_robot(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int
             if args.simulate:
                 report = run_simulated(args.seconds, agent=agent, learner=args.learner,
                                        budget=budget, torque_error=torque_error,
-                                       robot_kwargs={"payload_mass": args.payload},
+                                       robot_kwargs={"payload_mass": args.payload,
+                                                     "obstacle_noise": args.obstacle_noise},
                                        filter_kwargs=filter_kwargs)
             else:
                 report = run_robot(args.host, args.seconds, obstacles=obstacles, agent=agent,
@@ -671,6 +676,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="a fixed sphere in the base frame (m), repeatable (--host)")
     rb.add_argument("--payload", type=float, default=1.0, metavar="KG",
                     help="the stand-in's payload its model does not know (default 1.0)")
+    rb.add_argument("--obstacle-noise", type=float, default=0.0, metavar="M",
+                    help="the stand-in's camera noise per axis (m, 30 Hz, Kalman estimate with "
+                         "covariance; default 0: exact)")
     rb.add_argument("--rt-priority", type=int, default=None, metavar="N",
                     help="run at SCHED_FIFO priority N (as libfranka's kEnforce)")
     rb.add_argument("--filter-kwargs", default=None, metavar="JSON",

@@ -275,6 +275,16 @@ class SimulatedFranka:
         Pace ``readOnce`` by the wall clock (1 kHz); False: one tick per call.
     reflex : bool
         Abort on the joint range and speed limits, as the robot does.
+    obstacle_noise : float
+        0 (default): :meth:`obstacle_estimate` is the obstacles' true state. > 0 (m): a camera
+        samples each centre at ``obstacle_rate`` Hz with this noise per axis (seeded by
+        ``seed``) and :meth:`obstacle_estimate` is the
+        :class:`~afvsgp_gym.cbf.estimation.ObstacleEstimator`'s (constant velocity, process
+        noise 1 m s^-1.5) at the control time, with its covariance.
+    obstacle_rate : float
+        Hz, the camera's sample rate.
+    seed : int
+        The camera noise's.
     """
 
     #: The kinematics of this arm's angles (the gymnasium-robotics Panda).
@@ -285,12 +295,16 @@ class SimulatedFranka:
     def __init__(self, obstacles: Sequence[ObstacleSpec] | None = None, *,
                  payload_mass: float = 1.0, mass_scale: float = 1.0, damping: float = 1.0,
                  friction: float = 0.0, armature: float = 0.1,
-                 q0=None, realtime: bool = True, reflex: bool = True) -> None:
+                 q0=None, realtime: bool = True, reflex: bool = True,
+                 obstacle_noise: float = 0.0, obstacle_rate: float = 30.0,
+                 seed: int = 0) -> None:
         payload_mass = check_real(payload_mass, "payload_mass", low=0.0)
         mass_scale = check_real(mass_scale, "mass_scale", low=0.0, low_open=True)
         damping = check_real(damping, "damping", low=0.0)
         friction = check_real(friction, "friction", low=0.0)
         armature = check_real(armature, "armature", low=0.0)
+        self.obstacle_noise = check_real(obstacle_noise, "obstacle_noise", low=0.0)
+        self.obstacle_rate = check_real(obstacle_rate, "obstacle_rate", low=0.0, low_open=True)
         q0 = fm.Q_HOME.copy() if q0 is None else np.asarray(q0, dtype=np.float64)
         if q0.shape != (7,) or not np.isfinite(q0).all():
             raise ValueError(f"q0 must be 7 finite joint angles. Got: {q0!r}")
@@ -338,6 +352,13 @@ class SimulatedFranka:
         self._received: deque[bool] = deque(maxlen=100)
         self._t0: float | None = None
         self.lost_commands = 0
+        self._estimator = None
+        if self.obstacle_noise > 0:
+            from afvsgp_gym.cbf.estimation import ObstacleEstimator
+
+            self._estimator = ObstacleEstimator(len(self.obstacles), self.obstacle_noise)
+            self._camera_rng = np.random.default_rng(int(seed))
+            self._next_sample = 0
 
     # ------------------------------------------------------------------ libfranka's calls
     def start_torque_control(self) -> SimulatedControl:
@@ -381,7 +402,21 @@ class SimulatedFranka:
         return self.ticks * CONTROL_PERIOD
 
     def obstacle_estimate(self, t: float | None = None) -> ObstacleEstimate:
-        """The obstacles' true state at ``t`` (s; default: now): the perception callback."""
+        """The perception callback at ``t`` (s; default: now): the obstacles' true state, or
+        with ``obstacle_noise`` the Kalman estimate from the camera's samples up to ``t``."""
+        t = self.time if t is None else float(t)
+        if self._estimator is None:
+            return self.true_obstacles(t)
+        est = self._estimator
+        while self._next_sample / self.obstacle_rate <= t + 1e-12:  # the samples taken by t
+            ts = self._next_sample / self.obstacle_rate
+            true = self.true_obstacles(ts).position
+            est.update(true + self._camera_rng.normal(0.0, self.obstacle_noise, true.shape), ts)
+            self._next_sample += 1
+        return ObstacleEstimate(*est.predict(t))
+
+    def true_obstacles(self, t: float | None = None) -> ObstacleEstimate:
+        """The obstacles' true state at ``t`` (s; default: now)."""
         t = self.time if t is None else float(t)
         states = [o.state(t) for o in self.obstacles]
         return ObstacleEstimate(np.array([s[0] for s in states]),
@@ -400,7 +435,7 @@ class SimulatedFranka:
         d = self.data  # (its frames are the state's: _advance and set_state refresh them)
         b = self._sphere_bodies
         p = np.einsum("sij,sj->si", d.xmat[b].reshape(-1, 3, 3), self._offsets) + d.xpos[b]
-        pos = self.obstacle_estimate().position
+        pos = self.true_obstacles().position
         dist = np.linalg.norm(p[None, :, :] - pos[:, None, :], axis=2)
         return (dist - self._obstacle_radii[:, None] - self.sphere_radii[None, :]).ravel()
 

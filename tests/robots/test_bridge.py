@@ -222,6 +222,21 @@ def test_a_learner_observes_every_step_after_the_write():
     assert dt == pytest.approx(DT) and terms_before is seen[9][2]
 
 
+def test_a_noisy_camera_gives_estimates_with_covariance_to_the_filter():
+    robot = SimulatedFranka(realtime=False, obstacle_noise=0.01, seed=3)
+    bridge, _, _ = _bridge(robot, agent="nominal")
+    seen = []
+    inner = bridge.controller.filter
+    bridge.controller.filter = lambda u, terms, **k: seen.append(terms) or inner(u, terms, **k)
+    report = bridge.run(0.1)
+    assert report.stop_reason == "completed"
+    cov = seen[-1].covariance
+    k = bridge.barriers.n_pairs
+    assert cov is not None and np.all(cov[:k, 0, 0] > 0) and not cov[k:].any()
+    est, true = robot.obstacle_estimate(), robot.true_obstacles()
+    assert 0 < np.abs(est.position - true.position).max() < 0.05
+
+
 def test_bad_arguments_name_the_argument():
     robot = SimulatedFranka(realtime=False)
     with pytest.raises(ValueError, match="learner 'oracle'"):
