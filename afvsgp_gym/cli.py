@@ -1,4 +1,5 @@
-"""``afvsgp-gym`` console script: evaluate, sweep, report, reproduce, plot, video, train, bench.
+"""``afvsgp-gym`` console script: evaluate, sweep, report, reproduce, plot, video, train, bench,
+robot.
 
 Each subcommand validates its arguments (unknown env ids, agents and learners list the valid
 choices and exit with status 2; the values of ``--env-kwargs`` and ``--filter-kwargs`` are
