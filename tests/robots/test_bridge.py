@@ -61,14 +61,15 @@ def bridge_model(robot):
     return BarrierModel(kin, sphere_arrays(robot.spheres)[2], [0.05], robot.joint_limits)
 
 
-def _bridge(robot=None, agent="hold", budget=0.9e-3, on_read=None, on_state=None, **kwargs):
+def _bridge(robot=None, agent="hold", budget=0.9e-3, on_read=None, on_state=None,
+            torque_error=(3, 3, 3, 3, 1, 1, 1), **kwargs):
     robot = SimulatedFranka(realtime=False, **kwargs) if robot is None else robot
     rec = Recording(robot, on_read, on_state)
     bridge = build_bridge(rec, robot.load_model(), Torques, chain=robot.kinematics,
                           obstacle_radii=[o.radius for o in robot.obstacles],
                           obstacles=robot.obstacle_estimate, limits=robot.joint_limits,
                           agent=agent, spheres=robot.spheres, budget=budget, cost=robot.cost,
-                          torque_error=[3, 3, 3, 3, 1, 1, 1])
+                          torque_error=torque_error)
     bridge.clock = FakeClock()
     return bridge, rec, robot
 
@@ -245,3 +246,16 @@ def test_bad_arguments_name_the_argument():
         SimulatedFranka(payload_mass=-1.0)
     with pytest.raises(ValueError, match="budget"):
         _bridge(robot, budget=0.0)
+
+
+@pytest.mark.parametrize("bound, safe", [([3, 3, 3, 3, 1, 1, 1], True), (0.0, False)])
+def test_the_bound_keeps_the_undeclared_payload_out_of_the_moving_sphere(bound, safe):
+    """The whole loop through the obstacle's arrival (stepped without the wall clock, on
+    the fake clock: no step falls back, the run is deterministic): with the torque-error
+    bound no step has cost while the filter acts; without it the 1 kg payload the model does
+    not know takes the hand into the sphere (the test can fail)."""
+    bridge, _, _ = _bridge(agent="nominal", torque_error=bound)
+    report = bridge.run(10.0)
+    assert report.stop_reason == "completed" and report.filter_active_steps > 500
+    assert (report.cost_steps == 0) == safe
+    assert report.min_h < 0.05
