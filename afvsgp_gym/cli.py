@@ -1,4 +1,5 @@
-"""``afvsgp-gym`` console script: evaluate, sweep, report, reproduce, plot, video, train, bench.
+"""``afvsgp-gym`` console script: evaluate, sweep, report, reproduce, plot, video, train, bench,
+robot.
 
 Each subcommand validates its arguments (unknown env ids, agents and learners list the valid
 choices and exit with status 2; the values of ``--env-kwargs`` and ``--filter-kwargs`` are
@@ -13,6 +14,8 @@ work starts) and then calls one library function:
 - ``video``     -> :func:`afvsgp_gym.video.record_video`
 - ``train``     -> :func:`afvsgp_gym.agents.sb3.train`
 - ``bench``     -> :func:`afvsgp_gym.benchmarks.run_all.run_all`
+- ``robot``     -> :func:`afvsgp_gym.robots.run.run_simulated` (``--simulate``) or
+  :func:`afvsgp_gym.robots.run.run_robot` (``--host``)
 """
 
 from __future__ import annotations
@@ -420,6 +423,102 @@ def _cmd_bench(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int
     return 0 if any(v is not None for v in results.values()) else 1
 
 
+def _floats(parser: argparse.ArgumentParser, text: str, opt: str, n: int) -> list[float]:
+    """``n`` comma-separated finite numbers (one is repeated ``n`` times), or an error naming
+    ``opt``."""
+    try:
+        values = [float(x) for x in text.split(",")]
+    except ValueError:
+        parser.error(f"{opt} must be comma-separated numbers, got {text!r}")
+    if len(values) == 1:
+        values = values * n
+    if len(values) != n or not all(v == v and abs(v) != float("inf") for v in values):
+        parser.error(f"{opt} must be 1 or {n} finite numbers, got {text!r}")
+    return values
+
+
+def _cmd_robot(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
+    from afvsgp_gym.robots.policies import ROBOT_AGENTS
+
+    if args.simulate == (args.host is not None):
+        parser.error("give exactly one of --simulate and --host IP")
+    if not args.seconds > 0:
+        parser.error(f"--seconds must be > 0, got {args.seconds}")
+    if not 0 < args.budget < 1.0:
+        parser.error(f"--budget must be in (0, 1) ms, got {args.budget}")
+    agent = args.agent or ("nominal" if args.simulate else "hold")
+    if agent not in ROBOT_AGENTS:
+        parser.error(f"unknown agent {agent!r} for --agent; valid choices: "
+                     f"{', '.join(ROBOT_AGENTS)} (the subset of evaluate's agents that needs "
+                     "no simulation: docs/robot.md)")
+    _check_learner(parser, args.learner)
+    from afvsgp_gym.cbf.learners import REGISTRY
+
+    if REGISTRY[args.learner].true_terms:
+        parser.error(f"--learner {args.learner} needs the true terms, which a robot does not "
+                     "have")
+    torque_error = _floats(parser, args.torque_error, "--torque-error", 7)
+    if any(v < 0 for v in torque_error):
+        parser.error(f"--torque-error must be >= 0, got {args.torque_error!r}")
+    obstacles = [_floats(parser, o, "--obstacle", 4) for o in args.obstacle or []]
+    if any(o[3] <= 0 for o in obstacles):
+        parser.error("--obstacle radius must be > 0")
+    if args.simulate and obstacles:
+        parser.error("--obstacle is for --host (the stand-in has its own moving sphere)")
+    if args.payload < 0:
+        parser.error(f"--payload must be >= 0, got {args.payload}")
+    if not args.obstacle_noise >= 0:
+        parser.error(f"--obstacle-noise must be >= 0, got {args.obstacle_noise}")
+    if args.host is not None and args.obstacle_noise:
+        parser.error("--obstacle-noise is for --simulate (a robot's obstacles are its own)")
+    if args.rt_priority is not None and not 1 <= args.rt_priority <= 99:
+        parser.error(f"--rt-priority must be in 1..99, got {args.rt_priority}")
+    filter_kwargs = json_object_arg(parser, args.filter_kwargs, "--filter-kwargs")
+    json_path = _check_out(parser, args.json, "--json")
+    from afvsgp_gym.robots import libfranka
+    from afvsgp_gym.robots.run import realtime_priority, run_robot, run_simulated
+
+    if args.host is not None:
+        try:
+            import pylibfranka  # noqa: F401
+        except ImportError:
+            parser.exit(3, f"{parser.prog}: error: --host needs pylibfranka, the optional "
+                           f"extra 'robot': {libfranka.INSTALL_HINT}\n")
+    budget = args.budget * 1e-3
+    with realtime_priority(args.rt_priority) as scheduler:
+        try:
+            if args.simulate:
+                report = run_simulated(args.seconds, agent=agent, learner=args.learner,
+                                       budget=budget, torque_error=torque_error,
+                                       robot_kwargs={"payload_mass": args.payload,
+                                                     "obstacle_noise": args.obstacle_noise},
+                                       filter_kwargs=filter_kwargs)
+            else:
+                report = run_robot(args.host, args.seconds, obstacles=obstacles, agent=agent,
+                                   learner=args.learner, budget=budget,
+                                   torque_error=torque_error, filter_kwargs=filter_kwargs)
+        except (RuntimeError, OSError) as exc:  # no connection, a state that stops the start
+            print(f"{parser.prog}: error: {exc}", file=sys.stderr)
+            return 1
+    out = report.to_dict()
+    from afvsgp_gym.benchmarks._machine import machine
+
+    out.update(mode="simulate" if args.simulate else "host", agent=agent, learner=args.learner,
+               budget_ms=args.budget, torque_error_nm=torque_error, scheduler=scheduler,
+               machine=machine(), load_average=list(os.getloadavg()))
+    st = report.step_time_ms
+    print(f"{report.steps} steps in {report.seconds:.2f} s ({report.rate_hz:.1f} Hz), "
+          f"{report.deadline_misses} deadline misses (budget {args.budget:g} ms), "
+          f"{report.cost_steps} steps with cost ({report.cost_source}), stop: "
+          f"{report.stop_reason}")
+    if st:
+        print("step time (ms): " + ", ".join(f"{k} {v:.3f}" for k, v in st.items()))
+    if json_path is not None:
+        json_path.write_text(json.dumps(out, indent=2) + "\n")
+        print(f"wrote {json_path}")
+    return 0 if report.stop_reason == "completed" else 1
+
+
 # ----------------------------------------------------------------------------- parser
 
 
@@ -550,6 +649,42 @@ def build_parser() -> argparse.ArgumentParser:
     bn = sub.add_parser("bench", help="speed figures of the GP, env and filter benchmarks")
     bn.add_argument("--quick", action="store_true")
     bn.add_argument("--only", default=None, metavar="A,B", help="subset of gp,envs,filter,sweep")
+    rb = sub.add_parser("robot", help="the 1 kHz torque loop on a Franka (libfranka) or its "
+                                      "simulated stand-in",
+                        description="Run a policy's torques through the safety filter and "
+                                    "libfranka's torque-rate limiter at 1 kHz, on a robot "
+                                    "(--host, pylibfranka) or on the MuJoCo stand-in with "
+                                    "libfranka's interface (--simulate, wall-clock 1 kHz); "
+                                    "prints and writes the timing and safety counters "
+                                    "(docs/robot.md).")
+    rb.add_argument("--simulate", action="store_true", help="the MuJoCo stand-in (dry run)")
+    rb.add_argument("--host", default=None, metavar="IP",
+                    help="the robot's address (extra 'robot': pylibfranka)")
+    rb.add_argument("--seconds", type=float, default=10.0, help="run length (default 10)")
+    rb.add_argument("--agent", default=None,
+                    help="nominal | hold | zero (default nominal with --simulate, hold with "
+                         "--host)")
+    rb.add_argument("--learner", default="none",
+                    help="filter learner (default none: the robot's model; a learner's "
+                         "updates do not fit in 1 ms here, docs/robot.md)")
+    rb.add_argument("--budget", type=float, default=0.9, metavar="MS",
+                    help="time from the state to the command before the step falls back "
+                         "(default 0.9 ms)")
+    rb.add_argument("--torque-error", default="3,3,3,3,1,1,1", metavar="NM",
+                    help="bound on the torque the model misses, per joint or one for all "
+                         "(default 3,3,3,3,1,1,1 Nm)")
+    rb.add_argument("--obstacle", action="append", metavar="X,Y,Z,R",
+                    help="a fixed sphere in the base frame (m), repeatable (--host)")
+    rb.add_argument("--payload", type=float, default=1.0, metavar="KG",
+                    help="the stand-in's payload its model does not know (default 1.0)")
+    rb.add_argument("--obstacle-noise", type=float, default=0.0, metavar="M",
+                    help="the stand-in's camera noise per axis (m, 30 Hz, Kalman estimate with "
+                         "covariance; default 0: exact)")
+    rb.add_argument("--rt-priority", type=int, default=None, metavar="N",
+                    help="run at SCHED_FIFO priority N (as libfranka's kEnforce)")
+    rb.add_argument("--filter-kwargs", default=None, metavar="JSON",
+                    help="SafetyController options over the suggested ones")
+    rb.add_argument("--json", default=None, metavar="PATH")
     return p
 
 
@@ -562,6 +697,7 @@ _COMMANDS = {
     "video": _cmd_video,
     "train": _cmd_train,
     "bench": _cmd_bench,
+    "robot": _cmd_robot,
 }
 
 

@@ -1,0 +1,131 @@
+"""One run of the bridge, assembled: on the MuJoCo stand-in (:func:`run_simulated`) or on a
+robot through pylibfranka (:func:`run_robot`); what ``afvsgp-gym robot`` calls."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+from collections.abc import Callable, Iterator, Sequence
+from typing import Any
+
+import numpy as np
+
+from afvsgp_gym.envs.joint_limits import JointLimits
+from afvsgp_gym.envs.safety_spheres import PANDA_ARM_SPHERES, SafetySphere, sphere_arrays
+from afvsgp_gym.robots.bridge import Bridge, BridgeReport
+from afvsgp_gym.robots.kinematics import FRANKA_PANDA, DHChain, SphereKinematics
+from afvsgp_gym.robots.libfranka import TAU_MAX, check_kinematics, connect, panda_limits
+from afvsgp_gym.robots.policies import make_robot_policy
+from afvsgp_gym.robots.terms import BarrierModel, ObstacleEstimate
+
+__all__ = ["build_bridge", "make_controller", "realtime_priority", "run_robot", "run_simulated",
+           "static_obstacles"]
+
+
+@contextlib.contextmanager
+def realtime_priority(priority: int | None) -> Iterator[str]:
+    """Run the block at SCHED_FIFO ``priority`` (1-99; libfranka's ``RealtimeConfig.kEnforce``
+    asks the same of its control thread), restoring the scheduler after; yields what the
+    process ran at (``"SCHED_OTHER"`` for None, or when the system refuses: the reason)."""
+    if priority is None:
+        yield "SCHED_OTHER"
+        return
+    try:
+        before = os.sched_getscheduler(0), os.sched_getparam(0)
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(int(priority)))
+    except (AttributeError, OSError) as exc:
+        yield f"SCHED_OTHER (SCHED_FIFO {priority} refused: {exc})"
+        return
+    try:
+        yield f"SCHED_FIFO {int(priority)}"
+    finally:
+        os.sched_setscheduler(0, before[0], before[1])
+
+
+def make_controller(barriers: BarrierModel, learner: str = "none", **filter_kwargs: Any):
+    """A :class:`~afvsgp_gym.cbf.SafetyController` for ``barriers`` with torques in Nm
+    (bounds +-``TAU_MAX``), the simulation's suggested options under ``filter_kwargs``."""
+    from afvsgp_gym.cbf import SafetyController
+
+    options = {**barriers.filter_defaults, **filter_kwargs}
+    if learner == "none":  # no band to correct
+        options.pop("calibration", None)
+        options.pop("calibration_step", None)
+    ctrl = SafetyController(-TAU_MAX, TAU_MAX, barriers.n_barriers, learner,
+                            layout=barriers.layout, relative_degree=2, **options)
+    if ctrl.uses_true_terms:
+        raise ValueError(f"learner {learner!r} needs the true terms, which a robot does not "
+                         "have; use a learner or 'none'")
+    return ctrl
+
+
+def build_bridge(robot: Any, model: Any, torques: Callable, *, chain: DHChain,
+                 obstacle_radii: Sequence[float], obstacles: Callable[[float], ObstacleEstimate],
+                 limits: JointLimits, agent: str = "nominal", learner: str = "none",
+                 spheres: Sequence[SafetySphere] = PANDA_ARM_SPHERES, budget: float = 0.9e-3,
+                 cost: Callable[[], bool] | None = None, torque_error=0.0,
+                 filter_kwargs: dict | None = None) -> Bridge:
+    """The :class:`~afvsgp_gym.robots.bridge.Bridge` of one robot: its kinematics ``chain``,
+    safety ``spheres``, joint ``limits``, the obstacles' radii and perception callback, the
+    policy ``agent`` (:data:`~afvsgp_gym.robots.policies.ROBOT_AGENTS`) from the robot's
+    current pose and a filter with ``learner``. ``chain`` is first checked against the
+    robot's own flange pose and Jacobian (:func:`~afvsgp_gym.robots.libfranka.
+    check_kinematics`; ``RuntimeError`` when they disagree)."""
+    state = robot.read_once()
+    checked = check_kinematics(state, model, chain)  # RuntimeError: not the robot's
+    kin = SphereKinematics.from_spheres(chain, spheres)
+    barriers = BarrierModel(kin, sphere_arrays(spheres)[2], obstacle_radii, limits,
+                            torque_error=torque_error)
+    controller = make_controller(barriers, learner, **(filter_kwargs or {}))
+    q0 = np.asarray(state.q, dtype=np.float64)
+    policy = make_robot_policy(agent, chain, q0)
+    bridge = Bridge(robot, model, barriers, controller, policy, obstacles, limits, torques,
+                    budget=budget, cost=cost, learn=learner != "none")
+    bridge.kinematics_error = checked
+    return bridge
+
+
+def run_simulated(seconds: float, *, agent: str = "nominal", learner: str = "none",
+                  realtime: bool = True, budget: float = 0.9e-3, torque_error=0.0,
+                  robot_kwargs: dict | None = None,
+                  filter_kwargs: dict | None = None) -> BridgeReport:
+    """Run the bridge for ``seconds`` against a
+    :class:`~afvsgp_gym.robots.simulated.SimulatedFranka` (``robot_kwargs``: its arguments;
+    by default a 1 kg payload the served model does not know and the simulation's moving
+    sphere); cost from the stand-in's true state."""
+    from afvsgp_gym.robots.simulated import SimulatedFranka, Torques
+
+    robot = SimulatedFranka(realtime=realtime, **(robot_kwargs or {}))
+    bridge = build_bridge(robot, robot.load_model(), Torques, chain=robot.kinematics,
+                          obstacle_radii=[o.radius for o in robot.obstacles],
+                          obstacles=robot.obstacle_estimate, limits=robot.joint_limits,
+                          agent=agent, learner=learner, spheres=robot.spheres, budget=budget,
+                          cost=robot.cost, torque_error=torque_error,
+                          filter_kwargs=filter_kwargs)
+    report = bridge.run(seconds)
+    report.lost_commands = robot.lost_commands
+    return report
+
+
+def static_obstacles(spheres: Sequence[Sequence[float]]) -> tuple[list[float], Callable]:
+    """``(radii, callback)`` of fixed spheres ``(x, y, z, r)`` in the robot's base frame
+    (virtual obstacles for a first run on hardware; none: the joint limits only)."""
+    arr = np.asarray(spheres, dtype=np.float64).reshape(-1, 4)
+    if not np.isfinite(arr).all() or np.any(arr[:, 3] <= 0):
+        raise ValueError(f"obstacles must be (x, y, z, r) with r > 0. Got: {spheres!r}")
+    est = ObstacleEstimate(arr[:, :3], np.zeros((len(arr), 3)), np.zeros((len(arr), 3)))
+    return arr[:, 3].tolist(), lambda t: est
+
+
+def run_robot(host: str, seconds: float, *, obstacles: Sequence[Sequence[float]] = (),
+              agent: str = "hold", learner: str = "none", budget: float = 0.9e-3,
+              torque_error=0.0, filter_kwargs: dict | None = None) -> BridgeReport:
+    """Run the bridge for ``seconds`` on the robot at ``host`` (pylibfranka, Franka's DH
+    table and the Panda's datasheet limits) with fixed spherical ``obstacles``."""
+    robot, model, torques = connect(host)
+    radii, callback = static_obstacles(obstacles)
+    bridge = build_bridge(robot, model, torques, chain=FRANKA_PANDA, obstacle_radii=radii,
+                          obstacles=callback, limits=panda_limits(), agent=agent,
+                          learner=learner, budget=budget, torque_error=torque_error,
+                          filter_kwargs=filter_kwargs)
+    return bridge.run(seconds)

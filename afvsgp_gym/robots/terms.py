@@ -1,0 +1,260 @@
+"""The barrier terms of a torque-controlled Franka arm from the robot's own model (numpy only).
+
+The robot compensates gravity itself (libfranka's torque interface adds it), so the
+commanded torque ``tau`` obeys ``M(q) q'' + c(q, q') = tau + tau_res``, with ``M`` and ``c =
+C(q, q') q'`` from the robot's model (libfranka ``Model.mass``, ``Model.coriolis``) and
+``tau_res`` what that model misses (a payload, friction, the model's errors): the learner's
+job. The joint acceleration at zero action is ``q''_0 = -M^-1 c`` and its gain
+``M^-1 diag(action_scale)``.
+
+The barriers and their conventions are :class:`~afvsgp_gym.envs.franka.FrankaObstacleEnv`'s
+(paper eqs. 44-46), so the same :class:`~afvsgp_gym.cbf.SafetyController` options apply:
+
+- every (sphere ``s``, obstacle ``o``) pair, obstacle-major: ``h = |d| - (r_s + r_o)``,
+  ``d = p_s - p_o``, ``h' = n.v_rel`` (``n = d/|d|``, ``v_rel = v_s - v_o``), relative
+  degree 2, ``lf = n.(J_s q''_0 + J_s' q' - a_o) + (|v_rel|^2 - (n.v_rel)^2)/|d|`` and
+  ``lg = n' J_s M^-1 diag(action_scale)``; features ``xi = [q, q', d, v_rel]``;
+- then the 28 joint range and speed barriers of
+  :class:`~afvsgp_gym.envs.joint_limits.JointLimits` with ``lf, lg = +-(q''_0, M^-1
+  diag(action_scale))`` of their joint and features ``[q, q', 0 (6)]``.
+
+An obstacle estimate with a covariance (:class:`ObstacleEstimate`, the perception issue's
+per-axis covariance of ``[p, v, a]``) gives each pair's covariance of ``[h, h', lf]``
+(:func:`~afvsgp_gym.envs.perception.pair_covariance`) and lowers ``lf`` by the mean of its
+error, ``2 sigma_v^2 / |d|`` (the curvature is convex in the obstacle's velocity), as the
+simulation does; the joint-limit rows' covariance is 0 (the encoders are taken as exact).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from afvsgp_gym.envs.joint_limits import FRANKA_MAX_ACCELERATION, JointLimits
+from afvsgp_gym.envs.perception import pair_covariance
+from afvsgp_gym.envs.scenario import sphere_barriers
+from afvsgp_gym.robots.kinematics import SphereKinematics
+from afvsgp_gym.types import BarrierLayout, BarrierSet
+
+__all__ = ["FEATURE_DIM", "BarrierModel", "ObstacleEstimate"]
+
+#: Features per barrier: ``[q (7), q' (7), d (3), v_rel (3)]``, the simulation's.
+FEATURE_DIM = 20
+
+
+def _rows(value, shape: tuple[int, ...], name: str) -> np.ndarray:
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.shape != shape:
+        raise ValueError(f"{name} must have shape {shape}. Got: {arr.shape}")
+    return arr
+
+
+@dataclass(frozen=True)
+class ObstacleEstimate:
+    """What perception says about ``O`` spherical obstacles at the control time.
+
+    Attributes
+    ----------
+    position, velocity, acceleration : ndarray of shape (O, 3)
+        Centres (m), velocities (m/s), accelerations (m/s^2) in the robot's base frame.
+    covariance : ndarray of shape (O, 3, 3) or None
+        Per-axis covariance of ``[p, v, a]`` (the same for x, y and z, as
+        :class:`~afvsgp_gym.cbf.estimation.ObstacleEstimator` gives it); None: exact.
+    """
+
+    position: np.ndarray
+    velocity: np.ndarray
+    acceleration: np.ndarray
+    covariance: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        pos = np.asarray(self.position, dtype=np.float64)
+        if pos.ndim != 2 or pos.shape[1] != 3:
+            raise ValueError(f"position must have shape (O, 3). Got: {pos.shape}")
+        o = pos.shape[0]
+        object.__setattr__(self, "position", pos)
+        for name in ("velocity", "acceleration"):
+            object.__setattr__(self, name, _rows(getattr(self, name), (o, 3), name))
+        if self.covariance is not None:
+            object.__setattr__(self, "covariance",
+                               _rows(self.covariance, (o, 3, 3), "covariance"))
+
+
+class BarrierModel:
+    """Every barrier's :class:`~afvsgp_gym.types.BarrierSet` at a measured state, from the
+    robot's mass matrix and Coriolis vector (module docstring).
+
+    Parameters
+    ----------
+    kinematics : SphereKinematics
+        The safety spheres' kinematics (``S`` spheres).
+    sphere_radii : array_like of shape (S,)
+        m, > 0.
+    obstacle_radii : array_like of shape (O,)
+        m, > 0.
+    limits : JointLimits or None
+        The joint range and speed barriers (and their margins); None: obstacle pairs only.
+    action_scale : float or array_like of shape (7,)
+        Nm per action unit (1: the action is the torque).
+    torque_error : float or array_like of shape (7,)
+        A bound ``tau_bar`` (Nm, per joint) on the torque the model misses (``|tau_res_j|
+        <= tau_bar_j``: an undeclared payload's weight, friction): every barrier's ``lf`` is
+        lowered by the most it can change ``h^(r)``, ``sum_j |lg_j| tau_bar_j /
+        action_scale_j``, so the filter holds for every such residual (the simulation's
+        ``"true_robust"`` terms do the same for friction). 0 (default): the model is taken
+        as exact.
+    """
+
+    #: The filter settings :class:`~afvsgp_gym.envs.franka.FrankaObstacleEnv` suggests
+    #: (:attr:`filter_defaults`; tests/robots hold them equal).
+    OBSTACLE_ACTIVATION, RANGE_ACTIVATION, SPEED_ACTIVATION = 0.15, 0.3, float("inf")
+    OBSTACLE_DECELERATION = 5.0
+    SPEED_GAIN = 25.0
+    LIMIT_CALIBRATION_STEP = 1.0
+
+    def __init__(self, kinematics: SphereKinematics, sphere_radii, obstacle_radii,
+                 limits: JointLimits | None, action_scale=1.0, torque_error=0.0) -> None:
+        if not isinstance(kinematics, SphereKinematics):
+            raise ValueError(f"kinematics must be a SphereKinematics. Got: {kinematics!r}")
+        n_s = len(kinematics.links)
+        rs = np.asarray(sphere_radii, dtype=np.float64)
+        ro = np.atleast_1d(np.asarray(obstacle_radii, dtype=np.float64))
+        if rs.shape != (n_s,) or not np.all(rs > 0):
+            raise ValueError(f"sphere_radii must be {n_s} numbers > 0. Got: {sphere_radii!r}")
+        if ro.ndim != 1 or not np.all(ro > 0):
+            raise ValueError(f"obstacle_radii must be numbers > 0. Got: {obstacle_radii!r}")
+        if limits is not None and not isinstance(limits, JointLimits):
+            raise ValueError(f"limits must be a JointLimits or None. Got: {limits!r}")
+        scale = np.broadcast_to(np.asarray(action_scale, dtype=np.float64), (7,)).copy()
+        if not np.all(np.isfinite(scale) & (scale > 0)):
+            raise ValueError(f"action_scale must be > 0. Got: {action_scale!r}")
+        err = np.broadcast_to(np.asarray(torque_error, dtype=np.float64), (7,)).copy()
+        if not np.all(np.isfinite(err) & (err >= 0)):
+            raise ValueError(f"torque_error must be >= 0. Got: {torque_error!r}")
+        self.torque_error = err
+        self._error_per_action = err / scale
+        self.kinematics = kinematics
+        self.sphere_radii, self.obstacle_radii = rs, ro
+        self.limits = limits
+        self.action_scale = scale
+        self.n_spheres, self.n_obstacles = n_s, len(ro)
+        self.n_pairs = n_s * len(ro)
+        self._radius = (ro[:, None] + rs[None, :]).ravel()
+        self.n_barriers = self.n_pairs + (0 if limits is None else limits.n_barriers)
+        if limits is not None:  # h = sign * [q, q'][source] + offset for every limit row
+            n = limits.n_joints
+            self._limit_source = limits.joint + np.repeat([0, n], 2 * n)
+            top = limits.max_speed - limits.speed_margin
+            self._limit_offset = np.concatenate([
+                np.ravel(np.column_stack([-(limits.lower + limits.range_margin),
+                                          limits.upper - limits.range_margin])),
+                np.repeat(top, 2)])
+
+    @property
+    def layout(self) -> BarrierLayout:
+        """The pairs of relative degree 2 with one learner each, then the joint-limit
+        barriers sharing one learner per joint (``FrankaObstacleEnv.barrier_layout``)."""
+        k, lim = self.n_pairs, self.limits
+        if lim is None:
+            return BarrierLayout.uniform(k, 2)
+        return BarrierLayout(
+            np.concatenate([np.full(k, 2), lim.relative_degree]),
+            np.concatenate([np.arange(k), k + lim.joint]),
+            np.concatenate([np.ones(k), lim.sign]),
+            np.concatenate([np.zeros(k, dtype=np.int64), np.ones(lim.n_joints, dtype=np.int64)]))
+
+    @property
+    def filter_defaults(self) -> dict:
+        """The :class:`~afvsgp_gym.cbf.FilterConfig` options the simulation suggests for the
+        same barriers (``FrankaObstacleEnv.filter_defaults`` without the warm-up ones):
+        activation distances, braking decelerations and first gains per barrier, and the
+        joint-limit barriers' band correction."""
+        k, lim = self.n_pairs, self.limits
+        out = {"activation_distance": np.full(k, self.OBSTACLE_ACTIVATION),
+               "braking_deceleration": np.full(k, self.OBSTACLE_DECELERATION),
+               "first_gain": np.full(k, np.nan)}
+        if lim is None:
+            return out
+        n = lim.n_joints
+        out["activation_distance"] = np.concatenate([
+            out["activation_distance"], np.full(2 * n, self.RANGE_ACTIVATION),
+            np.full(2 * n, self.SPEED_ACTIVATION)])
+        out["braking_deceleration"] = np.concatenate([
+            out["braking_deceleration"], np.repeat(FRANKA_MAX_ACCELERATION, 2),
+            np.full(2 * n, np.inf)])
+        out["first_gain"] = np.concatenate([out["first_gain"], np.full(2 * n, np.nan),
+                                            np.full(2 * n, self.SPEED_GAIN)])
+        out["calibration"] = (("off",) * k + ("conformal-additive",) * (2 * n)
+                              + ("conformal",) * (2 * n))
+        out["calibration_step"] = np.concatenate([np.zeros(k),
+                                                  np.full(4 * n, self.LIMIT_CALIBRATION_STEP)])
+        return out
+
+    def terms(self, q, qd, mass, coriolis, obstacles: ObstacleEstimate,
+              spheres: tuple | None = None) -> BarrierSet:
+        """The barriers' terms at joint angles ``q`` (7,) and velocities ``qd`` (7,), with the
+        robot model's mass matrix ``mass`` (7, 7) and Coriolis vector ``coriolis`` (7,)
+        (``C(q, q') q'``, Nm) and the obstacle estimate ``obstacles`` (O of them).
+        ``spheres``: the spheres' ``kinematics(q, qd)`` when already computed."""
+        q = _rows(q, (7,), "q")
+        qd = _rows(qd, (7,), "qd")
+        mass = _rows(mass, (7, 7), "mass")
+        coriolis = _rows(coriolis, (7,), "coriolis")
+        if not isinstance(obstacles, ObstacleEstimate) \
+                or obstacles.position.shape[0] != self.n_obstacles:
+            raise ValueError(f"obstacles must be an ObstacleEstimate of {self.n_obstacles} "
+                             f"obstacles. Got: {obstacles!r}")
+        p, v, jac, bias = self.kinematics(q, qd) if spheres is None else spheres
+        n_s, n_o, k = self.n_spheres, self.n_obstacles, self.n_pairs
+        # M^-1 itself: q''_0 = -M^-1 c and the gains J M^-1 (M symmetric)
+        minv = np.linalg.inv(mass)
+        qacc0 = -(minv @ coriolis)
+        d = (p[None, :, :] - obstacles.position[:, None, :]).reshape(k, 3)
+        vr = (v[None, :, :] - obstacles.velocity[:, None, :]).reshape(k, 3)
+        h, hd, n, curv = sphere_barriers(d, vr, self._radius)
+        acc = jac @ qacc0 + bias  # (S, 3) sphere accelerations at zero action
+        a_obs = np.repeat(obstacles.acceleration, n_s, axis=0)
+        ns = n.reshape(n_o, n_s, 3)
+        nb = self.n_barriers  # the pairs' rows, then the joint limits' (filled in place)
+        lf = np.empty(nb)
+        lg = np.empty((nb, 7))
+        derivs = np.empty((nb, 2))
+        xi = np.empty((nb, FEATURE_DIM))
+        lf[:k] = np.einsum("osi,si->os", ns, acc).ravel()
+        lf[:k] -= np.einsum("ki,ki->k", n, a_obs)
+        lf[:k] += curv
+        gain = np.matmul(jac, minv) * self.action_scale  # (S, 3, 7)
+        lg[:k] = np.einsum("osi,sij->osj", ns, gain).reshape(k, 7)
+        derivs[:k, 0], derivs[:k, 1] = h, hd
+        xi[:, :7], xi[:, 7:14] = q, qd
+        xi[:k, 14:17], xi[:k, 17:] = d, vr
+        cov = None
+        if obstacles.covariance is not None:
+            per_pair = np.repeat(obstacles.covariance, n_s, axis=0)
+            dist = np.linalg.norm(d, axis=1)
+            w = np.tile(acc, (n_o, 1)) - a_obs
+            cov = np.zeros((nb, 3, 3))
+            cov[:k] = pair_covariance(n, dist, vr, per_pair, w)
+            lf[:k] -= 2.0 * per_pair[:, 1, 1] / dist
+        lim = self.limits
+        if lim is not None:  # JointLimits.terms, .derivatives and .features, in place
+            joint, sign = lim.joint, lim.sign
+            lf[k:] = sign * qacc0[joint]
+            lg[k:] = sign[:, None] * (minv * self.action_scale)[joint]
+            derivs[k:, 0] = sign * np.concatenate((q, qd))[self._limit_source] + self._limit_offset
+            r = k + 2 * lim.n_joints
+            derivs[k:r, 1] = sign[: r - k] * qd[joint[: r - k]]
+            derivs[r:, 1] = 0.0
+            xi[k:, 14:] = 0.0
+        if self._error_per_action.any():  # the worst residual torque within the bound
+            lf -= np.abs(lg) @ self._error_per_action
+        return BarrierSet(derivs, lf, lg, xi, cov)
+
+    def sphere_clearance(self, q, obstacle_positions) -> np.ndarray:
+        """``h`` (O S,) of every pair at joint angles ``q`` and obstacle centres (O, 3): the
+        geometry alone (for checks of a true state)."""
+        p = self.kinematics.positions(_rows(q, (7,), "q"))
+        pos = _rows(obstacle_positions, (self.n_obstacles, 3), "obstacle_positions")
+        d = (p[None, :, :] - pos[:, None, :]).reshape(-1, 3)
+        return np.linalg.norm(d, axis=1) - self._radius

@@ -1,0 +1,261 @@
+"""The bridge's loop on the MuJoCo stand-in: a run, the rate limiter, the deadline path (an
+injected slow step gets the last safe action, a second one the brake) and the stop paths (a
+NaN state, a limit violation, the robot's reflex, a NaN policy)."""
+
+import numpy as np
+import pytest
+
+from afvsgp_gym.envs.safety_spheres import sphere_arrays
+from afvsgp_gym.robots.bridge import Brake
+from afvsgp_gym.robots.kinematics import GYMNASIUM_PANDA, SphereKinematics
+from afvsgp_gym.robots.libfranka import as_matrix, limit_rate
+from afvsgp_gym.robots.run import build_bridge, make_controller
+from afvsgp_gym.robots.simulated import SimulatedFranka, Torques
+from afvsgp_gym.robots.terms import BarrierModel
+
+DT = 1e-3
+
+
+class Recording:
+    """The stand-in behind the bridge, recording the states read and the commands written;
+    ``on_read(tick, robot)`` may change the plant before a tick is read, ``on_state(tick,
+    state)`` the state as it arrives (a corrupted packet)."""
+
+    def __init__(self, robot, on_read=None, on_state=None):
+        self.robot, self.on_read, self.on_state = robot, on_read, on_state
+        self.states, self.commands = [], []
+
+    def start_torque_control(self):
+        self.control = self.robot.start_torque_control()
+        return self
+
+    def readOnce(self):  # noqa: N802 (libfranka's name)
+        if self.on_read is not None:
+            self.on_read(len(self.states), self.robot)
+        state, period = self.control.readOnce()
+        if self.on_state is not None:
+            self.on_state(len(self.states), state)
+        self.states.append(state)
+        return state, period
+
+    def writeOnce(self, command):  # noqa: N802
+        self.commands.append((np.array(command.tau_J), bool(command.motion_finished)))
+        self.control.writeOnce(command)
+
+    def read_once(self):
+        return self.robot.read_once()
+
+
+class FakeClock:
+    """Time that passes only when a test says so (no wall-clock timing in the tests)."""
+
+    def __init__(self):
+        self.now = 0.0
+
+    def __call__(self):
+        return self.now
+
+
+def bridge_model(robot):
+    kin = SphereKinematics.from_spheres(robot.kinematics, robot.spheres)
+    return BarrierModel(kin, sphere_arrays(robot.spheres)[2], [0.05], robot.joint_limits)
+
+
+def _bridge(robot=None, agent="hold", budget=0.9e-3, on_read=None, on_state=None,
+            torque_error=(3, 3, 3, 3, 1, 1, 1), **kwargs):
+    robot = SimulatedFranka(realtime=False, **kwargs) if robot is None else robot
+    rec = Recording(robot, on_read, on_state)
+    bridge = build_bridge(rec, robot.load_model(), Torques, chain=robot.kinematics,
+                          obstacle_radii=[o.radius for o in robot.obstacles],
+                          obstacles=robot.obstacle_estimate, limits=robot.joint_limits,
+                          agent=agent, spheres=robot.spheres, budget=budget, cost=robot.cost,
+                          torque_error=torque_error)
+    bridge.clock = FakeClock()
+    return bridge, rec, robot
+
+
+def test_a_run_completes_and_every_command_respects_the_rate_limit():
+    bridge, rec, robot = _bridge(agent="nominal")
+    report = bridge.run(0.3)
+    assert report.stop_reason == "completed"
+    assert report.steps == 300 and report.deadline_misses == 0 and report.cost_steps == 0
+    taus = np.array([c[0] for c in rec.commands])
+    assert np.abs(np.diff(taus, axis=0)).max() <= 1000.0 * DT * (1 + 1e-12)
+    assert rec.commands[-1][1] and not any(c[1] for c in rec.commands[:-1])
+    assert robot.lost_commands == 0
+
+
+def test_the_rate_limiter_is_libfrankas():
+    last = np.zeros(7)
+    tau = np.array([5.0, -5.0, 0.5, -0.5, 1.0, -1.0, 0.0])
+    np.testing.assert_array_equal(limit_rate(tau, last),
+                                  [1.0, -1.0, 0.5, -0.5, 1.0, -1.0, 0.0])
+
+
+def test_a_torque_step_is_rate_limited_so_the_robot_does_not_abort():
+    bridge, rec, _ = _bridge(agent="zero")
+    bridge.policy = lambda obs: np.full(7, 10.0) * (obs.t > 0.05)
+    report = bridge.run(0.1)
+    assert report.stop_reason == "completed" and report.rate_limited_steps >= 9
+
+
+def _slow_policy(bridge, ticks, seconds=0.05):
+    """The policy takes ``seconds`` (fake clock) at the given robot ticks."""
+    inner = bridge.policy
+
+    def policy(obs):
+        if round(obs.t / DT) in ticks and bridge.report.steps:  # not during the warm-up
+            bridge.clock.now += seconds
+        return inner(obs)
+
+    return policy
+
+
+def test_a_slow_step_writes_the_last_safe_action_a_second_one_the_brake():
+    bridge, rec, robot = _bridge(agent="nominal")
+    bridge.policy = _slow_policy(bridge, {100, 101})
+    report = bridge.run(0.2)
+    assert report.stop_reason == "completed"
+    assert report.deadline_misses == 2 and report.skipped_filters == 2
+    # tick k's command follows the state read at tick k (the first read is tick 0)
+    k = next(i for i, s in enumerate(rec.states) if round(s.time.to_sec() / DT) == 100)
+    taus = [c[0] for c in rec.commands]
+    np.testing.assert_array_equal(taus[k], taus[k - 1])  # the last safe action, held
+    state = rec.states[k + 1]  # the second: the brake from that state, rate limited
+    model = robot.load_model()
+    brake = Brake()(np.asarray(state.q), np.asarray(state.dq),
+                    as_matrix(model.mass(state), 7, 7), np.asarray(model.coriolis(state)))
+    np.testing.assert_allclose(taus[k + 1], limit_rate(brake, taus[k]), rtol=0, atol=1e-12)
+
+
+def test_a_step_that_overruns_in_the_filter_is_discarded():
+    bridge, rec, _ = _bridge(agent="nominal")
+    inner = bridge.controller.filter
+    calls = []
+
+    def slow_filter(*args, **kwargs):
+        res = inner(*args, **kwargs)
+        calls.append(1)
+        if len(calls) == 150:  # inside the run (the warm-up made 50 calls)
+            bridge.clock.now += 0.05
+        return res
+
+    bridge.controller.filter = slow_filter
+    report = bridge.run(0.2)
+    assert report.deadline_misses == 1 and report.skipped_filters == 0
+    taus = [c[0] for c in rec.commands]
+    k = 99  # the 100th step of the run
+    np.testing.assert_array_equal(taus[k], taus[k - 1])
+
+
+def test_a_nan_state_stops_with_the_brake():
+    def corrupt(tick, state):
+        if tick == 50:
+            state.dq[2] = np.nan
+
+    bridge, rec, _ = _bridge(on_state=corrupt)
+    report = bridge.run(0.2)
+    assert report.stop_reason == "non_finite: state"
+    tau, finished = rec.commands[-1]
+    assert finished and np.isfinite(tau).all()
+    assert report.steps == 50
+
+
+def test_a_limit_violation_stops_the_run_with_its_joint():
+    def push(tick, robot):
+        if tick == 30:
+            dq = robot.data.qvel[:7].copy()
+            dq[3] = 2.3  # joint 4's datasheet speed is 2.175 rad/s
+            robot.set_state(robot.data.qpos[:7], dq)
+
+    bridge, rec, _ = _bridge(on_read=push, reflex=False)
+    report = bridge.run(0.2)
+    assert report.stop_reason.startswith("limit_violation: joint4 above its speed")
+    assert rec.commands[-1][1]
+
+
+def test_the_robots_reflex_ends_the_run():
+    def push(tick, robot):
+        if tick == 30:
+            q = robot.data.qpos[:7].copy()
+            q[0] = robot.joint_limits.upper[0] + 0.01  # past joint 1's range stop
+            robot.set_state(q, robot.data.qvel[:7])
+
+    bridge, rec, _ = _bridge(on_read=push)
+    report = bridge.run(0.2)
+    assert report.stop_reason.startswith("robot_error:")
+    assert "joint_position_limits_violation" in report.stop_reason
+    assert not rec.commands[-1][1]  # the robot aborted: nothing more written
+
+
+def test_a_nan_policy_stops():
+    bridge, rec, _ = _bridge(agent="zero")
+    bridge.policy = lambda obs: np.full(7, np.nan) if obs.t > 0.02 else np.zeros(7)
+    report = bridge.run(0.1)
+    assert report.stop_reason == "non_finite: policy" and rec.commands[-1][1]
+
+
+def test_the_stand_ins_model_has_libfrankas_shapes_and_the_kinematics_jacobian():
+    robot = SimulatedFranka(realtime=False)
+    model = robot.load_model()
+    state = robot.read_once()
+    state.q = state.q + np.linspace(-0.3, 0.3, 7)
+    mass = model.mass(state)
+    assert len(mass) == 49 and len(model.coriolis(state)) == 7
+    assert len(model.gravity(state)) == 7
+    m = as_matrix(mass, 7, 7)
+    np.testing.assert_allclose(m, m.T, atol=1e-12)
+    jac = as_matrix(model.zero_jacobian(state), 6, 7)
+    ee = SphereKinematics(GYMNASIUM_PANDA, [7], [(0.0, 0.0, 0.21)])
+    np.testing.assert_allclose(jac[:3], ee(state.q, np.zeros(7))[2][0], rtol=0, atol=1e-9)
+
+
+def test_a_learner_observes_every_step_after_the_write():
+    bridge, rec, _ = _bridge(agent="hold")
+    seen = []
+    inner = bridge.controller.observe
+    bridge.controller.observe = lambda *a: seen.append(a) or inner(*a)
+    bridge.learn = True
+    report = bridge.run(0.05)
+    assert report.stop_reason == "completed" and len(seen) == report.steps - 1
+    terms_before, tau, terms_after, dt = seen[10]
+    np.testing.assert_array_equal(tau, rec.commands[10][0])  # the torque as written
+    assert dt == pytest.approx(DT) and terms_before is seen[9][2]
+
+
+def test_a_noisy_camera_gives_estimates_with_covariance_to_the_filter():
+    robot = SimulatedFranka(realtime=False, obstacle_noise=0.01, seed=3)
+    bridge, _, _ = _bridge(robot, agent="nominal")
+    seen = []
+    inner = bridge.controller.filter
+    bridge.controller.filter = lambda u, terms, **k: seen.append(terms) or inner(u, terms, **k)
+    report = bridge.run(0.1)
+    assert report.stop_reason == "completed"
+    cov = seen[-1].covariance
+    k = bridge.barriers.n_pairs
+    assert cov is not None and np.all(cov[:k, 0, 0] > 0) and not cov[k:].any()
+    est, true = robot.obstacle_estimate(), robot.true_obstacles()
+    assert 0 < np.abs(est.position - true.position).max() < 0.05
+
+
+def test_bad_arguments_name_the_argument():
+    robot = SimulatedFranka(realtime=False)
+    with pytest.raises(ValueError, match="learner 'oracle'"):
+        make_controller(bridge_model(robot), "oracle")
+    with pytest.raises(ValueError, match="payload_mass"):
+        SimulatedFranka(payload_mass=-1.0)
+    with pytest.raises(ValueError, match="budget"):
+        _bridge(robot, budget=0.0)
+
+
+@pytest.mark.parametrize("bound, safe", [([3, 3, 3, 3, 1, 1, 1], True), (0.0, False)])
+def test_the_bound_keeps_the_undeclared_payload_out_of_the_moving_sphere(bound, safe):
+    """The whole loop through the obstacle's arrival (stepped without the wall clock, on
+    the fake clock: no step falls back, the run is deterministic): with the torque-error
+    bound no step has cost while the filter acts; without it the 1 kg payload the model does
+    not know takes the hand into the sphere (the test can fail)."""
+    bridge, _, _ = _bridge(agent="nominal", torque_error=bound)
+    report = bridge.run(10.0)
+    assert report.stop_reason == "completed" and report.filter_active_steps > 500
+    assert (report.cost_steps == 0) == safe
+    assert report.min_h < 0.05
