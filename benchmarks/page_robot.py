@@ -1,0 +1,221 @@
+"""Write the measured runs of the Franka bridge into docs/robot.md.
+
+    python benchmarks/page_robot.py            # writes the block in docs/robot.md
+    python benchmarks/page_robot.py --check    # exit 1 if it is not what this writes
+
+Reads ``benchmarks/results/robot.jsonl`` (``python benchmarks/robot_runs.py``: one record per
+run of the bridge on its MuJoCo stand-in, each with its ``machine``, ``date``, ``code`` and
+load average; the last record of each label counts) and writes the block between
+``<!-- robot-runs:start`` and ``<!-- robot-runs:end -->`` of the page, section "What the
+simulated loop measures": the wall-clock runs, the stepped runs and the sentences that quote
+them.
+"""
+
+from __future__ import annotations
+
+from docgen import DOCS, RESULTS, main, measured, read_jsonl, replace_block, table
+
+SOURCE = RESULTS / "robot.jsonl"
+PAGE = DOCS / "robot.md"
+BLOCK = "robot-runs"
+
+WALL_CLOCK = ("60s-fifo", "10s-fifo", "10s-normal")
+BOUNDS = ("bound-default", "bound-small", "bound-none", "bound-none-no-payload")
+PERCEPTION = ("perception-exact", "perception-noise-1cm")
+LEARNER = "learner-afvsgp"
+PERCENTILES = ("p50", "p90", "p99", "p99.9", "max")
+#: the acceptance of a run: at most this share of deadline misses (and no step with cost)
+ACCEPTED_MISSES = 0.005
+
+
+def latest(recs: list[dict]) -> dict[str, dict]:
+    """The last record of each label."""
+    return {r["label"]: r for r in recs}
+
+
+def meta(recs: list[dict]) -> dict:
+    def one(key: str) -> str | None:
+        return " / ".join(sorted({str(r[key]) for r in recs if r.get(key)})) or None
+
+    return {"machine": one("machine"), "date": one("date"), "code": one("code")}
+
+
+def count(n: int, of: int | None = None) -> str:
+    if of is None or n == 0:
+        return f"{n:,}"
+    return f"{n:,} ({100 * n / of:.2g} %)"
+
+
+def ms(value: float) -> str:
+    return f"{value:.2f}" if value < 10 else f"{value:.0f}"
+
+
+def cm(h: float | None) -> str:
+    """A clearance (m) in cm, "inside" when negative."""
+    if h is None:
+        return "n/a"
+    return f"{100 * h:.1f} cm" if h >= 0 else f"{-100 * h:.1f} cm inside"
+
+
+def bound(r: dict) -> str:
+    tau = r["torque_error_nm"]
+    return "none" if not any(tau) else ", ".join(f"{v:g}" for v in tau)
+
+
+def scheduling(r: dict) -> str:
+    return f"`{r['scheduler']}`"
+
+
+def stop(r: dict) -> str:
+    """The stop reason, libfranka's error by its name (``... [name]``)."""
+    reason = r["stop_reason"]
+    if reason == "completed":
+        return reason
+    if reason.endswith("]") and "[" in reason:
+        reason = reason[reason.rindex("[") + 1:-1]
+    return f"`{reason}` after {r['steps'] / 1000:.1f} s"
+
+
+def wall_clock_table(runs: dict[str, dict]) -> str:
+    rows = []
+    for label in WALL_CLOCK:
+        if label not in runs:
+            continue
+        r = runs[label]
+        st = r["step_time_ms"]
+        rows.append((f"{r['requested_seconds']:g} s", scheduling(r),
+                     f"{r['load_average'][0]:.2f}", f"{r['steps']:,}",
+                     f"{r['rate_hz']:.1f} Hz", count(r["deadline_misses"], r["steps"]),
+                     count(r["lost_commands"] or 0, r["steps"]),
+                     count(r["rate_limited_steps"], r["steps"]),
+                     " / ".join(ms(st[p]) for p in PERCENTILES) if st else "n/a",
+                     f"{r['cost_steps']:,}", cm(r["min_h"]), stop(r)))
+    return table(("run", "scheduling", "load average", "steps", "rate", "deadline misses",
+                  "lost commands", "rate-limited steps",
+                  "step time p50 / p90 / p99 / p99.9 / max (ms)", "steps with cost",
+                  "closest clearance (measured)", "stop"), rows)
+
+
+def stepped_table(runs: dict[str, dict]) -> str:
+    rows = []
+    for label in BOUNDS + PERCEPTION:
+        if label not in runs:
+            continue
+        r = runs[label]
+        noise = r["obstacle_noise_m"]
+        st = r["step_time_ms"]
+        rows.append((f"`{label}`", f"{r['requested_seconds']:g} s", bound(r),
+                     f"{r['payload_kg']:g} kg",
+                     "exact" if not noise else f"camera, {100 * noise:g} cm noise",
+                     f"{r['cost_steps']:,}", cm(r["min_true_h"]),
+                     f"{r['filter_infeasible_steps']:,}", f"{r['filter_active_steps']:,}",
+                     f"{ms(st['p50'])} / {ms(st['p99'])}", stop(r)))
+    return table(("run", "length", "torque-error bound (Nm)", "payload the model misses",
+                  "perception", "steps with cost", "closest true clearance",
+                  "infeasible steps (brake)", "filter active", "step p50 / p99 (ms)",
+                  "stop"), rows)
+
+
+def outcome(r: dict) -> str:
+    if r["cost_steps"] == 0:
+        return f"kept every step out of the obstacle ({cm(r['min_true_h'])} clear)"
+    return (f"let the arm into it ({r['cost_steps']:,} steps with cost, "
+            f"{cm(r['min_true_h'])} at the deepest)")
+
+
+def bound_sentences(runs: dict[str, dict]) -> list[str]:
+    """What each torque-error bound did to the payload the model misses."""
+    out = []
+    with_payload = [runs[lb] for lb in BOUNDS if lb in runs and runs[lb]["payload_kg"] > 0]
+    if with_payload:
+        parts = [f"{'no bound' if bound(r) == 'none' else bound(r) + ' Nm'} {outcome(r)}"
+                 for r in with_payload]
+        out.append(f"With the stand-in's {with_payload[0]['payload_kg']:g} kg payload the "
+                   "model does not know, " + "; ".join(parts) + ".")
+    for r in (runs[lb] for lb in BOUNDS if lb in runs and runs[lb]["payload_kg"] == 0):
+        out.append(f"Without the payload (the model exact but for the joint damping), "
+                   f"{'no bound' if bound(r) == 'none' else bound(r) + ' Nm'} {outcome(r)}.")
+    return out
+
+
+def sentences(runs: dict[str, dict]) -> list[str]:
+    out = []
+    verdicts = []
+    for label in WALL_CLOCK:
+        if label not in runs:
+            continue
+        r = runs[label]
+        why = []
+        if r["stop_reason"] != "completed":
+            why.append(f"stopped by {stop(r)}")
+        if r["deadline_misses"] > ACCEPTED_MISSES * r["steps"]:
+            why.append(f"{count(r['deadline_misses'], r['steps'])} deadline misses")
+        if r["cost_steps"]:
+            why.append(f"{r['cost_steps']:,} steps with cost")
+        verdicts.append(f"the {r['requested_seconds']:g} s run at `{r['scheduler']}` "
+                        + ("met it" if not why else "did not (" + ", ".join(why) + ")"))
+    if verdicts:
+        out.append("Against the acceptance (a run that completes with at most "
+                   f"{100 * ACCEPTED_MISSES:g} % missed deadlines and no step with cost) "
+                   + "; ".join(verdicts) + ".")
+    long = runs.get("60s-fifo")
+    if long:
+        span = (f"the {long['requested_seconds']:g} s run"
+                if long["stop_reason"] == "completed" else
+                f"the {long['steps'] / 1000:.1f} s the {long['requested_seconds']:g} s run "
+                "lasted")
+        out.append(f"In {span} the rate limiter changed the filter's torque in "
+                   f"{count(long['rate_limited_steps'], long['steps'])} of the steps.")
+    out += bound_sentences(runs)
+    exact, noisy = runs.get("perception-exact"), runs.get("perception-noise-1cm")
+    if exact and noisy:
+        out.append(f"With the camera at {100 * noisy['obstacle_noise_m']:g} cm noise the "
+                   f"arm kept {cm(noisy['min_true_h'])} from the sphere "
+                   f"({cm(exact['min_true_h'])} with exact perception), the brake acted in "
+                   f"{noisy['filter_infeasible_steps']:,} steps where the backed-off program "
+                   f"was infeasible ({exact['filter_infeasible_steps']:,} exact), and the "
+                   f"step took {ms(noisy['step_time_ms']['p50'])} ms at the median "
+                   f"({ms(exact['step_time_ms']['p50'])} ms exact).")
+    lrn = runs.get(LEARNER)
+    if lrn:
+        st, ob = lrn["step_time_ms"], lrn["observe_time_ms"]
+        out.append(f"With a learner (`--learner {lrn['learner']}`, stepped, "
+                   f"{lrn['requested_seconds']:g} s, steps with cost: "
+                   f"{lrn['cost_steps']:,}) the step from the read to the write took "
+                   f"{ms(st['p50'])} ms at the median, {ms(st['p99'])} ms at p99 and "
+                   f"{ms(st['max'])} ms at most, and the learning after the write "
+                   f"(`observe`) {ms(ob['p50'])} ms at the median and {ms(ob['max'])} ms in "
+                   "its slowest step (the learners' first fit, after the warm-up samples).")
+    return out
+
+
+def build() -> dict:
+    runs = latest(read_jsonl(SOURCE))
+    recs = list(runs.values())
+    loads = [r["load_average"][0] for r in recs]
+    kernels = " / ".join(sorted({r.get("kernel") or "kernel not recorded" for r in recs}))
+    block = [measured(meta(recs)) + f" {kernels}. Load average (1 min) at the end of the "
+             f"runs {min(loads):.2f}-{max(loads):.2f}: another user's parameter sweep held "
+             "the cores (the wall-clock table gives each run's).",
+             "",
+             "**Wall clock** (`afvsgp-gym robot --simulate`, paced at 1 kHz): the default "
+             "agent (`nominal`), learner (`none`), torque-error bound (3, 3, 3, 3, 1, 1, 1 Nm) "
+             "and budget (0.9 ms), the 1 kg payload the model does not know.",
+             "",
+             wall_clock_table(runs),
+             "",
+             "**Stepped** (`realtime=False`: one tick per call, a budget of 1 s so that no "
+             "step falls back; the safety figures depend on the code only, the step times "
+             "are the wall clock's on this machine): the default agent and learner; the "
+             "run without payload has the model exact but for the joint damping, as a "
+             "payload declared to the robot would leave it.",
+             "",
+             stepped_table(runs),
+             "",
+             " ".join(sentences(runs))]
+    text = PAGE.read_text(encoding="utf-8")
+    return {PAGE: replace_block(text, BLOCK, "\n".join(block) + "\n")}
+
+
+if __name__ == "__main__":
+    raise SystemExit(main(__doc__, build))
