@@ -10,7 +10,10 @@ Reads three results files of one sitting on one machine:
   class-K routes compared);
 - ``results/braking_authority.json``: ``python benchmarks/braking_authority.py --json ...``;
 - ``results/brake.jsonl.gz`` (optional): ``afvsgp-gym sweep benchmarks/configs/brake.toml``
-  (the brake, the mean-only relaxation and the calibrated band, later code).
+  (the brake, the mean-only relaxation and the calibrated band, later code);
+- ``results/adversarial_limit_margin.jsonl.gz`` and ``adversarial_limit_multiplier.jsonl.gz``
+  (optional): the suite's ``afvsgp`` grid at the code versions whose Franka envs suggested
+  the margin, and the multiplier, on every joint-limit barrier.
 
 To refresh them, run those commands, then ``python benchmarks/page_adversarial.py --refresh
 ADVERSARIAL.jsonl ROUTES.jsonl AUTHORITY.json [BRAKE.jsonl]``: it keeps the fields the page
@@ -34,8 +37,11 @@ SOURCE = RESULTS / "adversarial.jsonl.gz"
 ROUTES = RESULTS / "routes.jsonl.gz"
 AUTHORITY = RESULTS / "braking_authority.json"
 BRAKE = RESULTS / "brake.jsonl.gz"
-#: the suite's AFVSGP grid with the conformal multiplier on the joint-limit bands (the
-#: Franka envs' suggestion at that code version, since reverted)
+#: the suite's AFVSGP grid with the conformal additive margin on every joint-limit band (the
+#: Franka envs' suggestion at that code version)
+MARGIN = RESULTS / "adversarial_limit_margin.jsonl.gz"
+#: the same with the conformal multiplier on every joint-limit band (that code version's
+#: suggestion, reverted)
 MULTIPLIER = RESULTS / "adversarial_limit_multiplier.jsonl.gz"
 BRAKE_BLOCKS = {
     "defaults": "the paper's band (`calibration=\"off\"`; the mean-only relaxation, then "
@@ -44,15 +50,19 @@ BRAKE_BLOCKS = {
     "conformal_margin": "the conformal additive margin (`calibration=\"conformal-additive\"`, "
                         "`calibration_step=1`)",
     "limit_margin": "the same margin on the 28 joint-limit barriers only (`calibration_step` 0 "
-                    "for the obstacle pairs): **the Franka envs' default since**",
+                    "for the obstacle pairs)",
     "limit_multiplier": "the conformal multiplier on the joint-limit barriers only "
                         "(`calibration=\"conformal\"`, `calibration_step` 1 std per miss, 0 "
                         "for the obstacle pairs)",
+    "limit_mixed": "the margin on the 14 range barriers, the multiplier on the 14 speed "
+                   "barriers (`calibration` per barrier): **the Franka envs' default**",
 }
 TRACKER_BLOCKS = {
     "tracker_defaults": "AFVSGP, the paper's band",
     "tracker_limit_margin": "AFVSGP, the margin on the joint-limit barriers only",
     "tracker_limit_multiplier": "AFVSGP, the multiplier on the joint-limit barriers only",
+    "tracker_limit_mixed": "AFVSGP, the margin on the ranges, the multiplier on the speeds "
+                           "(the default)",
     "tracker_oracle": "oracle (true model)",
 }
 PAGE = DOCS / "adversarial.md"
@@ -106,6 +116,11 @@ def headline(recs: list[dict]) -> list[tuple]:
                 rows.append((label(sub[0]) + (f", prior \"{pr}\"" if pr else ""), s["n"],
                              cost_cell(s), f"{100 * s['bound']:.3g} %", f"{s['min_h']:+.4f}",
                              f"`{code}`"))
+        if name == "afvsgp" and len({prior(r) for r in group}) > 1:
+            s = summary(group)
+            code = " / ".join(sorted({str(r.get("code_version")) for r in group}))
+            rows.append(("**AFVSGP, all priors**", s["n"], cost_cell(s),
+                         f"{100 * s['bound']:.3g} %", f"{s['min_h']:+.4f}", f"`{code}`"))
     return rows
 
 
@@ -189,19 +204,21 @@ def brake(recs: list[dict]) -> list[str]:
     return out
 
 
-def multiplier(recs: list[dict], suite: list[dict]) -> list[str]:
+def limit_bands(variants: list[tuple[str, list[dict]]]) -> list[str]:
     rows = []
-    for pr in PRIORS:
-        for name, group in (("the limits-only margin (the default)", suite),
-                            ("the limits-only multiplier", recs)):
-            cell = [r for r in group if learner(r) == "afvsgp" and prior(r) == pr]
+    for pr in (*PRIORS, None):
+        for name, group in variants:
+            cell = [r for r in group if learner(r) == "afvsgp" and (pr is None or prior(r) == pr)]
             if cell:
                 s = summary(cell)
-                rows.append((pr, name, s["n"], cost_cell(s), f"{100 * s['min_h']:.2f}",
-                             f"{s['backup']:.0f}"))
+                code = " / ".join(sorted({str(r.get("code_version")) for r in cell}))
+                rows.append((pr or "**all**", name, s["n"], cost_cell(s),
+                             f"{100 * s['bound']:.3g} %", f"{100 * s['min_h']:.2f}",
+                             f"{s['backup']:.0f}", f"`{code}`"))
+    recs = [r for _, group in variants for r in group]
     return [measured(meta(recs)) + f" {len(recs)} episodes.", "",
-            table(("prior", "band on the joint limits", "episodes", "with cost", "min h [cm]",
-                   "infeasible steps per episode"), rows)]
+            table(("prior", "band on the joint limits", "episodes", "with cost", "95 % bound",
+                   "min h [cm]", "infeasible steps per episode", "code"), rows)]
 
 
 def authority(res: dict) -> list[str]:
@@ -256,11 +273,12 @@ def build() -> dict:
            table(("filter", "episodes", "with cost", "95 % bound", "min h [m]", "code"),
                  headline(recs)),
            "",
-           *(["Rows of two codes: the filters' rows were run again after the brake learned to "
-              "give way to moving obstacles (the hold point recedes from an obstacle that "
-              "approaches within 10 cm) and the mean-only relaxation to keep the joint speeds' "
-              "band; the others are from the suite's first run (the filter-free row depends on "
-              "neither, the nominal-only rows on the brake).", ""]
+           *(["Rows of two codes: the AFVSGP rows were run again after the joint-speed "
+              "barriers took the conformal multiplier (below) and the brake's give-way "
+              "learned to lock joints at their range margin. The oracle, the nominal-only "
+              "filter and no filter learn nothing, so the first change leaves their rows as "
+              "they were; the second acts only when the brake gives way, so their rows are "
+              "those of the brake before it (the filter-free row uses no brake).", ""]
              if len({r.get("code_version") for r in recs}) > 1 else []),
            "By policy (episodes with cost / episodes, the three scenarios):",
            "",
@@ -281,20 +299,30 @@ def build() -> dict:
                 "the swings of joints 1 and 2, and behind the nominal tracker (tracking error "
                 "where the reference is 5 cm clear of the obstacle, prior \"zero\").", ""]
         out += routes(read_jsonl(ROUTES)) + [""]
-    if MULTIPLIER.exists():
-        out += ["## A multiplier on the joint-limit bands", "",
-                "The two limit steps left in the suite come from a joint whose learned "
-                "acceleration gain drifts several times too small with a confident std as the "
-                "policy drives it through poses its data never covered (in closed loop the "
+    if MARGIN.exists() and MULTIPLIER.exists():
+        out += ["## The band on the joint-limit barriers", "",
+                "A joint's four limit barriers share one learner of its acceleration's model "
+                "error. Driven through poses its data never covered, a joint's learned gain "
+                "can drift several times too small with a confident std (in closed loop the "
                 "filter's torque follows the state, and the gain's error hides in the drift "
-                "term), an error that grows with the torque. The conformal multiplier on the "
-                "joint-limit bands (`calibration=\"conformal\"`, step 1, 0 for the obstacle "
-                "pairs) follows it and removes those two, but over the whole suite it makes "
-                "the chance program infeasible far more often, and the mean-only relaxation "
-                "then runs the range barriers on their wrong mean: a joint held on its stop. "
-                "The suite's AFVSGP grid with it, against the default above:", ""]
-        out += multiplier(read_jsonl(MULTIPLIER),
-                          [r for r in read_jsonl(SOURCE) if r["block"] == "afvsgp"]) + [""]
+                "term): an error that grows with the torque. An additive conformal margin "
+                "(`\"conformal-additive\"`, step 1 noise std per miss) on every limit barrier "
+                "left two swings of joint 4 one step above its datasheet speed. The conformal "
+                "multiplier (`\"conformal\"`, step 1 std per miss) on every limit barrier "
+                "follows the gain's error and removes those two, but it widens the range "
+                "barriers' bands as well: the chance program is infeasible far more often, the "
+                "mean-only relaxation then runs the range barriers on their wrong mean, and a "
+                "joint sits on its stop. The default takes the multiplier on the speed "
+                "barriers only (relative degree 1: no state to absorb one period's error) and "
+                "the margin on the range barriers. Its row's code also has the brake lock, "
+                "while it gives way, the joints held at their range margin (with the speed "
+                "multiplier alone one episode had a held arm struck by the moving sphere: "
+                "the retreat needed joint 4, held at its margin). The suite's AFVSGP grid "
+                "with each:", ""]
+        suite = [r for r in recs if r["block"] == "afvsgp"]
+        out += limit_bands([("margin on all 28", read_jsonl(MARGIN)),
+                            ("multiplier on all 28", read_jsonl(MULTIPLIER)),
+                            ("margin on ranges, multiplier on speeds (default)", suite)]) + [""]
     if BRAKE.exists():
         out += ["## The brake, the relaxation and the calibrated band", "",
                 "AFVSGP with nothing known about the dynamics (priors \"zero\" and "
@@ -305,8 +333,9 @@ def build() -> dict:
                 "drove joint 4 to 7 rad/s while braking): the defaults, without the mean-only "
                 "relaxation, with the conformal additive margin of "
                 "[Calibration](calibration.md) on every barrier or on the joint-limit "
-                "barriers only, and with the conformal multiplier on the joint-limit barriers "
-                "only (`benchmarks/configs/brake.toml`).", ""]
+                "barriers only, with the conformal multiplier on the joint-limit barriers "
+                "only, and with the margin on the range barriers and the multiplier on the "
+                "speed barriers (`benchmarks/configs/brake.toml`).", ""]
         out += brake(read_jsonl(BRAKE)) + [""]
     if AUTHORITY.exists():
         out += ["## Can the torque limits meet the demand?", "",

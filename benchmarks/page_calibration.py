@@ -149,7 +149,7 @@ def decision(verdict: dict) -> list[str]:
                 + (f" The honest band{'s' if len(honest_bands) > 1 else ''}: "
                    + ", ".join(f"`{b}`" for b in honest_bands) + "." if honest_bands else ""),
                 "", "So the Franka envs' default stays `default` (the paper's band on the "
-                "obstacle pairs, whose probability it does not keep; the conformal margin on "
+                "obstacle pairs, whose probability it does not keep; an online correction on "
                 "the joint limits)"
                 + (f", and the honest band is one option away: `{options(honest_bands[0])}`."
                    if honest_bands else "."), ""]
@@ -280,9 +280,10 @@ def build() -> dict:
            f"(`q = beta = {BETA:g}` as in the paper, `calibration=\"off\"`; or the online "
            "conformal multiplier, `\"conformal\"`; or `beta` std and an online conformal "
            "margin, `\"conformal-additive\"`, with `calibration_step` noise std per "
-           "miss; `default` is what the Franka envs suggest: the paper's band on the obstacle "
-           "pairs and the conformal margin on the joint limits). The band promises that the "
-           "model error "
+           "miss; `default` is what the Franka envs suggested when it ran: the paper's band on "
+           "the obstacle pairs and the conformal margin on the joint limits, whose speed "
+           "barriers have taken the multiplier since, [Any policy](adversarial.md)). The band "
+           "promises that the model error "
            f"falls below its edge with probability `Phi(-beta)` = {pct(TARGET)} per barrier "
            "and step. After each step the eq. 48 sample of the same model error shows whether "
            "it did: a *miss*. `miss` is the share of the (barrier, step) pairs of the cone "

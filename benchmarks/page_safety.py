@@ -261,7 +261,8 @@ def build() -> dict:
             "- When no action meets the chance constraints the filter degrades, first to the "
             "mean-only program's action, then to the environment's brake, which removes kinetic "
             "energy and gives way to a moving obstacle within 10 cm, but certifies nothing: "
-            "giving way can lead into another obstacle or a joint's range.",
+            "giving way can lead into another obstacle, and a retreat that needs a joint held "
+            "at its range margin is carried by the other joints only, if they can.",
             "- The oracle takes the true model's joint friction at u = 0; with friction it is "
             "not an exact oracle (`oracle_terms=\"true_robust\"` bounds friction; "
             "`benchmarks/configs/oracle_friction*.toml` measure both).",
