@@ -21,6 +21,7 @@ from afvsgp_gym.envs.base import (
     keyword_defaults,
     named_arguments,
 )
+from afvsgp_gym.envs.braking import admissible_share
 from afvsgp_gym.envs.joint_limits import (
     FRANKA_MAX_ACCELERATION,
     FRANKA_MAX_SPEED,
@@ -1197,10 +1198,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         if np.abs(u).max() > 1.0:  # saturated: damping only, and its largest share
             self._hold = d.qpos[:7].copy()  # (a spring back to where it engaged winds up)
             brake = (inertia @ (-2.0 * w * (d.qvel[:7] - target))) / self._gear
-            with np.errstate(divide="ignore", invalid="ignore"):
-                room = np.where(brake > 0, (1.0 - coriolis) / brake,
-                                np.where(brake < 0, (-1.0 - coriolis) / brake, np.inf))
-            share = min(1.0, max(0.0, float(room.min())))
+            share = admissible_share(coriolis, brake, 1.0)
             u = np.clip(coriolis + share * brake, -1.0, 1.0)
         return u * (1.0 if self.normalize_action else self._gear)
 

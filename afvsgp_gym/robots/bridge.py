@@ -51,6 +51,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from afvsgp_gym.envs.braking import admissible_share
 from afvsgp_gym.envs.joint_limits import FRANKA_MAX_TORQUE_RATE, JointLimits
 from afvsgp_gym.robots.kinematics import END_EFFECTOR_OFFSET, SphereKinematics
 from afvsgp_gym.robots.libfranka import CONTROL_PERIOD, TAU_MAX, as_matrix, limit_rate
@@ -109,10 +110,7 @@ class Brake:
             return tau
         self.hold = q.copy()  # saturated: damping only, its largest admissible share
         brake = mass @ (-2.0 * w * dq)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            room = np.where(brake > 0, (self.tau_max - coriolis) / brake,
-                            np.where(brake < 0, (-self.tau_max - coriolis) / brake, np.inf))
-        share = min(1.0, max(0.0, float(room.min())))
+        share = admissible_share(coriolis, brake, self.tau_max)
         return np.clip(coriolis + share * brake, -self.tau_max, self.tau_max)
 
 
