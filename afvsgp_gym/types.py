@@ -59,6 +59,11 @@ class BarrierSet(Sequence):
         Covariance of each barrier's measured ``[h, ..., h^(r-1), lf]`` from the sensing
         (an obstacle estimate, noisy encoders); None where they are exact. The filter turns it
         into a back-off of the constraint (:class:`~afvsgp_gym.cbf.SafetyController`).
+    projection : ndarray of shape (K, L) or None
+        For a :class:`BarrierLayout` with projected barriers (``learner[k] == -1``): barrier
+        ``k``'s model error is ``projection[k] @ e`` of the ``L`` learners' quantities ``e``
+        (e.g. ``n' J_s(q)`` onto the joint acceleration errors); rows of barriers with their
+        own learner are not read. None where the model does not say (e.g. nothing known).
     """
 
     derivatives: np.ndarray
@@ -66,6 +71,7 @@ class BarrierSet(Sequence):
     lg: np.ndarray
     xi: np.ndarray
     covariance: np.ndarray | None = None
+    projection: np.ndarray | None = None
 
     @classmethod
     def stack(cls, terms: Sequence[BarrierTerms]) -> BarrierSet:
@@ -128,6 +134,12 @@ class BarrierLayout:
     of each learner (its representative) has sign +1. ``group[l]`` labels learner ``l``'s
     hyperparameter-sharing group (learners of different physical quantities do not share).
 
+    ``learner[k] == -1`` marks a *projected* barrier, which has no learner of its own: its
+    model error is a linear map of the learners' quantities, given per state by
+    ``BarrierSet.projection`` (issue 45's shared learner: an obstacle pair's
+    ``Delta h'' = n' J_s(q) Delta q''`` onto the joint-acceleration learners of the
+    joint-limit barriers). Its sign is +1.
+
     Attributes
     ----------
     relative_degree : ndarray of int, shape (K,)
@@ -154,14 +166,17 @@ class BarrierLayout:
             raise ValueError(f"learner must hold {K} integers, got {lrn!r}")
         if sign.shape != (K,) or not np.all(np.abs(sign) == 1.0):
             raise ValueError(f"sign must hold {K} values +1 or -1, got {sign!r}")
-        _, first = np.unique(lrn, return_index=True)
+        own = np.flatnonzero(lrn >= 0)
+        _, first = np.unique(lrn[own], return_index=True)
+        first = own[first]
         L = len(first)
-        if not np.array_equal(np.sort(first), first) or not np.array_equal(
-                lrn[np.sort(first)], np.arange(L)):
+        if L == 0 or np.any(lrn < -1) or not np.array_equal(np.sort(first), first) or \
+                not np.array_equal(lrn[np.sort(first)], np.arange(L)):
             raise ValueError("learner must number the learners 0, 1, ... in order of first "
-                             f"appearance, got {lrn.tolist()}")
-        if np.any(sign[first] != 1.0):
-            raise ValueError("the first barrier of every learner must have sign +1")
+                             f"appearance (-1: projected), got {lrn.tolist()}")
+        if np.any(sign[first] != 1.0) or np.any(sign[lrn < 0] != 1.0):
+            raise ValueError("the first barrier of every learner, and every projected barrier, "
+                             "must have sign +1")
         grp = np.asarray(self.group)
         if grp.shape != (L,) or not np.issubdtype(grp.dtype, np.integer):
             raise ValueError(f"group must hold one integer per learner ({L}), got {grp!r}")
@@ -192,7 +207,13 @@ class BarrierLayout:
     @property
     def representatives(self) -> np.ndarray:
         """(L,) the first barrier of every learner."""
-        return np.unique(self.learner, return_index=True)[1]
+        own = np.flatnonzero(self.learner >= 0)
+        return own[np.unique(self.learner[own], return_index=True)[1]]
+
+    @property
+    def projected(self) -> np.ndarray:
+        """(K,) whether each barrier is projected onto the learners (``learner == -1``)."""
+        return self.learner < 0
 
     @property
     def is_uniform(self) -> bool:

@@ -86,7 +86,7 @@ def _env_kwargs(spec: dict[str, Any]) -> dict[str, Any]:
     kw.pop("filter", None)
     if kw.get("safety_spheres") == "hand":
         kw["safety_spheres"] = list(PANDA_ARM_SPHERES[14:])
-    if kw.pop("obstacles", None) == "two":
+    if isinstance(kw.get("obstacles"), str) and kw["obstacles"] == "two":
         # the static scenario's sphere and a second one below the other side of the path
         kw["obstacles"] = [
             {"position": [0.307, 0.20, 0.417], "radius": 0.05},
@@ -122,12 +122,14 @@ class TimedEpisode:
                 dt = time.perf_counter() - t0
                 clock["learners"] += dt
                 clock[part] += dt
-                if part == "predict":
-                    clock["n_predicted"] += len(a[0])
+                if part == "predict":  # the rows predicted: the last argument
+                    clock["n_predicted"] += len(a[-1])
                 return out
             return wrapper
 
         bank.predict_affine = timed(bank.predict_affine, "predict")
+        if hasattr(bank, "predict_projected"):  # the shared learner's path
+            bank.predict_projected = timed(bank.predict_projected, "predict")
         bank.update = timed(bank.update, "update")
         self.fit_cpu = np.nan
         fit = ctrl.fit

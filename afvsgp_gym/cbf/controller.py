@@ -215,6 +215,10 @@ class SafetyController:
         elif layout.max_degree != cfg.relative_degree:
             raise ValueError(f"layout's largest relative degree ({layout.max_degree}) must be "
                              f"relative_degree={cfg.relative_degree}")
+        if REGISTRY[self.learner_name].projected and not layout.projected.any():
+            raise ValueError(f"learner={learner!r} needs a layout with projected barriers "
+                             "(BarrierLayout.learner == -1, e.g. the Franka envs' "
+                             "shared_barrier_layout)")
         self.layout = layout
         self.hocbf = HOCBF(cfg.relative_degree, cfg.alpha)
         self.barriers = BarrierConstraints(
@@ -234,6 +238,8 @@ class SafetyController:
                               cfg.learner_kwargs, cfg.shared_hyperparameters,
                               self.backend, layout)
         self.learns = self.bank.learns
+        #: barriers projected onto the learners (``BarrierSet.projection``), if any
+        self._projected = bool(self.learns and layout.projected.any())
         self.socp.prepare(self.n_barriers, cones=False)  # the QP: known model, mean fallback
         if self.learns and cfg.beta > 0:
             self.socp.prepare(self.n_barriers, cones=True)
@@ -247,7 +253,10 @@ class SafetyController:
         if self.learns and cfg.calibrates:
             modes = cfg.calibration_modes(K)
             steps = np.where(modes == "off", 0.0, cfg.per_barrier("calibration_step", K))
-            self.conformal = ConformalMultiplier(layout.learner, cfg.beta, steps,
+            # a projected barrier's band has its own multiplier (it has no learner)
+            groups = np.where(layout.projected, layout.n_learners + np.arange(K),
+                              layout.learner)
+            self.conformal = ConformalMultiplier(groups, cfg.beta, steps,
                                                  additive=modes == "conformal-additive")
         self._scored: tuple | None = None  # (z, center, std, lower) of the last observed step
         self._calibration: CalibrationCounts | None = None
@@ -328,6 +337,17 @@ class SafetyController:
             raise ValueError(f"{name} must hold {self.n_barriers} BarrierTerms. Got: {len(bset)}")
         return bset
 
+    def _check_projection(self, bset: BarrierSet) -> None:
+        """A layout with projected barriers needs their projection onto the learners."""
+        shape = (self.n_barriers, self.layout.n_learners)
+        if bset.projection is None or np.shape(bset.projection) != shape:
+            raise ValueError(
+                f"terms.projection must have shape {shape} (each barrier's model error as a "
+                f"linear map of the {shape[1]} learners'), for the layout's projected "
+                f"barriers. Got: {None if bset.projection is None else np.shape(bset.projection)}"
+                " (a nominal model that knows nothing, e.g. the Franka's 'zero', has none: "
+                "use a per-barrier learner such as 'afvsgp')")
+
     def _active_rows(self, derivs: np.ndarray, ok: np.ndarray | None) -> np.ndarray:
         """Barriers in the program: within their activation distance
         (:meth:`BarrierConstraints.active_rows`; for the linear chain ``min(h, h + h'/a_1) <
@@ -403,6 +423,8 @@ class SafetyController:
             bset = self._terms(true_terms, "true_terms")
         else:
             bset = self._terms(terms, "terms")
+            if self._projected:
+                self._check_projection(bset)
         u_nom = np.array(u_nom, dtype=np.float64).ravel()  # a copy
         if u_nom.shape != (m,):
             raise ValueError(f"u_nom must have shape ({m},). Got: {u_nom.shape}")
@@ -439,7 +461,9 @@ class SafetyController:
         bvec = sig = None
         if len(pred_rows):
             try:
-                bvec, sig = self.bank.predict_affine(bset.xi[pred_rows], pred_rows)
+                bvec, sig = (self.bank.predict_projected(bset.xi, bset.projection, pred_rows)
+                             if self._projected
+                             else self.bank.predict_affine(bset.xi[pred_rows], pred_rows))
                 bias = self.residuals.bias[pred_rows]  # (a copy) the bias this step uses
                 mult, marg = self._band(pred_rows)
                 sig_cone = (sig if self.conformal is None or not self.conformal.any_multiplier

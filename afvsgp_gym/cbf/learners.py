@@ -10,7 +10,10 @@ maps a learner name to how its bank is built; a new learner plugs in with one en
 - ``"gp"``, ``"vsgp"``, ``"sogp"``: exact GP, Titsias VSGP, Bui et al.'s streaming SGP
   (``afvsgp_gym.gp``), one object per barrier;
 - ``"afvsgp"``: the paper's method, K learners in stacked arrays
-  (:class:`~afvsgp_gym.gp.afvsgp_bank.AFVSGPBank`), so a step costs one set of calls for all.
+  (:class:`~afvsgp_gym.gp.afvsgp_bank.AFVSGPBank`), so a step costs one set of calls for all;
+- ``"afvsgp-shared"``: AFVSGP on the layout's shared learners only (the Franka's: one joint
+  acceleration error per joint), every other barrier's model error projected onto them
+  (:class:`ProjectedBank`), so the learning costs the same for 1 or 25 obstacles.
 """
 
 from __future__ import annotations
@@ -26,6 +29,8 @@ __all__ = [
     "REGISTRY",
     "LearnerBank",
     "LearnerEntry",
+    "MappedBank",
+    "ProjectedBank",
     "check_learner_name",
     "make_bank",
     "make_learner",
@@ -212,17 +217,74 @@ class MappedBank:
         return self.bank.noise_variance(self._learner[rows])
 
 
+class ProjectedBank(MappedBank):
+    """:class:`MappedBank` whose projected barriers (``learner == -1``) have no learner: barrier
+    ``k``'s model error is ``W_k @ e``, ``W = BarrierSet.projection`` (K, L), of the ``L``
+    learners' quantities ``e`` (affine in ``u``, independent across learners), so its
+    prediction is the exact linear map of theirs (issue 45):
+
+        b_k = sum_l W_kl b_l,        Sigma_k = sum_l W_kl^2 Sigma_l.
+
+    Every learner is predicted at its representative's features, once per call, whatever the
+    number of projected barriers; only the learners' own barriers feed them samples."""
+
+    def __init__(self, bank: LearnerBank, layout):
+        super().__init__(bank, layout)
+        self._own = ~layout.projected
+        self._w2: np.ndarray | None = None  # projection**2 of the last prediction (K, L)
+
+    def predict_projected(self, xi, projection, rows):
+        """``b`` (k, m+1), ``Sigma`` (k, m+1, m+1) of barriers ``rows``: ``xi`` (K, b) and
+        ``projection`` (K, L) are the whole set's (the learners' representatives may be
+        outside ``rows``)."""
+        own = self._own[rows]
+        if own.all():
+            return MappedBank.predict_affine(self, xi[rows], rows)
+        n_l = len(self._reps)
+        b_l, s_l = self.bank.predict_affine(xi[self._reps], np.arange(n_l))
+        w = np.asarray(projection, dtype=np.float64)[rows]
+        self._w2 = np.zeros((len(self._own), n_l))
+        self._w2[rows] = w2 = w * w
+        b = w @ b_l
+        sigma = np.einsum("kl,lij->kij", w2, s_l)
+        if own.any():  # their own learner's prediction, sign applied
+            mine = rows[own]
+            lrn = self._learner[mine]
+            b[own] = b_l[lrn] * self._sign[mine][:, None]
+            sigma[own] = s_l[lrn]
+        return b, sigma
+
+    def update(self, xi, u, z) -> np.ndarray:
+        reps = self._reps
+        done = self.bank.update(xi[reps], u, z[reps])
+        return np.where(self._own, done[self._learner], bool(done.any()))
+
+    def noise_variance(self, rows) -> np.ndarray:
+        """The learners' noise variances; a projected barrier's through the projection of the
+        last prediction (``sum_l W_kl^2 s2_l``; NaN before any)."""
+        rows = np.asarray(rows)
+        s2 = self.bank.noise_variance(np.arange(len(self._reps)))
+        out = np.full(len(rows), np.nan)
+        own = self._own[rows]
+        out[own] = s2[self._learner[rows[own]]]
+        if self._w2 is not None and not own.all():
+            out[~own] = self._w2[rows[~own]] @ s2
+        return out
+
+
 @dataclass(frozen=True)
 class LearnerEntry:
     """How the bank of one learner name is built: ``bank(n_barriers, action_dim, gp_class,
     **kwargs)`` (None: :class:`ZeroBank`); ``gp_class`` names the ``afvsgp_gym.gp`` class;
     ``default_kwargs`` are the settings used unless the user overrides them; ``true_terms``
-    marks the oracle (the filter then uses the true model's terms)."""
+    marks the oracle (the filter then uses the true model's terms); ``projected`` a learner
+    that needs a layout with projected barriers (the env's ``shared_barrier_layout``)."""
 
     bank: type | None = None
     gp_class: str | None = None
     default_kwargs: dict = field(default_factory=dict)
     true_terms: bool = False
+    projected: bool = False
 
 
 #: Learner name -> bank construction. AFVSGP inside the filter keeps a window of P = 1000
@@ -240,6 +302,9 @@ REGISTRY: dict[str, LearnerEntry] = {
     "afvsgp": LearnerEntry(AFVSGPLearnerBank, "AFVSGP",
                            {"window": 1000, "forgetting": 0.999, "num_inducing": 40,
                             "refresh_every": 25000}),
+    "afvsgp-shared": LearnerEntry(AFVSGPLearnerBank, "AFVSGP",
+                                  {"window": 1000, "forgetting": 0.999, "num_inducing": 40,
+                                   "refresh_every": 25000}, projected=True),
 }
 
 #: Names accepted by the safety filter.
@@ -274,7 +339,7 @@ def make_bank(name: str, n_barriers: int, action_dim: int, learner_kwargs: dict 
         if layout is not None and np.any(layout.group != layout.group[0]):
             return _GroupedBank(bank, layout.group)
         return bank
-    return MappedBank(bank, layout)
+    return ProjectedBank(bank, layout) if layout.projected.any() else MappedBank(bank, layout)
 
 
 def make_learner(name: str, action_dim: int, **kwargs):

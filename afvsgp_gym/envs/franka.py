@@ -555,6 +555,27 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         )
 
     @property
+    def shared_barrier_layout(self) -> BarrierLayout:
+        """:attr:`barrier_layout` with every obstacle pair projected onto the joint-limit
+        barriers' seven learners (``learner = -1``; ``learner="afvsgp-shared"``, issue 45):
+        a pair's model error is ``Delta h'' = n' J_s(q) Delta q''`` when the kinematics are
+        known, so the terms carry ``projection`` = ``n' J_s`` (m/rad) per pair and the seven
+        joint-acceleration learners (each fed by its joint's range and speed barriers) predict
+        every pair's band. Needs the joint-limit barriers and a nominal model that knows the
+        kinematics (not ``"zero"``, whose terms hold no kinematics to project through)."""
+        if not self.limit_barriers:
+            raise ValueError("the shared learner needs the joint-limit barriers (their "
+                             "learners are the shared ones): limit_barriers=True")
+        if self.nominal_model == "zero":
+            raise ValueError("the shared learner needs the kinematics, which "
+                             "nominal_model='zero' does not know: use 'kinematic' or "
+                             "'perturbed', or the per-barrier learner 'afvsgp'")
+        own = self.barrier_layout
+        learner = own.learner - self._n_pairs
+        learner[: self._n_pairs] = -1
+        return BarrierLayout(own.relative_degree, learner, own.sign, own.group[self._n_pairs:])
+
+    @property
     def activation_distance(self) -> float | np.ndarray:
         """Suggested activation distance: one per barrier (m for the obstacle barriers, rad
         and rad/s for the joint-limit ones), or ``OBSTACLE_ACTIVATION`` without limits."""
@@ -1135,11 +1156,25 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
             if a_obs is not None:  # static obstacles: a_o = 0
                 lf -= np.einsum("ki,ki->k", n, a_obs)
             lf += curv
+        projection = None
         if limits is not None:
             lf = np.concatenate([lf, limits[0]])
             lg = np.concatenate([lg, limits[1]])
+            projection = self._joint_projection(ns, jac)
         lf.flags.writeable = lg.flags.writeable = False
-        return BarrierSet(derivs, lf, lg, xi), acc
+        return BarrierSet(derivs, lf, lg, xi, projection=projection), acc
+
+    def _joint_projection(self, ns: np.ndarray, jac: np.ndarray) -> np.ndarray:
+        """``(K, 7)``: each barrier's model error per joint-acceleration error (the shared
+        learner's ``BarrierSet.projection``): ``n' J_s`` for the obstacle pairs
+        (``Delta h'' = n' J_s Delta q''``, the kinematics known), ``sign`` on its own joint
+        for the joint-limit barriers."""
+        lim = self.joint_limits
+        out = np.zeros((self.n_barriers, lim.n_joints))
+        out[: self._n_pairs] = np.einsum("osi,sij->osj", ns, jac).reshape(self._n_pairs, -1)
+        out[self._n_pairs + np.arange(lim.n_barriers), lim.joint] = lim.sign
+        out.flags.writeable = False
+        return out
 
     def true_terms_error_bound(self) -> np.ndarray:
         """``(n_barriers,)`` bound on ``|h''_true(u) - (lf + lg u)|`` of the ``"true"`` terms

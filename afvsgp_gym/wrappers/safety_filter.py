@@ -11,7 +11,7 @@ import numpy as np
 from afvsgp_gym.cbf import SafetyController
 from afvsgp_gym.cbf.config import resolve_miss_probability
 from afvsgp_gym.cbf.fastpath import clip
-from afvsgp_gym.cbf.learners import check_learner_name
+from afvsgp_gym.cbf.learners import REGISTRY, check_learner_name
 from afvsgp_gym.validation import check_choice
 from afvsgp_gym.wrappers.obstacle_tracking import ObstacleTracking
 
@@ -19,6 +19,21 @@ __all__ = ["ORACLE_TERMS", "SafetyFilter", "with_env_suggestions"]
 
 #: The oracle's terms: the true plant's, or those lowered by the env's error bound.
 ORACLE_TERMS = ("true", "true_robust")
+
+
+def _layout(base: Any, learner: str) -> Any:
+    """The env's barrier layout for ``learner``: ``shared_barrier_layout`` for a learner that
+    projects barriers onto shared learners (``REGISTRY[learner].projected``), else
+    ``barrier_layout`` (None without one)."""
+    if not REGISTRY[check_learner_name(learner)].projected:
+        return getattr(base, "barrier_layout", None)
+    if not hasattr(type(base), "shared_barrier_layout"):
+        raise ValueError(
+            f"learner={learner!r} needs an env whose barriers' model errors project onto "
+            "shared learners (env.unwrapped.shared_barrier_layout): the Franka envs with "
+            "joint-limit barriers and a nominal model that knows the kinematics "
+            f"('kinematic', 'perturbed'). {type(base).__name__} has none")
+    return base.shared_barrier_layout  # the env says why it cannot, by name
 
 
 def with_env_suggestions(base: Any, learner: str, options: dict[str, Any]) -> dict[str, Any]:
@@ -76,7 +91,9 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
     envs suggest 0.15 m and, for their whole-arm sphere sets, AFVSGP with M = 30, P = 500),
     and ``braking_deceleration``. An env with barriers of several relative degrees, or
     barriers that share one model error, describes them in ``barrier_layout``
-    (:class:`~afvsgp_gym.types.BarrierLayout`).
+    (:class:`~afvsgp_gym.types.BarrierLayout`); ``learner="afvsgp-shared"`` takes its
+    ``shared_barrier_layout`` instead (barriers projected onto shared learners: the Franka
+    envs with joint-limit barriers and a nominal model that knows the kinematics).
 
     When no action satisfies the chance constraints (the SOCP is infeasible) the filter applies
     a backup action: by default the env's ``backup_action()`` (the provided envs brake: a
@@ -86,7 +103,7 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
     Args:
         env: the environment.
         learner: one of ``afvsgp_gym.cbf.LEARNERS`` ("none", "oracle", "gp", "vsgp", "sogp",
-            "afvsgp").
+            "afvsgp", "afvsgp-shared").
         backup: ``"env"`` (default: ``env.unwrapped.backup_action()`` if the env has one),
             a callable ``obs -> action`` evaluated on the last observation, or None (the
             max-worst-margin fallback only).
@@ -179,7 +196,7 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
             n_barriers=int(base.n_barriers),
             relative_degree=int(base.relative_degree),
             learner=learner,
-            layout=getattr(base, "barrier_layout", None),
+            layout=_layout(base, learner),
             **options,
         )
         self._dtype = space.dtype

@@ -5,11 +5,13 @@ import pytest
 
 from afvsgp_gym.cbf import LEARNERS, REGISTRY, SafetyController, make_learner
 
-LEARNING = tuple(n for n in LEARNERS if REGISTRY[n].gp_class is not None)
+#: the learners that run on any layout (the shared one needs projected barriers)
+LEARNING = tuple(n for n in LEARNERS
+                 if REGISTRY[n].gp_class is not None and not REGISTRY[n].projected)
 
 
 def test_registry_names():
-    assert LEARNERS == ("none", "oracle", "gp", "vsgp", "sogp", "afvsgp")
+    assert LEARNERS == ("none", "oracle", "gp", "vsgp", "sogp", "afvsgp", "afvsgp-shared")
 
 
 @pytest.mark.parametrize("name", LEARNING)
@@ -44,7 +46,8 @@ def test_make_learner_refuses_names_without_a_gp(name):
 
 
 def test_make_learner_unknown_name_lists_valid():
-    with pytest.raises(ValueError, match=r"\['none', 'oracle', 'gp', 'vsgp', 'sogp', 'afvsgp'\]"):
+    valid = r"\['none', 'oracle', 'gp', 'vsgp', 'sogp', 'afvsgp', 'afvsgp-shared'\]"
+    with pytest.raises(ValueError, match=valid):
         make_learner("gpr", action_dim=2)
 
 

@@ -1,0 +1,92 @@
+"""The learning's cost against the number of obstacles: per-pair learners against the shared one.
+
+``python -m afvsgp_gym.benchmarks.scale [--quick] [--steps N] [--rounds R]`` runs the nominal
+tracker behind ``SafetyFilter`` on the static Franka scenario with the kinematics known
+(``nominal_model="kinematic"``, which the shared learner needs) and the 28 joint-limit
+barriers, with the scenario's obstacle alone (21 arm spheres x 1 = 21 pairs) and with 24 more
+spheres around the workspace (25 obstacles, 525 pairs), each behind the paper's per-barrier
+learner (``"afvsgp"``: 21 or 525 pair learners and 7 joint learners) and the shared one
+(``"afvsgp-shared"``: the 7 joint learners, every pair projected onto them; issue 45). The four
+configurations advance in lockstep (:func:`afvsgp_gym.benchmarks.arm.TimedEpisode`, whose
+module docstring says what ``step``, ``learners``, ``update`` and ``env.step`` time), so their
+ratios are measured on the same seconds. Pin the process to one core (``taskset -c 0``) with
+``OPENBLAS_NUM_THREADS=1``.
+"""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+import numpy as np
+
+from afvsgp_gym.benchmarks._machine import calibration_line, machine
+from afvsgp_gym.benchmarks.arm import TimedEpisode
+
+#: the scenario's obstacle, then 24 spheres on three rings around the base (0.6-0.8 m out, at
+#: three heights): the clutter of OSCBF's tabletop demo in number, mostly outside the
+#: activation distance of the tracking arm, so the program stays small and the learning is
+#: what grows
+CLUTTER: list[dict[str, Any]] = [{"position": [0.307, 0.20, 0.417], "radius": 0.05}] + [
+    {"position": [round(r * np.cos(a), 4), round(r * np.sin(a), 4), z], "radius": 0.04}
+    for r, z in ((0.8, 0.15), (0.7, 0.55), (0.6, 0.95))
+    for a in np.linspace(0.6, 2 * np.pi - 0.6, 8)
+]
+
+#: name -> (learner, env kwargs)
+CONFIGS: dict[str, tuple[str, dict[str, Any]]] = {
+    "21 pairs + 28 limits, per-pair learners": ("afvsgp", {}),
+    "21 pairs + 28 limits, shared learner": ("afvsgp-shared", {}),
+    "525 pairs + 28 limits, per-pair learners": ("afvsgp", {"obstacles": CLUTTER}),
+    "525 pairs + 28 limits, shared learner": ("afvsgp-shared", {"obstacles": CLUTTER}),
+}
+
+
+def run(quick: bool = False, steps: int | None = None, rounds: int = 1,
+        seed: int = 0) -> dict[str, float]:
+    """Median and p99 (s) of the step, the learners and the update per configuration (pooled
+    over ``rounds``), barriers in the program, and the ratios shared / per-pair."""
+    steps = steps or (200 if quick else 1000)
+    acc: dict[str, dict[str, list]] = {}
+    for _ in range(1 if quick else rounds):
+        eps = {name: TimedEpisode({"nominal_model": "kinematic", **kw}, learner, steps, seed)
+               for name, (learner, kw) in CONFIGS.items()}
+        order = list(eps.values())
+        while any(ep.remaining > 0 for ep in order):
+            for ep in order:
+                ep.step()
+            order.reverse()
+        for name, ep in eps.items():
+            for k, v in ep.result().items():
+                acc.setdefault(name, {}).setdefault(k, []).append(v)
+    out: dict[str, float] = {}
+    for name, d in acc.items():
+        for part in ("step", "learners", "update", "env_step"):
+            x = np.concatenate(d[part])
+            out[f"{name}: {part} median_s"] = float(np.median(x))
+            out[f"{name}: {part} p99_s"] = float(np.percentile(x, 99))
+        out[f"{name}: barriers in program (mean)"] = float(np.mean(np.concatenate(d["n_active"])))
+    for k in ("21", "525"):
+        per, shared = (f"{k} pairs + 28 limits, {w}" for w in ("per-pair learners",
+                                                              "shared learner"))
+        for part in ("step", "learners", "update", "env_step"):
+            out[f"{k} pairs: {part} median, shared / per-pair"] = (
+                out[f"{shared}: {part} median_s"] / out[f"{per}: {part} median_s"])
+    return out
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--quick", action="store_true", help="200 steps, one round")
+    p.add_argument("--steps", type=int, default=None, help="timed steps per episode")
+    p.add_argument("--rounds", type=int, default=1, help="lockstep rounds")
+    args = p.parse_args(argv)
+    print(machine())
+    print(calibration_line(), flush=True)
+    for key, val in run(args.quick, args.steps, args.rounds).items():
+        shown = f"{val * 1e6:10.1f} us" if key.endswith("_s") else f"{val:10.3f}"
+        print(f"{key:70s} {shown}")
+
+
+if __name__ == "__main__":
+    main()
