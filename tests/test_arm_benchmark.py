@@ -22,3 +22,12 @@ def test_learner_time_splits_into_update_and_predictions():
     n = res["n_predicted"]
     assert np.all((n >= 0) & (n <= res["n_active"]))  # only barriers in the program
     assert np.all((pred > 0.0) == (n > 0))
+
+
+def test_env_kwargs_keep_a_list_of_obstacles():
+    """The scale benchmark's clutter reaches the env (the "two" shorthand still expands)."""
+    from afvsgp_gym.benchmarks.arm import _env_kwargs
+    from afvsgp_gym.benchmarks.scale import CLUTTER
+
+    assert _env_kwargs({"obstacles": CLUTTER})["obstacles"] == CLUTTER and len(CLUTTER) == 25
+    assert len(_env_kwargs({"obstacles": "two"})["obstacles"]) == 2
