@@ -84,6 +84,12 @@ class FilterConfig:
         standard deviations per miss (the margin). E.g. on the Franka envs
         ``[0.0] * env.unwrapped.n_obstacle_barriers + [1.0] * 28`` corrects the joint-limit
         barriers' band only.
+    calibration_gate : bool
+        Adapt the conformal correction only on the steps where a miss could decide the
+        constraint: its margin at the applied action is below the band's width (``center -
+        lower``), so one band width more of model error would violate it. The long-run miss
+        rate then holds on that subsequence (a rule fixed before the sample is seen); far
+        from binding, where a miss changes nothing, the band is not widened.
     barrier_margin : float
         Buffer subtracted from ``h`` in the constraint (units of ``h``): the HOCBF condition
         holds in continuous time; with a zero-order-hold action the sampled ``h`` can dip
@@ -175,6 +181,7 @@ class FilterConfig:
     beta: float = DEFAULT_BETA
     calibration: str | tuple[str, ...] = "off"
     calibration_step: float | tuple[float, ...] = 0.5
+    calibration_gate: bool = False
     barrier_margin: float = 1e-3
     activation_distance: float | tuple[float, ...] = float("inf")
     braking_deceleration: float | tuple[float, ...] = float("inf")

@@ -121,6 +121,7 @@ class StepPrediction:
     center: np.ndarray | None = None
     std: np.ndarray | None = None
     lower: np.ndarray | None = None
+    margin: np.ndarray | None = None
 
 
 def cone_matrix(sigma: np.ndarray, beta: float) -> np.ndarray:
@@ -511,7 +512,8 @@ class SafetyController:
             center = mean[pred_rows] + bias
             edge = center - mult * s if marg is None else center - mult * s - marg
             lower[pred_rows] = edge
-            self._pending = StepPrediction(pred_rows, bvec, sig, u.copy(), center, s, edge)
+            self._pending = StepPrediction(pred_rows, bvec, sig, u.copy(), center, s, edge,
+                                           margins[pred_rows])
         else:
             self._pending = None if warm else StepPrediction(rows[:0], bvec, sig, u.copy())
         return FilterResult(
@@ -696,7 +698,10 @@ class SafetyController:
             if self.conformal is not None:
                 noise = (np.sqrt(self.bank.noise_variance(pred.rows))
                          if self.conformal.any_margin else None)
-                self.conformal.update(pred.rows, scores(*self._scored[:3]), pred.std, noise)
+                sc = scores(*self._scored[:3])
+                if self.config.calibration_gate:  # only where a miss could decide
+                    sc = np.where(pred.margin < pred.center - pred.lower, sc, np.nan)
+                self.conformal.update(pred.rows, sc, pred.std, noise)
         ubar = np.concatenate([[1.0], u])
         self.residuals.update(pred.rows, pred.mean @ ubar, z=z)
 

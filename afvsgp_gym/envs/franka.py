@@ -314,6 +314,12 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
     #: the torque. The multiplier on the range barriers too made the program infeasible ~5x
     #: as often and held joints on their stops. The obstacle pairs keep the paper's band.
     LIMIT_CALIBRATION_STEP = 1.0
+    #: ... adapted only on the steps where a miss could decide the constraint (the margin at
+    #: the applied action below the band's width, ``calibration_gate``): ungated, the speed
+    #: barriers (always in the program) also counted misses far from their limit, the
+    #: multipliers climbed to 15-19 and held the joints' torque back for the rest of the
+    #: episode, and the tracker drifted away (tracking 3-4x worse in the episodes it hit).
+    LIMIT_CALIBRATION_GATE = True
     #: AFVSGP settings suggested to ``SafetyFilter`` (under the user's ``learner_kwargs``) when
     #: the sphere set has several spheres (one learner each): M = 30 inducing points and a
     #: window of P = 500 samples instead of the method's 40 and 1000 (the evidence:
@@ -602,7 +608,8 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         ``SafetyFilter`` (under the caller's): per-barrier activation distances, braking
         decelerations and first gains, the warm-up exploration, and with the joint-limit
         barriers the online correction of those barriers' band only (the margin on the range
-        barriers, the multiplier on the speed barriers, ``LIMIT_CALIBRATION_STEP``; not with
+        barriers, the multiplier on the speed barriers, ``LIMIT_CALIBRATION_STEP``, adapted
+        where a miss could decide, ``LIMIT_CALIBRATION_GATE``; not with
         ``beta = 0``, which has no band)."""
         out = {"activation_distance": self.activation_distance,
                "braking_deceleration": self.braking_deceleration,
@@ -614,6 +621,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
             out["calibration_step"] = np.concatenate(
                 [np.zeros(self._n_pairs),
                  np.full(4 * self.joint_limits.n_joints, self.LIMIT_CALIBRATION_STEP)])
+            out["calibration_gate"] = self.LIMIT_CALIBRATION_GATE
         return out
 
     @property

@@ -49,8 +49,8 @@ def make_controller(barriers: BarrierModel, learner: str = "none", **filter_kwar
 
     options = {**barriers.filter_defaults, **filter_kwargs}
     if learner == "none":  # no band to correct
-        options.pop("calibration", None)
-        options.pop("calibration_step", None)
+        for name in ("calibration", "calibration_step", "calibration_gate"):
+            options.pop(name, None)
     ctrl = SafetyController(-TAU_MAX, TAU_MAX, barriers.n_barriers, learner,
                             layout=barriers.layout, relative_degree=2, **options)
     if ctrl.uses_true_terms:

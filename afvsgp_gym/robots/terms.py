@@ -189,6 +189,7 @@ class BarrierModel:
                               + ("conformal",) * (2 * n))
         out["calibration_step"] = np.concatenate([np.zeros(k),
                                                   np.full(4 * n, self.LIMIT_CALIBRATION_STEP)])
+        out["calibration_gate"] = True  # as the Franka envs' (LIMIT_CALIBRATION_GATE)
         return out
 
     def terms(self, q, qd, mass, coriolis, obstacles: ObstacleEstimate,

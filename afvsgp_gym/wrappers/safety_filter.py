@@ -42,16 +42,17 @@ def with_env_suggestions(base: Any, learner: str, options: dict[str, Any]) -> di
     :class:`~afvsgp_gym.cbf.FilterConfig` options; per-barrier options as arrays),
     ``base.activation_distance`` and ``base.learner_defaults[learner]`` (merged key by key
     under the caller's ``learner_kwargs``; a ``learner_kwargs`` that is not a dict is left for
-    the controller to refuse by name). A suggested ``calibration`` and its
-    ``calibration_step`` are left out when the caller chooses ``calibration`` or sets
-    ``beta = 0`` (no band to calibrate); ``miss_probability`` becomes its ``beta``."""
+    the controller to refuse by name). A suggested ``calibration``, its
+    ``calibration_step`` and ``calibration_gate`` are left out when the caller chooses
+    ``calibration`` or sets ``beta = 0`` (no band to calibrate); ``miss_probability`` becomes
+    its ``beta``."""
     options = dict(resolve_miss_probability(options))
     suggested_options = dict(getattr(base, "filter_defaults", None) or {})
     if getattr(base, "activation_distance", None) is not None:
         suggested_options.setdefault("activation_distance", base.activation_distance)
     if options.get("beta") == 0 or "calibration" in options:  # no band, or the caller's own
-        suggested_options.pop("calibration", None)
-        suggested_options.pop("calibration_step", None)
+        for name in ("calibration", "calibration_step", "calibration_gate"):
+            suggested_options.pop(name, None)
     for name, value in suggested_options.items():
         if isinstance(value, np.ndarray):
             value = float(value) if value.ndim == 0 else tuple(float(v) for v in value.ravel())

@@ -255,3 +255,39 @@ def test_off_keeps_the_multiplier_and_the_conformal_one_only_widens():
         res = ctrl.filter(rng.uniform(-1, 1, 2), before)
         ctrl.observe(before, res.u, _terms(rng, 2), 0.004)
         assert (ctrl.conformal.q >= BETA).all()
+
+
+def test_the_gate_adapts_only_where_a_miss_could_decide():
+    """With ``calibration_gate`` a step's score moves its learner's multiplier only when the
+    constraint's margin at the applied action is below the band's width (``mean + bias -
+    lower``): q_after - q_before = eta * sum over those rows of (miss - alpha), checked step by
+    step from the public results; the rows far from binding leave it alone (and there are
+    both kinds in the stream)."""
+    rng = np.random.default_rng(5)
+    K, eta = 3, 0.5
+    ctrl = SafetyController(-np.ones(2), np.ones(2), n_barriers=K, warmup_samples=20,
+                            calibration="conformal", calibration_step=eta,
+                            calibration_gate=True, seed=0)
+    def terms():  # barrier 0 now and then far from binding (a large h), the others near
+        out = _terms(rng, K)
+        far = np.array([rng.choice([0.1, 20.0]), out[0].derivatives[1]])
+        out[0] = BarrierTerms(far, out[0].lf, out[0].lg, out[0].xi)
+        return out
+
+    gated = open_ = 0
+    for _ in range(150):
+        before = terms()
+        res = ctrl.filter(rng.uniform(-1, 1, 2), before)
+        q0, bias = ctrl.conformal.q.copy(), ctrl.residuals.bias.copy()
+        z = ctrl.observe(before, res.u, terms(), 0.004)
+        if res.warmup:
+            continue
+        ok = np.isfinite(res.delta_b_std) & np.isfinite(z) & (res.delta_b_std > 0)
+        width = res.delta_b_mean + bias - res.delta_b_lower
+        near = ok & (res.margins < width)
+        miss = z < res.delta_b_lower
+        expected = np.maximum(q0 + eta * np.where(near, miss - ctrl.conformal.target, 0.0),
+                              BETA)
+        np.testing.assert_allclose(ctrl.conformal.q, expected, rtol=0, atol=1e-12)
+        gated, open_ = gated + int(near.sum()), open_ + int((ok & ~near).sum())
+    assert gated > 20 and open_ > 20
