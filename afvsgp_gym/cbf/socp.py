@@ -516,10 +516,11 @@ class SOCPFilter:
         (1,)) for the program with the one cone ``a0, a, G`` (shapes (1,), (1, m), (1, m+1,
         m+1)) and its tolerance ``tol`` (1,) when the compiled KKT certificate
         (:func:`binding_cones.certify_set`, the test of :func:`fastpath.certify_one`)
-        accepts it; None otherwise (or if ``sol`` is None)."""
+        accepts it; None otherwise (or if ``sol`` is None). ``u`` is clipped to the box first
+        (the compiled projection returns it inside unless its multiplier is negative)."""
         if sol is None:
             return None
-        u, lam = sol
+        u, lam = fastpath.clip(sol[0], self.low, self.high), sol[1]
         found = binding_cones.certify_set(u_nom, a0, a, G, self.low, self.high, tol, u, lam,
                                           _ONE, fastpath.DIST_TOL)
         if found is None or not found[0]:
