@@ -3,8 +3,8 @@
 ``setup.py`` builds three optional C extensions where a C compiler is there (without one the
 install goes on and the package runs its numpy paths, the reference of the compiled ones):
 
-- ``afvsgp_gym.cbf._cones`` (``"cones"``): the cone program's several-cones path
-  (:mod:`afvsgp_gym.cbf.binding_cones`);
+- ``afvsgp_gym.cbf._cones`` (``"cones"``): the cone program's one-cone and several-cones
+  paths (:mod:`afvsgp_gym.cbf.binding_cones`);
 - ``afvsgp_gym.cbf._step`` (``"step"``): the controller's per-step glue (cone matrices,
   exploration gate, barriers in the program, learned terms, eq. 48 samples, residuals);
 - ``afvsgp_gym.gp._bank`` (``"bank"``): the AFVSGP learners' per-step arithmetic

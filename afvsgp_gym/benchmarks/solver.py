@@ -10,7 +10,12 @@ a cone ``G_i = beta L_i'`` (eq. 05) of a synthetic posterior covariance. Every s
 
 Command line (``afvsgp-gym bench`` runs :func:`run`)::
 
-    python -m afvsgp_gym.benchmarks.solver [--quick] [--no-cbfpy]
+    python -m afvsgp_gym.benchmarks.solver [--quick] [--no-cbfpy] [--barriers K ...]
+                                           [--generic K ...]
+
+Generic programs (:func:`generic_programs`, :func:`generic_vs_clarabel`): seeded random
+feasible programs with random covariances (condition numbers up to 1e12), the proposal
+outside the safe set, timed against a reused clarabel solver object of the same program.
 
 cbfpy (``pip install afvsgp-gym[bench]``) is optional; without it that part is skipped. The
 fast path against a 40-digit reference on recorded filter programs, and another ``socp.py``
@@ -20,6 +25,7 @@ timed against this one: ``benchmarks/solver_instances.py`` in the repository.
 from __future__ import annotations
 
 import argparse
+import math
 import time
 from dataclasses import dataclass
 
@@ -180,6 +186,123 @@ def filter_vs_clarabel(n_barriers: int, n: int, learned: bool, seed: int = 0) ->
     return out
 
 
+# ---------------------------------------------------------------------- generic programs
+#: ``beta`` of the generic programs' cones (the filter's default chance-constraint factor).
+GENERIC_BETA = 2.5
+
+
+def generic_programs(n: int, n_cones: int, seed: int = 0, max_condition: float = 1e12):
+    """``n`` seeded random feasible programs ``(u_nom, a0, a, G)`` with ``n_cones`` cones on
+    M = 7 actions in ``[-1, 1]^7`` (the Franka's), each active: its clipped proposal violates
+    a cone.
+
+    Cone i: ``a_i`` standard normal and ``G_i = beta L_i'`` (the upper Cholesky factor, as
+    the filter's) of a random covariance ``Sigma_i = Q diag(s^2 r_j) Q'`` (Q a random
+    rotation), its largest standard deviation ``s`` log-uniform in ``[0.01, 0.3] ||a_i||``
+    and its condition number log-uniform in ``[1, max_condition]`` (``r_j`` geometric from 1
+    to its inverse). ``a0_i`` gives a random point of the inner 60 % of the box the margin
+    ``[0.02, 0.3] ||a_i||`` on every cone (so the program is feasible); ``u_nom`` is uniform
+    in 1.5 times the box (a third of its coordinates outside it), drawn again until the
+    clipped proposal violates a cone."""
+    rng = np.random.default_rng(seed)
+    n1 = M + 1
+    out = []
+    while len(out) < n:
+        a = rng.normal(size=(n_cones, M))
+        G = np.empty((n_cones, n1, n1))
+        for i in range(n_cones):
+            Q = np.linalg.qr(rng.normal(size=(n1, n1)))[0]
+            s = np.linalg.norm(a[i]) * 10.0 ** rng.uniform(-2.0, math.log10(0.3))
+            ev = s * s * np.logspace(0.0, -rng.uniform(0.0, math.log10(max_condition)), n1)
+            sigma = (Q * ev) @ Q.T
+            G[i] = GENERIC_BETA * np.linalg.cholesky(0.5 * (sigma + sigma.T)).T
+        u_star = rng.uniform(-0.6, 0.6, M)
+        a0 = (np.linalg.norm(G @ np.concatenate([[1.0], u_star]), axis=1) - a @ u_star
+              + np.linalg.norm(a, axis=1) * rng.uniform(0.02, 0.3, n_cones))
+        while True:
+            u_nom = rng.uniform(-1.5, 1.5, M)
+            ubar = np.concatenate([[1.0], np.clip(u_nom, -1.0, 1.0)])
+            if float((a0 + a @ ubar[1:] - np.linalg.norm(G @ ubar, axis=1)).min()) < 0.0:
+                break
+        out.append((u_nom, a0, a, G))
+    return out
+
+
+def generic_vs_clarabel(n_cones: int, n: int, seed: int = 0, repeats: int = 5) -> dict:
+    """Our filter (default backend, and the numpy paths only) against a reused raw clarabel
+    solve of the same programs (:func:`generic_programs`), interleaved in one run.
+
+    Clarabel: one ``DefaultSolver`` built once, with the filter's settings and data layout
+    (:mod:`afvsgp_gym.cbf.cone_programs`); per program its ``update(q, b, A)`` and
+    ``solve()`` are timed, the data being arranged beforehand (untimed). After one untimed
+    pass, ``repeats`` passes over the programs, each program solved by the three in turn
+    (the order rotating); per program the median over the passes. ``ratio_*``: median and
+    p90 over programs of (filter / clarabel), ``ratio_numpy_*`` the same for the numpy
+    paths; ``n_<status>``: programs per status of the filter (default backend) and
+    ``ratio_median_<status>`` over them; ``max_action_diff``: the largest ``|u_filter -
+    u_clarabel|`` (clarabel at tolerance 1e-9) over the programs it solved."""
+    from afvsgp_gym.cbf.cone_programs import SOLVED
+
+    inst = generic_programs(n, n_cones, seed)
+    low, high = -np.ones(M), np.ones(M)
+    ours, numpy_only = SOCPFilter(low, high), SOCPFilter(low, high, backend="numpy")
+    raw = ConePrograms(low, high, ours.tol, ours.fallback_regularization)
+    raw.prepare("socp", [n_cones])
+    solver = raw._solvers[("socp", n_cones)]
+    data = []
+    for u_nom, a0, a, G in inst:
+        values, b = raw._fill("socp", a0, a, G)
+        data.append((-u_nom, b.copy(), values.copy()))
+    t = np.full((repeats, 3, n), np.nan)
+    t_solve = np.full((repeats, n), np.nan)
+    status: list[str] = []
+    ours_u, raw_u = np.empty((n, M)), np.full((n, M), np.nan)
+    for rep in range(-1, repeats):
+        for j, (u_nom, a0, a, G) in enumerate(inst):
+            for turn in range(3):
+                which = (turn + j + rep) % 3
+                t0 = time.perf_counter()
+                if which == 0:
+                    res = ours.solve(u_nom, a0, a, G)
+                elif which == 1:
+                    numpy_only.solve(u_nom, a0, a, G)
+                else:
+                    q, b, values = data[j]
+                    solver.update(q=q, b=b, A=values)
+                    t1 = time.perf_counter()
+                    sol = solver.solve()
+                    t_end = time.perf_counter()
+                    if rep >= 0:
+                        t[rep, 2, j], t_solve[rep, j] = t_end - t0, t_end - t1
+                    if rep < 0 and str(sol.status) in SOLVED:
+                        raw_u[j] = np.asarray(sol.x)[:M]
+                    continue
+                t_end = time.perf_counter()
+                if rep >= 0:
+                    t[rep, which, j] = t_end - t0
+                elif which == 0:
+                    status.append(res.status)
+                    ours_u[j] = res.u
+    med = np.median(t, axis=0)
+    ratio, ratio_np = med[0] / med[2], med[1] / med[2]
+    out: dict[str, float] = {}
+    for name, i in (("filter", 0), ("filter_numpy", 1), ("clarabel", 2)):
+        out[f"{name}_median_s"] = float(np.median(med[i]))
+        out[f"{name}_p90_s"] = float(np.percentile(med[i], 90))
+    out["clarabel_solve_only_median_s"] = float(np.median(np.median(t_solve, axis=0)))
+    for tag, r in (("", ratio), ("numpy_", ratio_np)):
+        out[f"ratio_{tag}median"] = float(np.median(r))
+        out[f"ratio_{tag}p90"] = float(np.percentile(r, 90))
+    status = np.array(status)
+    for st in sorted(set(status.tolist())):
+        sel = status == st
+        out[f"n_{st}"] = int(sel.sum())
+        out[f"ratio_median_{st}"] = float(np.median(ratio[sel]))
+    solved = ~np.isnan(raw_u[:, 0])
+    out["max_action_diff"] = float(np.abs(ours_u - raw_u)[solved].max(initial=0.0))
+    return out
+
+
 # ---------------------------------------------------------------------- cbfpy
 def cbfpy_filters(arm: SphereArm):
     """``{name: jitted safety_filter(z, u_des, o)}`` for cbfpy's configurations on the arm
@@ -319,10 +442,11 @@ def _have_cbfpy() -> bool:
 
 
 def run(quick: bool = False, cbfpy: bool | None = None, cbfpy_only: bool = False,
-        block: int = 50, barriers=(1, 21, 100)) -> dict[str, float]:
+        block: int = 50, barriers=(1, 21, 100), generic=(1, 3)) -> dict[str, float]:
     """Filter vs clarabel at 1 / 21 / 100 barriers (or those in ``barriers``), known model and
     learned; with ``cbfpy`` (default: when it is installed) also cbfpy's configurations on the
-    known-model states (``cbfpy_only``: only those)."""
+    known-model states (``cbfpy_only``: only those); then on generic programs with 1 and 3
+    cones (or those in ``generic``, :func:`generic_vs_clarabel`, keys ``generic_K<k>_*``)."""
     cbfpy = _have_cbfpy() if cbfpy is None else cbfpy
     n = 200 if quick else 2000
     out: dict[str, float] = {}
@@ -336,6 +460,10 @@ def run(quick: bool = False, cbfpy: bool | None = None, cbfpy_only: bool = False
             tag = f"K{K}_{'socp' if learned else 'qp'}"
             for key, val in filter_vs_clarabel(K, n, learned).items():
                 out[f"{tag}_{key}"] = val
+    if not cbfpy_only:
+        for k in generic:
+            for key, val in generic_vs_clarabel(k, n // 2).items():
+                out[f"generic_K{k}_{key}"] = val
     return out
 
 
@@ -347,15 +475,18 @@ def main(argv=None) -> None:
     parser.add_argument("--no-cbfpy", action="store_true", help="skip cbfpy even if installed")
     parser.add_argument("--cbfpy-only", action="store_true",
                         help="only cbfpy against our known-model filter")
-    parser.add_argument("--barriers", type=int, nargs="+", default=[1, 21, 100],
+    parser.add_argument("--barriers", type=int, nargs="*", default=[1, 21, 100],
                         metavar="K", help="numbers of barriers to run (default: 1 21 100)")
+    parser.add_argument("--generic", type=int, nargs="*", default=[1, 3], metavar="K",
+                        help="numbers of cones of the generic programs (default: 1 3)")
     parser.add_argument("--block", type=int, default=50,
                         help="states per block of the cbfpy comparison (1: every call "
                              "interleaved)")
     args = parser.parse_args(argv)
     print(f"machine: {machine()}", flush=True)
     res = run(quick=args.quick, cbfpy=False if args.no_cbfpy else None,
-              cbfpy_only=args.cbfpy_only, block=args.block, barriers=args.barriers)
+              cbfpy_only=args.cbfpy_only, block=args.block, barriers=args.barriers,
+              generic=args.generic)
     width = max(len(k) for k in res)
     for key, val in res.items():
         txt = f"{val * 1e6:10.1f} us" if key.endswith("_s") else f"{val:10.4g}"

@@ -20,8 +20,10 @@ out negative leaves, until no other cone is violated.
 
 The iteration runs compiled only (``afvsgp_gym.cbf._cones``, built with the package when a C
 compiler is there, see :mod:`afvsgp_gym._compiled`): without it, or with the backend
-``"numpy"``, the filter takes its numpy paths (``docs/filter.md`` says why there is no numpy
-version). The answer is only a candidate:
+``"numpy"``, the filter takes its numpy paths (with one cone
+:func:`fastpath.project_cone_box`, the same projection by a secular root, the reference of
+:func:`project_cones_box` there; ``docs/filter.md`` says why there is no numpy version of
+several cones). The answer is only a candidate:
 :class:`~afvsgp_gym.cbf.socp.SOCPFilter` certifies it (:func:`fastpath.certify`).
 """
 

@@ -166,11 +166,11 @@ class FilterConfig:
         qpsolvers backend for the known-model QP (None: clarabel directly).
     backend : str
         Which code runs the filter's arithmetic: ``"auto"`` (default) the compiled extensions
-        that are built (the cone program's several-cones path, the controller's step glue,
-        the AFVSGP learners' core), ``"numpy"`` the numpy paths only (the reference; no
-        compiled code runs), ``"compiled"`` all three extensions (``ImportError`` naming
-        those that were not built when the filter is made). For diagnostics, a
-        ``Backend`` of some extensions only, e.g. ``_compiled.resolve("compiled",
+        that are built (the cone program's one- and several-cones paths, the controller's
+        step glue, the AFVSGP learners' core), ``"numpy"`` the numpy paths only (the
+        reference; no compiled code runs), ``"compiled"`` all three extensions
+        (``ImportError`` naming those that were not built when the filter is made). For
+        diagnostics, a ``Backend`` of some extensions only, e.g. ``_compiled.resolve("compiled",
         ("step", "bank"))`` for the cone program in numpy (:mod:`afvsgp_gym._compiled`).
     seed : int or None
         Seed of the exploration noise.

@@ -15,7 +15,9 @@ is the HOCBF-QP of eq. 04.
 :meth:`SOCPFilter.solve` tries, in order: the clipped proposal (returned as is when it
 satisfies every constraint: status ``"inactive"``); an exact fast path
 (:mod:`afvsgp_gym.cbf.fastpath`: one half-space, any number of half-spaces, one cone, each
-with the box; with several cones, the compiled search of the binding cones,
+with the box; one cone by the compiled projection,
+:func:`afvsgp_gym.cbf.binding_cones.project_cones_box`, first when it is built; with several
+cones, the compiled search of the binding cones,
 :func:`afvsgp_gym.cbf.binding_cones.solve_binding_set`, when it is built, then the projection
 onto the one farthest from the proposal) whose answer is used only when its KKT certificate
 holds (status ``"certified:<path>"``, ``"certified:cones"`` with several binding cones);
@@ -57,6 +59,8 @@ WORKING_SET_ADD = 2
 BINDING_CONES_MAX = 5
 #: Working-set rounds of the QP's least-distance fast path before clarabel.
 QP_WORKING_SET_ROUNDS = 4
+_ZERO = np.zeros(1)  # a multiplier's start (read only)
+_ONE = np.ones(1, dtype=bool)  # one binding cone (read only)
 
 
 @dataclass(frozen=True)
@@ -112,16 +116,15 @@ class SOCPFilter:
         Use the certified fast paths (False: clarabel for every active call; for reference
         and benchmarks).
     backend : str or Backend
-        ``"auto"`` (default): the compiled several-cones path
-        (:mod:`afvsgp_gym.cbf.binding_cones`) for programs with several cones when it is
-        built; ``"numpy"``: the numpy paths only; ``"compiled"``: require it (``ImportError``
-        if it was not built); a resolved ``Backend``: as it says (the filter's). See
-        :mod:`afvsgp_gym._compiled`.
+        ``"auto"`` (default): the compiled cone paths (:mod:`afvsgp_gym.cbf.binding_cones`)
+        for programs with one or several cones when they are built; ``"numpy"``: the numpy
+        paths only; ``"compiled"``: require them (``ImportError`` if they were not built); a
+        resolved ``Backend``: as it says (the filter's). See :mod:`afvsgp_gym._compiled`.
 
     Attributes
     ----------
     compiled : bool
-        True when the compiled several-cones path runs.
+        True when the compiled cone paths run.
     """
 
     def __init__(
@@ -417,6 +420,10 @@ class SOCPFilter:
         None), or the working set of cones for clarabel (an index array), or None."""
         low, high = self.low, self.high
         if a0.size == 1:
+            if self.compiled:
+                found = self._one_cone_compiled(u_nom, uc, a0, a, G, tol)
+                if found is not None:
+                    return found
             return self._one_cone(u_nom, float(a0[0]), a[0], G[0], tol)
         # several cones: the compiled path searches the binding cones from the most violated
         # one; else the projection onto the farthest one answers the program when that cone
@@ -477,6 +484,48 @@ class SOCPFilter:
             path = "halfspace"
         out = _with_margin(sol, a0, a, G)
         return None if out is None else (*out, path)
+
+    def _one_cone_compiled(self, u_nom, uc, a0, a, G, tol):
+        """``(u, "cone", margins at u)`` for a program with one cone from the compiled
+        projection (:func:`binding_cones.project_cones_box`, k = 1), certified; or None.
+
+        Newton's method starts at the clipped proposal ``uc`` with no face fixed; if that does
+        not settle and certify, at the projection onto the cone linearised at ``uc`` (its
+        faces and multiplier, usually those of the answer)."""
+        low, high = self.low, self.high
+        tol_i = np.array([tol.one(0)])
+        sol = binding_cones.project_cones_box(u_nom, a0, a, G, low, high, uc, _ZERO,
+                                              np.zeros(self.m, dtype=bool))
+        found = self._certified_one(sol, u_nom, a0, a, G, tol_i)
+        if found is not None:
+            return found
+        a0i, ai = float(a0[0]), a[0]
+        c, grad = fastpath.cone_margin_gradient(uc, a0i, ai, G[0])
+        if grad is None:
+            return None
+        lin = fastpath.project_halfspace_box(u_nom, c - float(grad.dot(uc)), grad, low, high)
+        if lin is None:
+            return None
+        u, lam = lin
+        sol = binding_cones.project_cones_box(u_nom, a0, a, G, low, high, u, [lam],
+                                              u != u_nom + lam * grad)
+        return self._certified_one(sol, u_nom, a0, a, G, tol_i)
+
+    def _certified_one(self, sol, u_nom, a0, a, G, tol):
+        """``(u, "cone", margins at u)`` of an answer ``sol = (u, lam)`` (``lam`` of shape
+        (1,)) for the program with the one cone ``a0, a, G`` (shapes (1,), (1, m), (1, m+1,
+        m+1)) and its tolerance ``tol`` (1,) when the compiled KKT certificate
+        (:func:`binding_cones.certify_set`, the test of :func:`fastpath.certify_one`)
+        accepts it; None otherwise (or if ``sol`` is None). ``u`` is clipped to the box first
+        (the compiled projection returns it inside unless its multiplier is negative)."""
+        if sol is None:
+            return None
+        u, lam = fastpath.clip(sol[0], self.low, self.high), sol[1]
+        found = binding_cones.certify_set(u_nom, a0, a, G, self.low, self.high, tol, u, lam,
+                                          _ONE, fastpath.DIST_TOL)
+        if found is None or not found[0]:
+            return None
+        return u, "cone", found[1]
 
     def _one_cone(self, u_nom, a0: float, a, G, tol):
         """``(u, "cone", margins at u)`` for a program with one (non-zero) cone (paper eq. 05

@@ -70,3 +70,31 @@ def test_recorded_instances_round_trip(tmp_path):
                 assert v is None
             else:
                 np.testing.assert_array_equal(u, v)
+
+
+def test_generic_programs_are_seeded_feasible_and_active():
+    """The generic programs: the same for a seed, Cholesky-shaped cones, the clipped
+    proposal violating a cone, and a point of the box satisfying every cone."""
+    first = bench.generic_programs(15, 2, seed=3)
+    again = bench.generic_programs(15, 2, seed=3)
+    for prog, same in zip(first, again, strict=True):
+        for x, y in zip(prog, same, strict=True):
+            np.testing.assert_array_equal(x, y)
+    for u_nom, a0, a, G in first:
+        assert u_nom.shape == (bench.M,) and a.shape == (2, bench.M)
+        assert np.all(np.tril(G, -1) == 0.0)  # G_i = beta L_i'
+        uc = np.clip(u_nom, -1.0, 1.0)
+        ubar = np.concatenate([[1.0], uc])
+        assert (a0 + a @ uc - np.linalg.norm(G @ ubar, axis=1)).min() < 0.0
+        res = bench.SOCPFilter(-np.ones(bench.M), np.ones(bench.M)).solve(u_nom, a0, a, G)
+        assert res.feasible and res.status != "inactive"
+
+
+def test_generic_benchmark_reports_every_program():
+    """The generic benchmark's counts per status add up to its programs, and its answers
+    agree with clarabel's at clarabel's tolerance (no timing is checked)."""
+    out = bench.generic_vs_clarabel(1, 12, seed=5, repeats=1)
+    assert sum(v for k, v in out.items() if k.startswith("n_")) == 12
+    assert out["max_action_diff"] < 1e-3
+    for key in ("filter_median_s", "clarabel_median_s", "ratio_median", "ratio_p90"):
+        assert np.isfinite(out[key]) and out[key] > 0.0
