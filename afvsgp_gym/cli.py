@@ -648,7 +648,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     bn = sub.add_parser("bench", help="speed figures of the GP, env and filter benchmarks")
     bn.add_argument("--quick", action="store_true")
-    bn.add_argument("--only", default=None, metavar="A,B", help="subset of gp,envs,filter,sweep")
+    bn.add_argument("--only", default=None, metavar="A,B",
+                    help="subset of gp,envs,filter,arm,solver,sweep")
     rb = sub.add_parser("robot", help="the 1 kHz torque loop on a Franka (libfranka) or its "
                                       "simulated stand-in",
                         description="Run a policy's torques through the safety filter and "
