@@ -11,9 +11,10 @@ Reads three results files of one sitting on one machine:
 - ``results/braking_authority.json``: ``python benchmarks/braking_authority.py --json ...``;
 - ``results/brake.jsonl.gz`` (optional): ``afvsgp-gym sweep benchmarks/configs/brake.toml``
   (the brake, the mean-only relaxation and the calibrated band, later code);
-- ``results/adversarial_limit_margin.jsonl.gz`` and ``adversarial_limit_multiplier.jsonl.gz``
-  (optional): the suite's ``afvsgp`` grid at the code versions whose Franka envs suggested
-  the margin, and the multiplier, on every joint-limit barrier.
+- ``results/adversarial_limit_margin.jsonl.gz``, ``adversarial_limit_multiplier.jsonl.gz``
+  and ``adversarial_limit_mixed_ungated.jsonl.gz`` (optional): the suite's ``afvsgp`` grid at
+  the code versions whose Franka envs suggested the margin, and the multiplier, on every
+  joint-limit barrier, and the two mixed and adapted on every step.
 
 To refresh them, run those commands, then ``python benchmarks/page_adversarial.py --refresh
 ADVERSARIAL.jsonl ROUTES.jsonl AUTHORITY.json [BRAKE.jsonl]``: it keeps the fields the page
@@ -43,6 +44,9 @@ MARGIN = RESULTS / "adversarial_limit_margin.jsonl.gz"
 #: the same with the conformal multiplier on every joint-limit band (that code version's
 #: suggestion, reverted)
 MULTIPLIER = RESULTS / "adversarial_limit_multiplier.jsonl.gz"
+#: the same with the margin on the ranges and the multiplier on the speeds, adapted on every
+#: step (before ``calibration_gate``)
+UNGATED = RESULTS / "adversarial_limit_mixed_ungated.jsonl.gz"
 BRAKE_BLOCKS = {
     "defaults": "the paper's band (`calibration=\"off\"`; the mean-only relaxation, then "
                 "the brake)",
@@ -55,14 +59,15 @@ BRAKE_BLOCKS = {
                         "(`calibration=\"conformal\"`, `calibration_step` 1 std per miss, 0 "
                         "for the obstacle pairs)",
     "limit_mixed": "the margin on the 14 range barriers, the multiplier on the 14 speed "
-                   "barriers (`calibration` per barrier): **the Franka envs' default**",
+                   "barriers (`calibration` per barrier), adapted on every step: the Franka "
+                   "envs' default before `calibration_gate`",
 }
 TRACKER_BLOCKS = {
     "tracker_defaults": "AFVSGP, the paper's band",
     "tracker_limit_margin": "AFVSGP, the margin on the joint-limit barriers only",
     "tracker_limit_multiplier": "AFVSGP, the multiplier on the joint-limit barriers only",
-    "tracker_limit_mixed": "AFVSGP, the margin on the ranges, the multiplier on the speeds "
-                           "(the default)",
+    "tracker_limit_mixed": "AFVSGP, the margin on the ranges, the multiplier on the speeds, "
+                           "every step (the default before the gate)",
     "tracker_oracle": "oracle (true model)",
 }
 PAGE = DOCS / "adversarial.md"
@@ -274,11 +279,12 @@ def build() -> dict:
                  headline(recs)),
            "",
            *(["Rows of two codes: the AFVSGP rows were run again after the joint-speed "
-              "barriers took the conformal multiplier (below) and the brake's give-way "
-              "learned to lock joints at their range margin. The oracle, the nominal-only "
-              "filter and no filter learn nothing, so the first change leaves their rows as "
-              "they were; the second acts only when the brake gives way, so their rows are "
-              "those of the brake before it (the filter-free row uses no brake).", ""]
+              "barriers took the conformal multiplier, adapted only where a miss could decide "
+              "the constraint (below), and the brake's give-way learned to lock joints at "
+              "their range margin. The oracle, the nominal-only filter and no filter learn "
+              "nothing, so the first change leaves their rows as they were; the second acts "
+              "only when the brake gives way, so their rows are those of the brake before it "
+              "(the filter-free row uses no brake).", ""]
              if len({r.get("code_version") for r in recs}) > 1 else []),
            "By policy (episodes with cost / episodes, the three scenarios):",
            "",
@@ -317,12 +323,24 @@ def build() -> dict:
                 "the margin on the range barriers. Its row's code also has the brake lock, "
                 "while it gives way, the joints held at their range margin (with the speed "
                 "multiplier alone one episode had a held arm struck by the moving sphere: "
-                "the retreat needed joint 4, held at its margin). The suite's AFVSGP grid "
-                "with each:", ""]
+                "the retreat needed joint 4, held at its margin). Adapted on every step, the "
+                "speed barriers' multipliers (the speed barriers are always in the program) "
+                "also counted misses far from any limit, climbed far above `beta` behind the "
+                "nominal tracker and held the joints' torque back for the rest of the episode: "
+                "the tracker drifted away in some episodes ([Safety](safety.md), \"The band on "
+                "the joint limits and tracking\"). The "
+                "default adapts them only on the steps where a miss could decide the "
+                "constraint (`calibration_gate`: its margin at the applied action below the "
+                "band's width). The suite's AFVSGP grid with each:", ""]
         suite = [r for r in recs if r["block"] == "afvsgp"]
-        out += limit_bands([("margin on all 28", read_jsonl(MARGIN)),
-                            ("multiplier on all 28", read_jsonl(MULTIPLIER)),
-                            ("margin on ranges, multiplier on speeds (default)", suite)]) + [""]
+        variants = [("margin on all 28", read_jsonl(MARGIN)),
+                    ("multiplier on all 28", read_jsonl(MULTIPLIER))]
+        if UNGATED.exists():
+            variants.append(("margin on ranges, multiplier on speeds, every step",
+                             read_jsonl(UNGATED)))
+        variants.append(("margin on ranges, multiplier on speeds, where a miss could "
+                         "decide (default)", suite))
+        out += limit_bands(variants) + [""]
     if BRAKE.exists():
         out += ["## The brake, the relaxation and the calibrated band", "",
                 "AFVSGP with nothing known about the dynamics (priors \"zero\" and "
