@@ -36,6 +36,8 @@ CALIBRATION_FIELDS = (
     "calibration_within_1std",
     "calibration_within_2std",
     "calibration_within_3std",
+    "calibration_near_samples",
+    "calibration_near_misses",
     "true_band_samples",
     "true_band_misses",
 )
@@ -43,8 +45,9 @@ CALIBRATION_FIELDS = (
 #: The calibration columns of every table, in one line.
 CALIBRATION_LEGEND = (
     "miss: share of the learned band's (barrier, step) pairs whose eq. 48 sample fell below "
-    "the band the filter used (promised: Phi(-beta), 0.62 % at beta = 2.5); true_miss: the "
-    "same against the exact model error; cov1/cov2/cov3: share within 1/2/3 predicted std "
+    "the band the filter used (promised: Phi(-beta), 0.62 % at beta = 2.5); near_miss: the "
+    "same over the pairs whose constraint was within one band-width of binding; true_miss: "
+    "the same against the exact model error; cov1/cov2/cov3: share within 1/2/3 predicted std "
     "(68.3/95.4/99.7 % if calibrated)"
 )
 
@@ -82,7 +85,9 @@ class EpisodeCounter:
         ``info["calibration"]``: (barrier, step) pairs scored, and those below the band the
         filter used; ``calibration_within_1std`` (``_2std``, ``_3std``) those within one (two,
         three) predicted standard deviations of the band's center
-        (:mod:`afvsgp_gym.cbf.calibration`).
+        (:mod:`afvsgp_gym.cbf.calibration`); ``calibration_near_samples`` and
+        ``calibration_near_misses`` the pairs whose constraint was within one band-width of
+        binding, and their misses (the subsequence ``calibration_gate`` corrects on).
     true_band_samples, true_band_misses : int
         The same band against the simulator's exact model error: pairs with a finite
         ``info["delta_b_lower"]`` and ``info["delta_b_true"]``, and those with
@@ -114,6 +119,7 @@ class EpisodeCounter:
         self.calibration_samples = self.calibration_misses = 0
         self.calibration_within_1std = self.calibration_within_2std = 0
         self.calibration_within_3std = 0
+        self.calibration_near_samples = self.calibration_near_misses = 0
         self.true_band_samples = self.true_band_misses = 0
         self.success = self.unstable = False
         self.safe_proposals = self.safe_proposals_kept = 0
@@ -148,6 +154,8 @@ class EpisodeCounter:
             self.calibration_within_1std += cal["within_1std"]
             self.calibration_within_2std += cal["within_2std"]
             self.calibration_within_3std += cal["within_3std"]
+            self.calibration_near_samples += cal.get("near_samples", 0)
+            self.calibration_near_misses += cal.get("near_misses", 0)
             lower, true = info.get("delta_b_lower"), info.get("delta_b_true")
             if lower is not None and true is not None:
                 ok = np.isfinite(lower) & np.isfinite(true)

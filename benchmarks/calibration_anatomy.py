@@ -98,7 +98,7 @@ def episode(scene: str, seed: int, refit: bool) -> dict:
         cost += info["cost"] > 0
         scored = ctl._scored
         if scored is not None:
-            z, center, std, _ = scored
+            z, center, std = scored[:3]
             rows = np.flatnonzero(np.isfinite(info["delta_b_std"]))
             e = (z - center) / std
             noise = np.sqrt(ctl.bank.noise_variance(rows))

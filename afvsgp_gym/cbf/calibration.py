@@ -94,6 +94,11 @@ class CalibrationCounts(NamedTuple):
         Those below the band the filter used (``z_k`` below its lower edge).
     within_1std, within_2std, within_3std : int
         Those with ``|e_k| <= 1, 2, 3`` (two-sided coverage of the predicted std).
+    near_samples, near_misses : int
+        The scored barriers whose constraint was near binding (its margin at the applied
+        action below the band's width, ``center - lower``: one band-width more model error
+        would have violated it), and their misses: the subsequence ``calibration_gate``
+        corrects on, where the band decides the action (0 when not told).
     """
 
     samples: int
@@ -101,6 +106,8 @@ class CalibrationCounts(NamedTuple):
     within_1std: int
     within_2std: int
     within_3std: int
+    near_samples: int = 0
+    near_misses: int = 0
 
     def as_dict(self) -> dict[str, int]:
         """The counts as the dict ``info["calibration"]`` holds."""
@@ -119,21 +126,32 @@ def scores(z: np.ndarray, mean: np.ndarray, std: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(e) & (std > 0), e, np.nan)
 
 
-def score_counts(z: np.ndarray, mean: np.ndarray, std: np.ndarray,
-                 lower: np.ndarray) -> tuple[np.ndarray, CalibrationCounts]:
+def near_binding(margin: np.ndarray, center: np.ndarray, lower: np.ndarray) -> np.ndarray:
+    """Constraints within one band-width of binding: ``margin < center - lower`` (their
+    margin at the applied action below the band's width; NaN margins are not)."""
+    with np.errstate(invalid="ignore"):
+        return np.asarray(margin) < center - lower
+
+
+def score_counts(z: np.ndarray, mean: np.ndarray, std: np.ndarray, lower: np.ndarray,
+                 near: np.ndarray | None = None) -> tuple[np.ndarray, CalibrationCounts]:
     """:func:`scores` and their :class:`CalibrationCounts` (``mean`` includes the residual
-    bias; a miss is a scored ``z < lower``, the band's lower edge)."""
+    bias; a miss is a scored ``z < lower``, the band's lower edge; ``near`` (k,) bool the
+    near-binding rows, :func:`near_binding`)."""
     e = scores(z, mean, std)
     ok = ~np.isnan(e)
-    if not ok.all():
-        e_ok, z, lower = e[ok], np.asarray(z)[ok], lower[ok]
-    else:
-        e_ok = e
-    a = np.abs(e_ok)
-    counts = CalibrationCounts(len(e_ok), int(np.count_nonzero(z < lower)),
+    z = np.asarray(z)
+    miss = z < lower
+    a = np.abs(e[ok])
+    n_near = n_near_miss = 0
+    if near is not None:
+        near_ok = near & ok
+        n_near = int(np.count_nonzero(near_ok))
+        n_near_miss = int(np.count_nonzero(near_ok & miss))
+    counts = CalibrationCounts(int(np.count_nonzero(ok)), int(np.count_nonzero(ok & miss)),
                                int(np.count_nonzero(a <= 1.0)),
                                int(np.count_nonzero(a <= 2.0)),
-                               int(np.count_nonzero(a <= 3.0)))
+                               int(np.count_nonzero(a <= 3.0)), n_near, n_near_miss)
     return e, counts
 
 

@@ -39,6 +39,7 @@ from afvsgp_gym import _compiled
 from afvsgp_gym.cbf.calibration import (
     CalibrationCounts,
     ConformalMultiplier,
+    near_binding,
     score_counts,
     scores,
 )
@@ -259,7 +260,7 @@ class SafetyController:
                               layout.learner)
             self.conformal = ConformalMultiplier(groups, cfg.beta, steps,
                                                  additive=modes == "conformal-additive")
-        self._scored: tuple | None = None  # (z, center, std, lower) of the last observed step
+        self._scored: tuple | None = None  # (z, center, std, lower, near) of the last step
         self._calibration: CalibrationCounts | None = None
         self.fitted = not self.learns
         self._buffer: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
@@ -694,13 +695,14 @@ class SafetyController:
             self.residuals.reset()
             return
         if pred.center is not None and len(pred.rows):
-            self._scored = (z[pred.rows], pred.center, pred.std, pred.lower)
+            near = near_binding(pred.margin, pred.center, pred.lower)
+            self._scored = (z[pred.rows], pred.center, pred.std, pred.lower, near)
             if self.conformal is not None:
                 noise = (np.sqrt(self.bank.noise_variance(pred.rows))
                          if self.conformal.any_margin else None)
                 sc = scores(*self._scored[:3])
                 if self.config.calibration_gate:  # only where a miss could decide
-                    sc = np.where(pred.margin < pred.center - pred.lower, sc, np.nan)
+                    sc = np.where(near, sc, np.nan)
                 self.conformal.update(pred.rows, sc, pred.std, noise)
         ubar = np.concatenate([[1.0], u])
         self.residuals.update(pred.rows, pred.mean @ ubar, z=z)
@@ -710,8 +712,8 @@ class SafetyController:
     def last_calibration(self) -> CalibrationCounts | None:
         """The band of the last observed step against its eq. 48 samples: scored barriers,
         misses below the band and the 1, 2, 3 std coverages
-        (:mod:`afvsgp_gym.cbf.calibration`); None when no barrier was predicted. Counted
-        when read."""
+        (:mod:`afvsgp_gym.cbf.calibration`), and those of the near-binding rows; None when no
+        barrier was predicted. Counted when read."""
         if getattr(self, "_scored", None) is None:  # (absent from a controller pickled before)
             return None
         if self._calibration is None:

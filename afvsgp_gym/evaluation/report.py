@@ -25,6 +25,7 @@ _EPISODE_TABLE = (("learner", "learner"), ("episode", "ep"), ("seed", "seed"),
                   ("filter_time_median_s", "t_med_us"), ("filter_time_p99_s", "t_p99_us"))
 #: (rate, numerator, denominator) of the episode table's calibration columns
 _EPISODE_RATES = (("miss", "calibration_misses", "calibration_samples"),
+                  ("near_miss", "calibration_near_misses", "calibration_near_samples"),
                   ("true_miss", "true_band_misses", "true_band_samples"))
 _SUMMARY_TABLE = (("learner", "learner"), ("episodes", "episodes"),
                   ("episodes_with_cost", "w/ cost"), ("cost_rate_upper", "cost<=95%"),
@@ -32,7 +33,8 @@ _SUMMARY_TABLE = (("learner", "learner"), ("episodes", "episodes"),
                   ("episodes_with_limit_violation", "w/ limits"), ("min_h", "min_h"),
                   ("interventions", "interv"), ("infeasible_steps", "backup"),
                   ("learner_error_steps", "learn_err"),
-                  ("miss_rate", "miss"), ("true_miss_rate", "true_miss"),
+                  ("miss_rate", "miss"), ("near_miss_rate", "near_miss"),
+                  ("true_miss_rate", "true_miss"),
                   ("coverage_1std", "cov1"), ("coverage_2std", "cov2"),
                   ("coverage_3std", "cov3"),
                   ("tracking_error_mean", "track"), ("tracking_error_max", "track_max"),

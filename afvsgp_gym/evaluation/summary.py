@@ -28,6 +28,7 @@ SUMMARY_FIELDS = (
     "learner_error_steps",
     "calibration_samples",
     "miss_rate",
+    "near_miss_rate",
     "true_miss_rate",
     "coverage_1std",
     "coverage_2std",
@@ -60,7 +61,8 @@ def summarize(records: Iterable[Mapping[str, Any]], confidence: float = 0.95) ->
     :data:`~afvsgp_gym.episode_counts.SAFE_MARGIN` after warm-up) and passed the filter
     unchanged; ``miss_rate`` the share of the scored (barrier, step) pairs whose eq. 48 sample
     fell below the learned band the filter used (the chance constraint promises
-    ``Phi(-beta)``), ``true_miss_rate`` the same against the exact model error,
+    ``Phi(-beta)``), ``near_miss_rate`` the same over the pairs whose constraint was within
+    one band-width of binding, ``true_miss_rate`` the same against the exact model error,
     ``coverage_1std`` (2, 3) the share within one (two, three) predicted standard deviations
     (NaN without scored pairs; :mod:`afvsgp_gym.cbf.calibration`); filter times are
     quantiles of every step pooled (from the records' histograms when present).
@@ -111,6 +113,7 @@ def summarize(records: Iterable[Mapping[str, Any]], confidence: float = 0.95) ->
                                        for r in records)),
         "calibration_samples": total("calibration_samples"),
         "miss_rate": rate("calibration_misses", "calibration_samples"),
+        "near_miss_rate": rate("calibration_near_misses", "calibration_near_samples"),
         "true_miss_rate": rate("true_band_misses", "true_band_samples"),
         "coverage_1std": rate("calibration_within_1std", "calibration_samples"),
         "coverage_2std": rate("calibration_within_2std", "calibration_samples"),

@@ -39,6 +39,7 @@ REPORT_COLUMNS = (
     ("infeasible_steps", "backup"),
     ("learner_error_steps", "learn_err"),
     ("miss_rate", "miss"),
+    ("near_miss_rate", "near_miss"),
     ("true_miss_rate", "true_miss"),
     ("coverage_1std", "cov1"),
     ("coverage_2std", "cov2"),

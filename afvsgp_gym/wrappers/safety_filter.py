@@ -135,7 +135,8 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
     barrier, the lower edge of the band each constraint used: mean plus residual bias minus
     the multiplier times the std; NaN where not predicted), ``"calibration"`` (None, or this
     step's band against its eq. 48 samples: ``samples``, ``misses`` below the band,
-    ``within_1std/2std/3std``; :mod:`afvsgp_gym.cbf.calibration`), with an estimator
+    ``within_1std/2std/3std``, ``near_samples`` and ``near_misses`` over the constraints
+    within one band-width of binding; :mod:`afvsgp_gym.cbf.calibration`), with an estimator
     ``"obstacle_estimate_error"`` (m, the estimate's largest centre error); ``"delta_b_true"``
     comes from the env. ``filter_fallbacks`` counts infeasible steps since the last reset.
 

@@ -15,6 +15,7 @@ from afvsgp_gym.cbf.calibration import (
     ConformalMultiplier,
     beta_for_miss_probability,
     miss_target,
+    near_binding,
     score_counts,
 )
 from afvsgp_gym.cbf.config import FilterConfig
@@ -66,6 +67,15 @@ def test_score_counts_by_hand():
     assert c.samples == 4
     assert c.misses == 1  # only -3 < -2.5
     assert (c.within_1std, c.within_2std, c.within_3std) == (1, 2, 4)
+    assert (c.near_samples, c.near_misses) == (0, 0)  # not told which rows are near binding
+    # near binding: margin below the band's width (center - lower = 2.5 std); NaN is not
+    margin = np.array([0.1, 2.0, 3.0, 0.0, 0.0, np.nan])
+    near = near_binding(margin, mean, lower)
+    np.testing.assert_array_equal(near, [True, True, False, True, False, False])
+    _, c = score_counts(z, mean, std, lower, near)
+    # scored and near: rows 0 and 1 (row 3 has no score, row 4 a zero std); row 1 missed
+    assert (c.near_samples, c.near_misses) == (2, 1)
+    assert c[:5] == score_counts(z, mean, std, lower)[1][:5]
 
 
 def _stream(q_model, scores_per_step):
@@ -218,7 +228,7 @@ def test_controller_reports_the_band_it_used(calibration):
     K = 3
     ctrl = SafetyController(-np.ones(2), np.ones(2), n_barriers=K, warmup_samples=20,
                             calibration=calibration, seed=0)
-    total_miss = total = 0
+    total_miss = total = total_near = 0
     for _ in range(120):
         before = _terms(rng, K)
         res = ctrl.filter(rng.uniform(-1, 1, 2), before)
@@ -240,8 +250,12 @@ def test_controller_reports_the_band_it_used(calibration):
         assert c.misses == int((z[ok] < res.delta_b_lower[ok]).sum())
         center = (res.delta_b_mean + bias)[ok]
         assert c.within_2std == int((np.abs(z[ok] - center) <= 2 * res.delta_b_std[ok]).sum())
+        near = res.margins[ok] < center - res.delta_b_lower[ok]  # within a band-width
+        assert c.near_samples == near.sum()
+        assert c.near_misses == int((near & (z[ok] < res.delta_b_lower[ok])).sum())
         total_miss, total = total_miss + c.misses, total + c.samples
-    assert total > 200
+        total_near += c.near_samples
+    assert total > 200 and total_near > 0  # both kinds: the gate test below
     if calibration == "conformal":  # random terms: far from calibrated, the band widened
         assert ctrl.conformal.q.max() > BETA
 
@@ -289,5 +303,6 @@ def test_the_gate_adapts_only_where_a_miss_could_decide():
         expected = np.maximum(q0 + eta * np.where(near, miss - ctrl.conformal.target, 0.0),
                               BETA)
         np.testing.assert_allclose(ctrl.conformal.q, expected, rtol=0, atol=1e-12)
+        assert ctrl.last_calibration.near_samples == near.sum()  # the gate's subsequence
         gated, open_ = gated + int(near.sum()), open_ + int((ok & ~near).sum())
     assert gated > 20 and open_ > 20

@@ -12,7 +12,8 @@ from afvsgp_gym.episode_counts import EpisodeCounter
 from afvsgp_gym.evaluation import run_episode, summarize
 from afvsgp_gym.wrappers import SafetyFilter
 
-KEYS = {"samples", "misses", "within_1std", "within_2std", "within_3std"}
+KEYS = {"samples", "misses", "within_1std", "within_2std", "within_3std", "near_samples",
+        "near_misses"}
 
 
 @pytest.mark.parametrize("calibration", ["off", "conformal", "conformal-additive"])
@@ -41,6 +42,7 @@ def test_info_reports_the_band_and_the_counter_sums_it(calibration):
         assert cal["samples"] == np.isfinite(lower).sum()
         assert 0 <= cal["misses"] <= cal["samples"]
         assert cal["within_1std"] <= cal["within_2std"] <= cal["within_3std"] <= cal["samples"]
+        assert cal["near_misses"] <= cal["near_samples"] <= cal["samples"]
         for k in KEYS:
             sums[k] += cal[k]
         ok = np.isfinite(lower)
@@ -52,6 +54,8 @@ def test_info_reports_the_band_and_the_counter_sums_it(calibration):
     assert counter.calibration_samples == sums["samples"]
     assert counter.calibration_misses == sums["misses"]
     assert counter.calibration_within_2std == sums["within_2std"]
+    assert counter.calibration_near_samples == sums["near_samples"]
+    assert counter.calibration_near_misses == sums["near_misses"]
     assert (counter.true_band_samples, counter.true_band_misses) == (true_n, true_miss)
 
 
@@ -67,11 +71,16 @@ def test_records_and_summary_carry_the_rates():
     for r in records:
         assert r["calibration_samples"] > 0
         assert r["calibration_within_1std"] <= r["calibration_within_3std"]
+        assert r["calibration_near_samples"] <= r["calibration_samples"]
+        assert r["calibration_near_misses"] <= r["calibration_near_samples"]
+    assert sum(r["calibration_near_samples"] for r in records) > 0  # seed 1 comes close
     s = summarize(records)
     n = sum(r["calibration_samples"] for r in records)
     assert s["calibration_samples"] == n
     assert s["miss_rate"] == sum(r["calibration_misses"] for r in records) / n
     assert s["coverage_2std"] == sum(r["calibration_within_2std"] for r in records) / n
+    assert s["near_miss_rate"] == (sum(r["calibration_near_misses"] for r in records)
+                                   / sum(r["calibration_near_samples"] for r in records))
     assert s["true_miss_rate"] == (sum(r["true_band_misses"] for r in records)
                                    / sum(r["true_band_samples"] for r in records))
 
