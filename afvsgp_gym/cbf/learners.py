@@ -205,9 +205,17 @@ class MappedBank:
 
     def predict_affine(self, xi, rows):
         learners = self._learner[rows]
-        uniq, first, inverse = np.unique(learners, return_index=True, return_inverse=True)
-        b, sigma = self.bank.predict_affine(xi[first], uniq)
-        return b[inverse] * self._sign[rows][:, None], sigma[inverse]
+        # each learner once (at one of its rows: their features agree), in learner order;
+        # O(k + L) by a slot table, not a sort (np.unique costs more than a small prediction)
+        slot = np.full(len(self._reps), -1, dtype=np.intp)
+        slot[learners] = np.arange(len(learners))
+        uniq = np.flatnonzero(slot >= 0)
+        b, sigma = self.bank.predict_affine(xi[slot[uniq]], uniq)
+        if len(uniq) < len(learners):  # shared learners: back to one row per barrier
+            slot[uniq] = np.arange(len(uniq))
+            at = slot[learners]
+            b, sigma = b[at], sigma[at]
+        return b * self._sign[rows][:, None], sigma
 
     def update(self, xi, u, z) -> np.ndarray:
         reps = self._reps
