@@ -82,8 +82,8 @@ def _env_kwargs(spec: dict[str, Any]) -> dict[str, Any]:
     from afvsgp_gym.envs.safety_spheres import PANDA_ARM_SPHERES
 
     kw = dict(spec)
-    kw.pop("fast_path", None)
-    kw.pop("filter", None)
+    for key in ("fast_path", "filter", "learner"):
+        kw.pop(key, None)
     if kw.get("safety_spheres") == "hand":
         kw["safety_spheres"] = list(PANDA_ARM_SPHERES[14:])
     if isinstance(kw.get("obstacles"), str) and kw["obstacles"] == "two":
@@ -96,10 +96,11 @@ def _env_kwargs(spec: dict[str, Any]) -> dict[str, Any]:
 
 
 class TimedEpisode:
-    """One filtered episode prefix of configuration ``spec`` (env kwargs, and SafetyFilter
-    options under ``"filter"``) on ``env_id`` whose filter is timed per control step (see the
-    module docstring): the env's ``warmup_steps`` plus ``steps`` control steps, timed from the
-    step after the one whose update fits the learners; :meth:`step` advances it by one step."""
+    """One filtered episode prefix of configuration ``spec`` (env kwargs, SafetyFilter
+    options under ``"filter"``, and a ``"learner"`` of its own over ``learner``) on ``env_id``
+    whose filter is timed per control step (see the module docstring): the env's
+    ``warmup_steps`` plus ``steps`` control steps, timed from the step after the one whose
+    update fits the learners; :meth:`step` advances it by one step."""
 
     def __init__(self, spec: dict[str, Any], learner: str = "afvsgp", steps: int = 1500,
                  seed: int = 0, env_id: str = ENV_ID):
@@ -109,8 +110,9 @@ class TimedEpisode:
         from afvsgp_gym.agents import NominalController
         from afvsgp_gym.wrappers import SafetyFilter
 
-        self.env = env = SafetyFilter(gym.make(env_id, **_env_kwargs(spec)), learner=learner,
-                                      seed=seed, **spec.get("filter", {}))
+        self.env = env = SafetyFilter(gym.make(env_id, **_env_kwargs(spec)),
+                                      learner=spec.get("learner", learner), seed=seed,
+                                      **spec.get("filter", {}))
         ctrl, bank = env.controller, env.controller.bank
         ctrl.socp.fast_path = bool(spec.get("fast_path", True))
         clock = dict.fromkeys(("learners", "update", "predict", "n_predicted"), 0.0)

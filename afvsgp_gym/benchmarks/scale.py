@@ -7,7 +7,7 @@ barriers, with the scenario's obstacle alone (21 arm spheres x 1 = 21 pairs) and
 spheres around the workspace (25 obstacles, 525 pairs), each behind the paper's per-barrier
 learner (``"afvsgp"``: 21 or 525 pair learners and 7 joint learners) and the shared one
 (``"afvsgp-shared"``: the 7 joint learners, every pair projected onto them; issue 45). The four
-configurations advance in lockstep (:func:`afvsgp_gym.benchmarks.arm.TimedEpisode`, whose
+configurations advance in lockstep (:func:`afvsgp_gym.benchmarks.arm.time_lockstep`, whose
 module docstring says what ``step``, ``learners``, ``update`` and ``env.step`` time), so their
 ratios are measured on the same seconds. Pin the process to one core (``taskset -c 0``) with
 ``OPENBLAS_NUM_THREADS=1``.
@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from afvsgp_gym.benchmarks._machine import calibration_line, machine
-from afvsgp_gym.benchmarks.arm import TimedEpisode
+from afvsgp_gym.benchmarks.arm import time_lockstep
 
 #: the scenario's obstacle, then 24 spheres on three rings around the base (0.6-0.8 m out, at
 #: three heights): the clutter of OSCBF's tabletop demo in number, mostly outside the
@@ -33,12 +33,12 @@ CLUTTER: list[dict[str, Any]] = [{"position": [0.307, 0.20, 0.417], "radius": 0.
     for a in np.linspace(0.6, 2 * np.pi - 0.6, 8)
 ]
 
-#: name -> (learner, env kwargs)
-CONFIGS: dict[str, tuple[str, dict[str, Any]]] = {
-    "21 pairs + 28 limits, per-pair learners": ("afvsgp", {}),
-    "21 pairs + 28 limits, shared learner": ("afvsgp-shared", {}),
-    "525 pairs + 28 limits, per-pair learners": ("afvsgp", {"obstacles": CLUTTER}),
-    "525 pairs + 28 limits, shared learner": ("afvsgp-shared", {"obstacles": CLUTTER}),
+#: name -> configuration (:class:`afvsgp_gym.benchmarks.arm.TimedEpisode`'s spec)
+CONFIGS: dict[str, dict[str, Any]] = {
+    f"{pairs} pairs + 28 limits, {name}": {"learner": learner, "nominal_model": "kinematic",
+                                           **kw}
+    for pairs, kw in ((21, {}), (525, {"obstacles": CLUTTER}))
+    for name, learner in (("per-pair learners", "afvsgp"), ("shared learner", "afvsgp-shared"))
 }
 
 
@@ -49,15 +49,8 @@ def run(quick: bool = False, steps: int | None = None, rounds: int = 1,
     steps = steps or (200 if quick else 1000)
     acc: dict[str, dict[str, list]] = {}
     for _ in range(1 if quick else rounds):
-        eps = {name: TimedEpisode({"nominal_model": "kinematic", **kw}, learner, steps, seed)
-               for name, (learner, kw) in CONFIGS.items()}
-        order = list(eps.values())
-        while any(ep.remaining > 0 for ep in order):
-            for ep in order:
-                ep.step()
-            order.reverse()
-        for name, ep in eps.items():
-            for k, v in ep.result().items():
+        for name, res in time_lockstep(CONFIGS, steps=steps, seed=seed).items():
+            for k, v in res.items():
                 acc.setdefault(name, {}).setdefault(k, []).append(v)
     out: dict[str, float] = {}
     for name, d in acc.items():

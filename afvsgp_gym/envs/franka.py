@@ -27,6 +27,7 @@ from afvsgp_gym.envs.joint_limits import (
     FRANKA_MAX_SPEED,
     FRANKA_MAX_TORQUE_RATE,
     JointLimits,
+    limit_calibration,
 )
 from afvsgp_gym.envs.perception import (
     JointEncoders,
@@ -302,24 +303,6 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
     #: light, folded joint 1 to its speed limit).
     WARMUP_FILTER_DEFAULTS: dict[str, Any] = {"warmup_exploration": "backup",
                                               "exploration_noise": 0.2}
-    #: The learned band's online correction suggested for the joint-limit barriers (docs:
-    #: "Any policy", "Calibration"): their learned joint accelerations are confidently wrong
-    #: where a policy drives a joint through states its data never covered (in closed loop
-    #: the filter's torque follows the state, so the gain's error hides in the bias term:
-    #: after a swing of joint 4 its learned gain was 4x too small with a std of 4 % of it).
-    #: The range barriers (degree 2) take the additive margin (noise standard deviations per
-    #: miss, ``"conformal-additive"``); the speed barriers (degree 1), which have no state to
-    #: absorb one period's error and where the error grows with the torque, take the
-    #: multiplier (standard deviations per miss, ``"conformal"``), which scales the band with
-    #: the torque. The multiplier on the range barriers too made the program infeasible ~5x
-    #: as often and held joints on their stops. The obstacle pairs keep the paper's band.
-    LIMIT_CALIBRATION_STEP = 1.0
-    #: ... adapted only on the steps where a miss could decide the constraint (the margin at
-    #: the applied action below the band's width, ``calibration_gate``): ungated, the speed
-    #: barriers (always in the program) also counted misses far from their limit, the
-    #: multipliers climbed to 15-19 and held the joints' torque back for the rest of the
-    #: episode, and the tracker drifted away (tracking 3-4x worse in the episodes it hit).
-    LIMIT_CALIBRATION_GATE = True
     #: AFVSGP settings suggested to ``SafetyFilter`` (under the user's ``learner_kwargs``) when
     #: the sphere set has several spheres (one learner each): M = 30 inducing points and a
     #: window of P = 500 samples instead of the method's 40 and 1000 (the evidence:
@@ -607,21 +590,14 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         """The :class:`~afvsgp_gym.cbf.FilterConfig` options this env suggests to
         ``SafetyFilter`` (under the caller's): per-barrier activation distances, braking
         decelerations and first gains, the warm-up exploration, and with the joint-limit
-        barriers the online correction of those barriers' band only (the margin on the range
-        barriers, the multiplier on the speed barriers, ``LIMIT_CALIBRATION_STEP``, adapted
-        where a miss could decide, ``LIMIT_CALIBRATION_GATE``; not with
-        ``beta = 0``, which has no band)."""
+        barriers the online correction of those barriers' band only
+        (:func:`~afvsgp_gym.envs.joint_limits.limit_calibration`; not with ``beta = 0``, which
+        has no band)."""
         out = {"activation_distance": self.activation_distance,
                "braking_deceleration": self.braking_deceleration,
                "first_gain": self.first_gain, **self.WARMUP_FILTER_DEFAULTS}
         if self.limit_barriers:
-            n = self.joint_limits.n_joints
-            out["calibration"] = (("off",) * self._n_pairs + ("conformal-additive",) * (2 * n)
-                                  + ("conformal",) * (2 * n))
-            out["calibration_step"] = np.concatenate(
-                [np.zeros(self._n_pairs),
-                 np.full(4 * self.joint_limits.n_joints, self.LIMIT_CALIBRATION_STEP)])
-            out["calibration_gate"] = self.LIMIT_CALIBRATION_GATE
+            out.update(limit_calibration(self._n_pairs, self.joint_limits.n_joints))
         return out
 
     @property

@@ -31,7 +31,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from afvsgp_gym.envs.joint_limits import FRANKA_MAX_ACCELERATION, JointLimits
+from afvsgp_gym.envs.joint_limits import (
+    FRANKA_MAX_ACCELERATION,
+    JointLimits,
+    limit_calibration,
+)
 from afvsgp_gym.envs.perception import pair_covariance
 from afvsgp_gym.envs.scenario import sphere_barriers
 from afvsgp_gym.robots.kinematics import SphereKinematics
@@ -111,7 +115,6 @@ class BarrierModel:
     OBSTACLE_ACTIVATION, RANGE_ACTIVATION, SPEED_ACTIVATION = 0.15, 0.3, float("inf")
     OBSTACLE_DECELERATION = 5.0
     SPEED_GAIN = 25.0
-    LIMIT_CALIBRATION_STEP = 1.0
 
     def __init__(self, kinematics: SphereKinematics, sphere_radii, obstacle_radii,
                  limits: JointLimits | None, action_scale=1.0, torque_error=0.0) -> None:
@@ -185,11 +188,7 @@ class BarrierModel:
             np.full(2 * n, np.inf)])
         out["first_gain"] = np.concatenate([out["first_gain"], np.full(2 * n, np.nan),
                                             np.full(2 * n, self.SPEED_GAIN)])
-        out["calibration"] = (("off",) * k + ("conformal-additive",) * (2 * n)
-                              + ("conformal",) * (2 * n))
-        out["calibration_step"] = np.concatenate([np.zeros(k),
-                                                  np.full(4 * n, self.LIMIT_CALIBRATION_STEP)])
-        out["calibration_gate"] = True  # as the Franka envs' (LIMIT_CALIBRATION_GATE)
+        out.update(limit_calibration(k, n))  # the Franka envs' (one definition)
         return out
 
     def terms(self, q, qd, mass, coriolis, obstacles: ObstacleEstimate,
