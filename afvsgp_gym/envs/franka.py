@@ -27,6 +27,8 @@ from afvsgp_gym.envs.joint_limits import (
     FRANKA_MAX_SPEED,
     FRANKA_MAX_TORQUE_RATE,
     JointLimits,
+    arm_layout,
+    joint_projection,
     limit_calibration,
 )
 from afvsgp_gym.envs.perception import (
@@ -532,16 +534,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         """Relative degree 2 for the obstacle barriers, one learner each; the joint-limit
         barriers (2 for ranges, 1 for speeds) share one learner per joint, with their own
         hyperparameter group (:mod:`afvsgp_gym.envs.joint_limits`)."""
-        k = self._n_pairs
-        if not self.limit_barriers:
-            return BarrierLayout.uniform(k, 2)
-        lim = self.joint_limits
-        return BarrierLayout(
-            np.concatenate([np.full(k, 2), lim.relative_degree]),
-            np.concatenate([np.arange(k), k + lim.joint]),
-            np.concatenate([np.ones(k), lim.sign]),
-            np.concatenate([np.zeros(k, dtype=np.int64), np.ones(lim.n_joints, dtype=np.int64)]),
-        )
+        return arm_layout(self._n_pairs, self.joint_limits if self.limit_barriers else None)
 
     @property
     def shared_barrier_layout(self) -> BarrierLayout:
@@ -552,17 +545,12 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         joint-acceleration learners (each fed by its joint's range and speed barriers) predict
         every pair's band. Needs the joint-limit barriers and a nominal model that knows the
         kinematics (not ``"zero"``, whose terms hold no kinematics to project through)."""
-        if not self.limit_barriers:
-            raise ValueError("the shared learner needs the joint-limit barriers (their "
-                             "learners are the shared ones): limit_barriers=True")
         if self.nominal_model == "zero":
             raise ValueError("the shared learner needs the kinematics, which "
                              "nominal_model='zero' does not know: use 'kinematic' or "
                              "'perturbed', or the per-barrier learner 'afvsgp'")
-        own = self.barrier_layout
-        learner = own.learner - self._n_pairs
-        learner[: self._n_pairs] = -1
-        return BarrierLayout(own.relative_degree, learner, own.sign, own.group[self._n_pairs:])
+        return arm_layout(self._n_pairs, self.joint_limits if self.limit_barriers else None,
+                          projected=True)
 
     @property
     def activation_distance(self) -> float | np.ndarray:
@@ -1144,21 +1132,10 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         if limits is not None:
             lf = np.concatenate([lf, limits[0]])
             lg = np.concatenate([lg, limits[1]])
-            projection = self._joint_projection(ns, jac)
+            projection = joint_projection(
+                np.einsum("osi,sij->osj", ns, jac).reshape(k, -1), self.joint_limits)
         lf.flags.writeable = lg.flags.writeable = False
         return BarrierSet(derivs, lf, lg, xi, projection=projection), acc
-
-    def _joint_projection(self, ns: np.ndarray, jac: np.ndarray) -> np.ndarray:
-        """``(K, 7)``: each barrier's model error per joint-acceleration error (the shared
-        learner's ``BarrierSet.projection``): ``n' J_s`` for the obstacle pairs
-        (``Delta h'' = n' J_s Delta q''``, the kinematics known), ``sign`` on its own joint
-        for the joint-limit barriers."""
-        lim = self.joint_limits
-        out = np.zeros((self.n_barriers, lim.n_joints))
-        out[: self._n_pairs] = np.einsum("osi,sij->osj", ns, jac).reshape(self._n_pairs, -1)
-        out[self._n_pairs + np.arange(lim.n_barriers), lim.joint] = lim.sign
-        out.flags.writeable = False
-        return out
 
     def true_terms_error_bound(self) -> np.ndarray:
         """``(n_barriers,)`` bound on ``|h''_true(u) - (lf + lg u)|`` of the ``"true"`` terms

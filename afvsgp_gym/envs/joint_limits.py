@@ -32,9 +32,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from afvsgp_gym.types import BarrierLayout
+
 __all__ = ["FRANKA_MAX_ACCELERATION", "FRANKA_MAX_SPEED", "FRANKA_MAX_TORQUE_RATE",
-           "LIMIT_CALIBRATION_GATE", "LIMIT_CALIBRATION_STEP", "JointLimits",
-           "limit_calibration"]
+           "LIMIT_CALIBRATION_GATE", "LIMIT_CALIBRATION_STEP", "JointLimits", "arm_layout",
+           "joint_projection", "limit_calibration"]
 
 #: Franka datasheet joint speed limits (rad/s), joints 1-7.
 FRANKA_MAX_SPEED = np.array([2.175, 2.175, 2.175, 2.175, 2.61, 2.61, 2.61])
@@ -61,6 +63,42 @@ LIMIT_CALIBRATION_STEP = 1.0
 #: to 15-19 and held the joints' torque back for the rest of the episode, and the tracker
 #: drifted away (tracking 3-4x worse in the episodes it hit).
 LIMIT_CALIBRATION_GATE = True
+
+
+def arm_layout(n_pairs: int, limits: JointLimits | None, projected: bool = False
+               ) -> BarrierLayout:
+    """The layout of ``n_pairs`` obstacle barriers (relative degree 2, one learner each)
+    followed by the ``limits``' barriers (one learner per joint, their own hyperparameter
+    group), as the Franka envs and the robot bridge order them. ``projected``: every pair
+    projected onto the joints' learners instead (``learner = -1``; the shared learner, issue
+    45), which needs the limits."""
+    k = int(n_pairs)
+    if limits is None:
+        if projected:
+            raise ValueError("the shared learner needs the joint-limit barriers (their "
+                             "learners are the shared ones): limit_barriers=True")
+        return BarrierLayout.uniform(k, 2)
+    learner = np.concatenate([np.arange(k), k + limits.joint])
+    group = np.ones(limits.n_joints, dtype=np.int64)
+    if projected:
+        learner = np.concatenate([np.full(k, -1), limits.joint])
+    else:
+        group = np.concatenate([np.zeros(k, dtype=np.int64), group])
+    return BarrierLayout(np.concatenate([np.full(k, 2), limits.relative_degree]), learner,
+                         np.concatenate([np.ones(k), limits.sign]), group)
+
+
+def joint_projection(pair_rows: np.ndarray, limits: JointLimits) -> np.ndarray:
+    """``(K, n_joints)``, read-only: every barrier's model error per joint-acceleration error
+    (``BarrierSet.projection`` of :func:`arm_layout`'s projected layout): ``pair_rows`` (k,
+    n_joints) = ``n' J_s`` for the obstacle pairs (``Delta h'' = n' J_s Delta q''``, the
+    kinematics known), then ``sign`` on its own joint for each limit barrier."""
+    k = len(pair_rows)
+    out = np.zeros((k + limits.n_barriers, limits.n_joints))
+    out[:k] = pair_rows
+    out[k + np.arange(limits.n_barriers), limits.joint] = limits.sign
+    out.flags.writeable = False
+    return out
 
 
 def limit_calibration(n_pairs: int, n_joints: int) -> dict:

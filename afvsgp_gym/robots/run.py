@@ -44,15 +44,20 @@ def realtime_priority(priority: int | None) -> Iterator[str]:
 
 def make_controller(barriers: BarrierModel, learner: str = "none", **filter_kwargs: Any):
     """A :class:`~afvsgp_gym.cbf.SafetyController` for ``barriers`` with torques in Nm
-    (bounds +-``TAU_MAX``), the simulation's suggested options under ``filter_kwargs``."""
+    (bounds +-``TAU_MAX``), the simulation's suggested options under ``filter_kwargs``; a
+    learner that projects the pairs onto shared learners (``"afvsgp-shared"``) gets
+    ``barriers.shared_layout``."""
     from afvsgp_gym.cbf import SafetyController
+    from afvsgp_gym.cbf.learners import REGISTRY, check_learner_name
 
     options = {**barriers.filter_defaults, **filter_kwargs}
     if learner == "none":  # no band to correct
         for name in ("calibration", "calibration_step", "calibration_gate"):
             options.pop(name, None)
+    projected = REGISTRY[check_learner_name(learner)].projected
+    layout = barriers.shared_layout if projected else barriers.layout
     ctrl = SafetyController(-TAU_MAX, TAU_MAX, barriers.n_barriers, learner,
-                            layout=barriers.layout, relative_degree=2, **options)
+                            layout=layout, relative_degree=2, **options)
     if ctrl.uses_true_terms:
         raise ValueError(f"learner {learner!r} needs the true terms, which a robot does not "
                          "have; use a learner or 'none'")

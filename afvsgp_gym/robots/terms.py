@@ -34,6 +34,8 @@ import numpy as np
 from afvsgp_gym.envs.joint_limits import (
     FRANKA_MAX_ACCELERATION,
     JointLimits,
+    arm_layout,
+    joint_projection,
     limit_calibration,
 )
 from afvsgp_gym.envs.perception import pair_covariance
@@ -158,14 +160,15 @@ class BarrierModel:
     def layout(self) -> BarrierLayout:
         """The pairs of relative degree 2 with one learner each, then the joint-limit
         barriers sharing one learner per joint (``FrankaObstacleEnv.barrier_layout``)."""
-        k, lim = self.n_pairs, self.limits
-        if lim is None:
-            return BarrierLayout.uniform(k, 2)
-        return BarrierLayout(
-            np.concatenate([np.full(k, 2), lim.relative_degree]),
-            np.concatenate([np.arange(k), k + lim.joint]),
-            np.concatenate([np.ones(k), lim.sign]),
-            np.concatenate([np.zeros(k, dtype=np.int64), np.ones(lim.n_joints, dtype=np.int64)]))
+        return arm_layout(self.n_pairs, self.limits)
+
+    @property
+    def shared_layout(self) -> BarrierLayout:
+        """:attr:`layout` with every pair projected onto the seven joint learners
+        (``learner="afvsgp-shared"``; ``FrankaObstacleEnv.shared_barrier_layout``): the terms
+        carry ``projection`` (``n' J_s`` per pair; the robot's kinematics are known). Needs
+        the joint limits."""
+        return arm_layout(self.n_pairs, self.limits, projected=True)
 
     @property
     def filter_defaults(self) -> dict:
@@ -237,7 +240,7 @@ class BarrierModel:
             cov = np.zeros((nb, 3, 3))
             cov[:k] = pair_covariance(n, dist, vr, per_pair, w)
             lf[:k] -= 2.0 * per_pair[:, 1, 1] / dist
-        lim = self.limits
+        lim, projection = self.limits, None
         if lim is not None:  # JointLimits.terms, .derivatives and .features, in place
             joint, sign = lim.joint, lim.sign
             lf[k:] = sign * qacc0[joint]
@@ -247,9 +250,11 @@ class BarrierModel:
             derivs[k:r, 1] = sign[: r - k] * qd[joint[: r - k]]
             derivs[r:, 1] = 0.0
             xi[k:, 14:] = 0.0
+            projection = joint_projection(np.einsum("osi,sij->osj", ns, jac).reshape(k, 7),
+                                          lim)
         if self._error_per_action.any():  # the worst residual torque within the bound
             lf -= np.abs(lg) @ self._error_per_action
-        return BarrierSet(derivs, lf, lg, xi, cov)
+        return BarrierSet(derivs, lf, lg, xi, cov, projection=projection)
 
     def sphere_clearance(self, q, obstacle_positions) -> np.ndarray:
         """``h`` (O S,) of every pair at joint angles ``q`` and obstacle centres (O, 3): the

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from afvsgp_gym.envs.safety_spheres import sphere_arrays
+from afvsgp_gym.envs.scenario import ObstacleSpec
 from afvsgp_gym.robots.bridge import Brake
 from afvsgp_gym.robots.kinematics import GYMNASIUM_PANDA, SphereKinematics
 from afvsgp_gym.robots.libfranka import as_matrix, limit_rate
@@ -62,14 +63,14 @@ def bridge_model(robot):
 
 
 def _bridge(robot=None, agent="hold", budget=0.9e-3, on_read=None, on_state=None,
-            torque_error=(3, 3, 3, 3, 1, 1, 1), **kwargs):
+            torque_error=(3, 3, 3, 3, 1, 1, 1), learner="none", **kwargs):
     robot = SimulatedFranka(realtime=False, **kwargs) if robot is None else robot
     rec = Recording(robot, on_read, on_state)
     bridge = build_bridge(rec, robot.load_model(), Torques, chain=robot.kinematics,
                           obstacle_radii=[o.radius for o in robot.obstacles],
                           obstacles=robot.obstacle_estimate, limits=robot.joint_limits,
                           agent=agent, spheres=robot.spheres, budget=budget, cost=robot.cost,
-                          torque_error=torque_error)
+                          torque_error=torque_error, learner=learner)
     bridge.clock = FakeClock()
     return bridge, rec, robot
 
@@ -221,6 +222,28 @@ def test_a_learner_observes_every_step_after_the_write():
     terms_before, tau, terms_after, dt = seen[10]
     np.testing.assert_array_equal(tau, rec.commands[10][0])  # the torque as written
     assert dt == pytest.approx(DT) and terms_before is seen[9][2]
+
+
+def test_the_shared_learner_runs_on_the_robots_own_model():
+    """``learner="afvsgp-shared"`` on the bridge: after the warm-up the seven joint learners
+    predict the band of the pairs in the program through the terms' projection (n' J_s, the
+    robot's kinematics). A static sphere 12 cm beside the held fingertip (4 cm from the
+    nearest safety sphere) brings its pairs into the program."""
+    probe = SimulatedFranka(realtime=False)
+    q0 = np.asarray(probe.read_once().q, dtype=np.float64)
+    tip = SphereKinematics.from_spheres(probe.kinematics, probe.spheres).positions(q0)[-1]
+    robot = SimulatedFranka([ObstacleSpec(tip + [0.0, 0.12, 0.0], 0.05)], realtime=False)
+    bridge, _, _ = _bridge(robot, agent="hold", learner="afvsgp-shared")
+    ctrl, k = bridge.controller, bridge.barriers.n_pairs
+    results = []
+    inner = ctrl.filter
+    ctrl.filter = lambda u, terms, **kw: results.append(r := inner(u, terms, **kw)) or r
+    report = bridge.run(0.8)
+    assert report.stop_reason == "completed" and report.cost_steps == 0
+    assert not ctrl.warming_up and ctrl.layout.projected.sum() == k
+    std = np.array([r.delta_b_std[:k] for r in results if not r.warmup])
+    assert np.isfinite(std).any(axis=1).sum() > 100  # steps with pairs in the program
+    assert (std[np.isfinite(std)] > 0).all()
 
 
 def test_a_noisy_camera_gives_estimates_with_covariance_to_the_filter():

@@ -7,6 +7,7 @@ import pytest
 from afvsgp_gym.envs.franka import FrankaObstacleEnv
 from afvsgp_gym.envs.safety_spheres import PANDA_ARM_SPHERES, sphere_arrays
 from afvsgp_gym.robots.kinematics import GYMNASIUM_PANDA, SphereKinematics
+from afvsgp_gym.robots.run import make_controller
 from afvsgp_gym.robots.terms import BarrierModel, ObstacleEstimate
 
 
@@ -72,6 +73,8 @@ def test_terms_equal_the_simulations(env, with_covariance):
         np.testing.assert_allclose(got.xi, want.xi, rtol=0, atol=1e-12)
         np.testing.assert_allclose(got.lg, want.lg, rtol=1e-9, atol=1e-12)
         np.testing.assert_allclose(got.lf, want.lf, rtol=1e-9, atol=1e-9)
+        # the shared learner's projection: n' J_s (m/rad, |.| <= ~1) and the limits' signs
+        np.testing.assert_allclose(got.projection, want.projection, rtol=0, atol=1e-12)
         if with_covariance:
             np.testing.assert_allclose(got.covariance, want.covariance, rtol=1e-9, atol=1e-14)
         else:
@@ -82,10 +85,12 @@ def test_layout_names_and_filter_defaults_are_the_simulations(env):
     base = env.unwrapped
     model = _bridge_model(base)
     assert model.n_barriers == base.n_barriers == 21 + 28
-    want = base.barrier_layout
-    got = model.layout
-    for key in ("relative_degree", "learner", "sign", "group"):
-        np.testing.assert_array_equal(getattr(got, key), getattr(want, key))
+    for got, want in ((model.layout, base.barrier_layout),
+                      (model.shared_layout, base.shared_barrier_layout)):
+        for key in ("relative_degree", "learner", "sign", "group"):
+            np.testing.assert_array_equal(getattr(got, key), getattr(want, key))
+    shared = make_controller(model, "afvsgp-shared")  # the robot runs the shared learner too
+    assert shared.layout.projected.sum() == 21 and shared.layout.n_learners == 7
     sim = base.filter_defaults
     for key, value in model.filter_defaults.items():
         if isinstance(value, tuple):
