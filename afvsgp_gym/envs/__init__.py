@@ -9,6 +9,8 @@
 - ``franka_model``: assembling the Panda MJCF from gymnasium_robotics with MjSpec.
 - ``mjspec_compat``: MjSpec setters that work on every supported MuJoCo release.
 - ``scenario``: reference motions, obstacle trajectories, the sphere barrier's kinematics.
+- ``primitives``: exact signed distance from a safety sphere's centre to spheres, boxes,
+  capsules and planes, with the normal and curvature a relative-degree-2 barrier needs.
 - ``registration``: the Gymnasium ids (string entry points: importing this package does
   not import MuJoCo).
 """
