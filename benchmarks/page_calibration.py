@@ -29,26 +29,29 @@ FIELDS = ("block", "config", "seed", "code_version", "machine", "date", "steps",
           "cost_steps", "violation_steps", "contact_steps", "limit_steps", "min_h",
           "infeasible_steps", "tracking_error_mean", "safe_proposals", "safe_proposals_kept",
           "calibration_samples", "calibration_misses", "calibration_within_1std",
-          "calibration_within_2std", "calibration_within_3std", "true_band_samples",
-          "true_band_misses")
+          "calibration_within_2std", "calibration_within_3std", "calibration_near_samples",
+          "calibration_near_misses", "true_band_samples", "true_band_misses")
 
 BETA = 2.5
 #: Phi(-beta): the one-sided miss probability the band promises
 TARGET = 0.5 * math.erfc(BETA / math.sqrt(2.0))
 #: a cell meets the issue's acceptance when its miss rate is within this factor of TARGET
 TOLERANCE = 1.5
-BANDS = ("default", "off", "conformal", "conformal-additive (step 1)",
-         "conformal-additive (step 3)")
+BANDS = ("default", "off", "conformal", "conformal (gated)", "conformal-additive (step 1)",
+         "conformal-additive (step 3)", "conformal-additive (step 3, gated)")
 ADVERSARIAL_AGENTS = ("greedy", "swing4", "swing6")
 
 
 def band(rec: dict) -> str:
-    """The record's band: its ``calibration`` option, ``default`` without one (the env's
-    suggestion)."""
+    """The record's band: its ``calibration`` option (with its step for the margin, and
+    whether ``calibration_gate`` was on), ``default`` without one (the env's suggestion)."""
     kwargs = rec["config"].get("filter_kwargs") or {}
     name = kwargs.get("calibration", "default")
+    gated = ", gated" if kwargs.get("calibration_gate") else ""
     if name == "conformal-additive":
-        name += f" (step {kwargs.get('calibration_step', 0.5):g})"
+        name += f" (step {kwargs.get('calibration_step', 0.5):g}{gated})"
+    elif gated:
+        name += " (gated)"
     return name
 
 
@@ -65,8 +68,11 @@ def rates(recs: list[dict]) -> dict:
         return sum(int(r.get(name) or 0) for r in recs)
 
     n, n_true = total("calibration_samples"), total("true_band_samples")
+    n_near = total("calibration_near_samples")
     return {"samples": n,
             "miss": total("calibration_misses") / n if n else math.nan,
+            "near_miss": total("calibration_near_misses") / n_near if n_near else math.nan,
+            "near_share": n_near / n if n else math.nan,
             "true_miss": total("true_band_misses") / n_true if n_true else math.nan,
             **{f"cov{k}": total(f"calibration_within_{k}std") / n if n else math.nan
                for k in (1, 2, 3)}}
@@ -80,7 +86,8 @@ def tracker_rows(recs: list[dict]) -> tuple[list[tuple], dict]:
     oracle = {sc: summary(g) for sc in SCENARIOS
               if (g := [r for r in recs if learner(r) == "oracle" and scenario(r) == sc])}
     rows, met = [], {b: [0, 0] for b in BANDS}
-    verdict = {b: {"cost": 0, "n": 0, "ratios": []} for b in BANDS}
+    verdict = {b: {"cost": 0, "n": 0, "ratios": [], "near_cells": 0, "near_of": 0}
+               for b in BANDS}
     for sc in SCENARIOS:
         for pr in PRIORS:
             for b in BANDS:
@@ -92,13 +99,16 @@ def tracker_rows(recs: list[dict]) -> tuple[list[tuple], dict]:
                 ok = c["miss"] <= TOLERANCE * TARGET
                 met[b][0] += ok
                 met[b][1] += 1
+                if not math.isnan(c["near_miss"]):  # (records from before the count: none)
+                    verdict[b]["near_cells"] += c["near_miss"] <= TOLERANCE * TARGET
+                    verdict[b]["near_of"] += 1
                 verdict[b]["cost"] += s["cost"]
                 verdict[b]["n"] += s["n"]
                 if sc in oracle:
                     verdict[b]["ratios"].append(s["track"] / oracle[sc]["track"])
                 ratio = (f"{s['track'] / oracle[sc]['track']:.2f}" if sc in oracle else "-")
                 rows.append((sc, pr, b, s["n"], f"{s['cost']}", pct(c["miss"]),
-                             pct(c["true_miss"]),
+                             pct(c["near_miss"]), pct(c["true_miss"]),
                              f"{pct(c['cov1'], 0)} / {pct(c['cov2'], 0)} / {pct(c['cov3'], 0)}",
                              f"{s['track']:.4f}", ratio, f"{s['backup']:.0f}"))
     for b, (k, n) in met.items():
@@ -128,16 +138,17 @@ def decision(verdict: dict) -> list[str]:
     for b, v in shown.items():
         ratios = (f"{min(v['ratios']):.2f} to {max(v['ratios']):.2f}" if v["ratios"]
                   else "-")
-        lines.append((b, f"{v['cells']} of {v['of']}", f"{v['cost']} of {v['n']}", ratios,
-                      "yes" if honest(v) and tracks(v) else "no"))
+        near = f"{v['near_cells']} of {v['near_of']}" if v["near_of"] else "-"
+        lines.append((b, f"{v['cells']} of {v['of']}", near, f"{v['cost']} of {v['n']}",
+                      ratios, "yes" if honest(v) and tracks(v) else "no"))
     both = [b for b, v in shown.items() if honest(v) and tracks(v)]
     honest_bands = [b for b, v in shown.items() if honest(v)]
     out = ["## The decision", "",
            f"The issue's acceptance asks for both: every cell's miss rate within {TOLERANCE:g} "
            f"x the target, and no episode with cost with tracking at most {TRACKING_BOUND:g} "
            "x the oracle's in every cell.", "",
-           table(("band", "cells within the target", "episodes with cost",
-                  "tracking / oracle, per cell", "both"), lines), ""]
+           table(("band", "cells within the target", "near binding: cells within",
+                  "episodes with cost", "tracking / oracle, per cell", "both"), lines), ""]
     if both:
         out += [f"`{both[0]}` meets both.", ""]
     else:
@@ -158,10 +169,12 @@ def decision(verdict: dict) -> list[str]:
 
 def options(name: str) -> str:
     """The filter options of a band's label (:func:`band`)."""
+    gate = ", calibration_gate=True" if name.endswith("gated)") else ""
+    name = name.replace(", gated)", ")").replace(" (gated)", "")
     if name.startswith("conformal-additive (step "):
         step = name.removeprefix("conformal-additive (step ").removesuffix(")")
-        return f'calibration="conformal-additive", calibration_step={step}'
-    return f'calibration="{name}"'
+        return f'calibration="conformal-additive", calibration_step={step}{gate}'
+    return f'calibration="{name}"{gate}'
 
 
 def pooled_rows(recs: list[dict]) -> list[tuple]:
@@ -171,13 +184,14 @@ def pooled_rows(recs: list[dict]) -> list[tuple]:
         if g:
             s, c = summary(g), rates(g)
             rows.append((b, s["n"], f"{s['cost']}", f"{100 * s['bound']:.3g} %",
-                         f"{c['samples']}", pct(c["miss"], 3), pct(c["true_miss"], 3),
+                         f"{c['samples']}", pct(c["miss"], 3), pct(c["near_share"], 1),
+                         pct(c["near_miss"], 3), pct(c["true_miss"], 3),
                          f"{pct(c['cov1'], 1)} / {pct(c['cov2'], 1)} / {pct(c['cov3'], 1)}"))
     oracle = [r for r in recs if learner(r) == "oracle"]
     if oracle:
         s = summary(oracle)
         rows.append(("oracle (exact model)", s["n"], f"{s['cost']}",
-                     f"{100 * s['bound']:.3g} %", "-", "-", "-", "-"))
+                     f"{100 * s['bound']:.3g} %", "-", "-", "-", "-", "-", "-"))
     return rows
 
 
@@ -280,15 +294,19 @@ def build() -> dict:
            f"(`q = beta = {BETA:g}` as in the paper, `calibration=\"off\"`; or the online "
            "conformal multiplier, `\"conformal\"`; or `beta` std and an online conformal "
            "margin, `\"conformal-additive\"`, with `calibration_step` noise std per "
-           "miss; `default` is what the Franka envs suggested when it ran: the paper's band on "
-           "the obstacle pairs and the conformal margin on the joint limits, whose speed "
-           "barriers have taken the multiplier since, [Any policy](adversarial.md)). The band "
+           "miss; `gated`: with `calibration_gate`; `default` is what the Franka envs "
+           "suggested when it ran: the paper's band on the obstacle pairs and the conformal "
+           "correction on the joint limits, [Any policy](adversarial.md)). The band "
            "promises that the model error "
            f"falls below its edge with probability `Phi(-beta)` = {pct(TARGET)} per barrier "
            "and step. After each step the eq. 48 sample of the same model error shows whether "
            "it did: a *miss*. `miss` is the share of the (barrier, step) pairs of the cone "
            "program that missed, `true miss` the same against the simulator's exact model "
-           "error (`info[\"delta_b_true\"]`, which the filter never sees), `coverage` the "
+           "error (`info[\"delta_b_true\"]`, which the filter never sees), `near miss` the "
+           "share over the pairs whose constraint was within one band-width of binding (its "
+           "margin at the applied action below the band's width: where the band decides the "
+           "action, and the steps `calibration_gate` adapts on; `near binding` their share of "
+           "the scored pairs), `coverage` the "
            "share within 1 / 2 / 3 predicted standard deviations of the band's centre "
            "(68.3 / 95.4 / 99.7 % for a calibrated Gaussian). The conformal multiplier and "
            "its guarantee: [the filter](filter.md#calibration) and "
@@ -303,7 +321,8 @@ def build() -> dict:
            "`with cost` counts episodes (95 % bound: exact one-sided Clopper-Pearson).",
            "",
            table(("band", "episodes", "with cost", "95 % bound", "scored pairs", "miss",
-                  "true miss", "coverage 1 / 2 / 3 std"), pooled_rows(tracker)),
+                  "near binding", "near miss", "true miss", "coverage 1 / 2 / 3 std"),
+                 pooled_rows(tracker)),
            "",
            "## By scene and nominal model",
            "",
@@ -314,8 +333,9 @@ def build() -> dict:
            "`/ oracle` its ratio to the oracle's on the same scene and seeds, `backup` the "
            "mean number of infeasible steps per episode.",
            "",
-           table(("scene", "prior", "band", "episodes", "with cost", "miss", "true miss",
-                  "coverage 1 / 2 / 3 std", "tracking [m]", "/ oracle", "backup"), rows),
+           table(("scene", "prior", "band", "episodes", "with cost", "miss", "near miss",
+                  "true miss", "coverage 1 / 2 / 3 std", "tracking [m]", "/ oracle",
+                  "backup"), rows),
            ""] + decision(verdict)
     if adversarial:
         out += ["## Against the policies that defeat the filter with nothing known", "",
