@@ -114,16 +114,9 @@ class ObstacleSpec:
     def distance(self, offset) -> float:
         """Signed distance (m) to the surface of the point at ``offset`` from the obstacle's
         reference point (its centre, a plane's point, wherever the motion has moved it)."""
-        from afvsgp_gym.envs.primitives import pair_barriers
+        from afvsgp_gym.envs.primitives import point_distance
 
-        return float(pair_barriers(self._one_row, np.reshape(offset, (1, 3)), _ZERO_ROW,
-                                   0.0)[0][0])
-
-    @functools.cached_property
-    def _one_row(self):
-        from afvsgp_gym.envs.primitives import stack_shapes
-
-        return stack_shapes([self.primitive], 1)
+        return point_distance(self.primitive, offset)
 
     @functools.cached_property
     def duration(self) -> float:
@@ -150,10 +143,6 @@ class ObstacleSpec:
         s, ds, dds = quintic((t - self.start_time) / T)
         delta = self.position - self.start
         return self.start + s * delta, (ds / T) * delta, (dds / (T * T)) * delta
-
-
-_ZERO_ROW = np.zeros((1, 3))
-_ZERO_ROW.flags.writeable = False
 
 
 def bounding_radius(shape: Primitive) -> float:
