@@ -135,7 +135,10 @@ class ObstacleTask:
         out = math.inf
         for ob, (po, _, _) in zip(self.obstacles, self._obstacle_states, strict=True):
             d = r - po
-            out = min(out, math.sqrt(float(d @ d)) - ob.radius - self.tracking_radius)
+            if ob.shape is None:
+                out = min(out, math.sqrt(float(d @ d)) - ob.radius - self.tracking_radius)
+            else:  # a box, capsule or plane: its signed distance
+                out = min(out, ob.distance(d) - self.tracking_radius)
         return out
 
     @property

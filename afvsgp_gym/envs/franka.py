@@ -1,4 +1,4 @@
-"""Franka Panda end-effector tracking past spherical obstacles with a hidden model mismatch."""
+"""Franka Panda end-effector tracking past obstacles with a hidden model mismatch."""
 
 from __future__ import annotations
 
@@ -38,6 +38,7 @@ from afvsgp_gym.envs.perception import (
     Pushes,
     pair_covariance,
 )
+from afvsgp_gym.envs.primitives import Box, Capsule, Plane, pair_barriers, stack_shapes
 from afvsgp_gym.envs.safety_spheres import (
     PANDA_ARM_SPHERES,
     end_effector_sphere,
@@ -45,6 +46,7 @@ from afvsgp_gym.envs.safety_spheres import (
     sphere_arrays,
 )
 from afvsgp_gym.envs.scenario import (
+    OBSTACLE_TYPES,
     CyclicReference,
     ObstacleSpec,
     dot3,
@@ -78,7 +80,7 @@ class StateView(NamedTuple):
 
 
 class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
-    r"""Franka Panda (torque control) tracking a cyclic end-effector reference past spheres.
+    r"""Franka Panda (torque control) tracking a cyclic end-effector reference past obstacles.
 
     ## Description
     The 7-DoF Panda of ``gymnasium_robotics`` (see :mod:`afvsgp_gym.envs.franka_model`) with
@@ -122,6 +124,15 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
       (delta_b_true = 0).
     - features ``xi = [q (7), q' (7), p_s - p_o (3), v_s - v_o (3)]``, feature_dim 20
       (the paper's b = 20).
+
+    Boxes, capsules and planes (``obstacles`` with a ``"type"``, below) give the same terms
+    with ``h = d(p_s - c) - r_s``, ``d`` the primitive's exact signed distance
+    (:mod:`~afvsgp_gym.envs.primitives`; ``c`` its centre, or a plane's point, moved by the
+    obstacle's translation), ``n`` the unit normal of the closest feature and the curvature
+    ``v_rel' H v_rel`` of its Hessian (0 on a face or a plane); their features hold, in
+    place of ``p_s - p_o``, ``n d``: the offset of the sphere centre from the closest surface
+    point (a plane's reference point is arbitrary; for a sphere obstacle ``p_s - p_o`` stays,
+    its centre being its feature).
 
     Friction (frictionloss) and joint-limit forces come from MuJoCo's constraint solver and are
     evaluated at u = 0, so with ``friction > 0`` the split into lf and lg is exact only while
@@ -167,7 +178,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
     | 7:14 | joint velocities q' | -20 | 20 | robot:panda0_joint1..7 | rad/s |
     | 14:17 | end-effector position | -3 | 3 | site end_effector | m |
     | 17:20 | end-effector velocity | -10 | 10 | site end_effector | m/s |
-    | next 3n | obstacle centres | -5 | 5 | body obstacle<i> | m |
+    | next 3n | obstacle centres (a plane: its point) | -5 | 5 | body obstacle<i> | m |
     | next 3n | obstacle velocities | -5 | 5 | | m/s |
     | next 3 | reference position | -3 | 3 | body reference | m |
     | next 3 | reference velocity | -10 | 10 | | m/s |
@@ -241,7 +252,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
     | plant_seed | 0 | seed of the per-link mass factors |
     | physics_dt, frame_skip | 0.002, 2 | MuJoCo step (s) and steps per action |
     | ee_radius | 0.05 | m, the "ee" sphere (and ``reference_h``) |
-    | obstacles | None | list of dicts (position, radius[, start, start_time, speed]) |
+    | obstacles | None | list of dicts (type, position, sizes[, start, start_time, speed]) |
     | obstacle_speed | 0.15 | m/s, dynamic scenario |
     | switch_time | None | s; None = 10 s static, none otherwise |
     | warmup_steps | 500 | steps with obstacles far away (>= 250) |
@@ -258,9 +269,27 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
     | render_mode, width, height | None, 480, 480 | "rgb_array", "depth_array", "human" (display) |
 
     Custom ``obstacles`` replace the scenario's (the reference stays): each dict gives the
-    final ``position`` and ``radius``; with ``start`` the sphere rests there and moves to
-    ``position`` from ``start_time`` (default: the end of the warm-up) at peak ``speed``
-    (m/s, default 0.2). Keeping them clear of the warm-up motion is then up to the caller.
+    final ``position`` and its ``"type"``'s sizes; with ``start`` the obstacle rests there
+    and moves (translation only) to ``position`` from ``start_time`` (default: the end of the
+    warm-up) at peak ``speed`` (m/s, default 0.2). Keeping them clear of the warm-up motion
+    is then up to the caller. The types and their keys (m; a bad entry raises ValueError
+    naming ``obstacles[i]['key']``):
+
+    - ``"sphere"`` (the default): ``radius``.
+    - ``"box"``: ``half_sizes`` (3,), orientation ``quat`` (w, x, y, z) or ``rotation``
+      (3, 3; its columns the box's axes), default axis-aligned.
+    - ``"capsule"``: ``radius``, ``half_length`` and its axis as ``axis`` (3,) or ``quat``
+      (local z, as MuJoCo's capsule), default vertical.
+    - ``"plane"``: ``position`` a point of it and ``normal`` (3,) pointing out of the
+      obstacle (a table: ``normal`` up); static only. The barrier and the contact check take
+      the infinite half-space; the drawn rectangle is 2 m wide.
+
+    The base (link0) has no safety sphere and is not in the contact check, so a table the
+    robot stands on is a plane at or below the mount (z <= 0); the lowest safety spheres
+    (link1's) reach 0.11 m above it, and a plane above that violates their barriers at every
+    pose. The obstacle camera (``obstacle_noise``, ``obstacle_rate``, ``obstacle_delay``) and
+    an estimate's covariance (:meth:`set_obstacle_estimate`) model sphere centres only: with
+    another type they raise ValueError (the joint encoders and pushes work with every type).
 
     ## Version History
     - v0: initial version; whole-arm safety spheres (``safety_spheres="arm"``) are the
@@ -389,8 +418,10 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         self._user_obstacles = (
             None
             if obstacles is None
-            else parse_obstacles(obstacles, 3, self.warmup_steps * self._control_dt)
+            else parse_obstacles(obstacles, 3, self.warmup_steps * self._control_dt,
+                                 OBSTACLE_TYPES)
         )
+        self._check_camera_obstacles()
         self.plant = self._plant_parameters(mass_scale, plant_seed, payload_mass, damping,
                                             friction, armature)
         n_obs = 1 if self._user_obstacles is None else len(self._user_obstacles)
@@ -401,7 +432,9 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         )
         if self.scenario == "random" and self._user_obstacles is None:
             radii = (0.07,)  # drawn radii <= 0.07: the visual sphere is rescaled per reset
-        self._scene = fm.SceneOptions(radii, self.ee_radius, physics_dt)
+        geoms = () if self._user_obstacles is None else tuple(
+            _obstacle_geom(o) for o in self._user_obstacles)
+        self._scene = fm.SceneOptions(radii, self.ee_radius, physics_dt, geoms)
         if render_mode is not None:
             check_choice("render_mode", render_mode, self.metadata["render_modes"])
         self.metadata = {**self.metadata, "render_fps": int(round(1.0 / self._control_dt))}
@@ -482,6 +515,22 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
     _DEFAULTS: dict[str, Any] = keyword_defaults(__init__)
 
     # ------------------------------------------------------------------ construction
+    def _check_camera_obstacles(self) -> None:
+        """The camera (and the estimate's covariance) model sphere centres only: refuse it
+        with another obstacle type, naming the options set and the obstacle."""
+        shaped = [i for i, o in enumerate(self._user_obstacles or ()) if o.shape is not None]
+        per = self.perception
+        if shaped and per.camera:
+            names = [name for name, on in (("obstacle_noise", per.obstacle_noise > 0),
+                                           ("obstacle_rate", per.obstacle_rate is not None),
+                                           ("obstacle_delay", per.obstacle_delay > 0)) if on]
+            i = shaped[0]
+            raise ValueError(f"{', '.join(names)}: the obstacle camera senses sphere obstacles "
+                             f"only, and obstacles[{i}] is a "
+                             f"{self._user_obstacles[i].kind!r}; sense it exactly (leave "
+                             f"obstacle_noise, obstacle_rate and obstacle_delay at their "
+                             f"defaults)")
+
     def _setup_spheres(self, spec) -> None:
         """Resolve ``safety_spheres`` and the per-body buffers of the sphere kinematics."""
         m = self.model
@@ -520,8 +569,10 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
             and np.count_nonzero(site_pos) <= 1
         )
         self._kinematics = self._site_kinematics if at_site else self._point_kinematics
+        shaped = any(o.shape is not None for o in self._user_obstacles or ())
         self._geometry_of = (
-            self._one_pair_geometry if self._n_pairs == 1 else self._pair_geometry
+            self._one_pair_geometry if self._n_pairs == 1 and not shaped
+            else self._pair_geometry
         )
 
     @property
@@ -850,6 +901,10 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         the per-axis covariance (O, 3, 3) of ``[p, v, a]`` (None: taken as exact). The terms'
         ``covariance`` then carries it (:func:`~afvsgp_gym.envs.perception.pair_covariance`)."""
         o = self.n_obstacles
+        if covariance is not None and any(ob.shape is not None for ob in self.obstacles):
+            raise ValueError("covariance: the estimate's covariance is propagated for sphere "
+                             "obstacles only (pair_covariance); pass None with a box, capsule "
+                             "or plane obstacle")
         arrays = [np.asarray(x, dtype=np.float64) for x in (position, velocity, acceleration)]
         for name, arr in zip(("position", "velocity", "acceleration"), arrays, strict=True):
             if arr.shape != (o, 3) or not np.isfinite(arr).all():
@@ -978,7 +1033,10 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         """What stays fixed while ``self.obstacles`` is the same tuple (rebuilt when a new one
         is set): the pair radii ``r_o + r_s`` (O S,), the stacked states (O, 3, 3) of
         obstacles that are all static (else None) and the squared contact reach of the arm
-        geoms (O, G)."""
+        geoms (O, G; a bounding ball's for a box or capsule, inf for a plane). Beside them
+        ``_shape_const``: when some obstacle is not a sphere, ``(ShapeStack, sphere radius per
+        pair (O S,), mask of the sphere obstacles' pairs (O S,))`` for
+        :func:`~afvsgp_gym.envs.primitives.pair_barriers`, else None."""
         key = self.obstacles
         if self._obstacle_key is not key:
             radii = self._obstacle_radii
@@ -987,7 +1045,14 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
             if all(ob.duration == 0.0 for ob in key):
                 static = np.array([ob.state(0.0) for ob in key])
             reach = self._arm_rbound[None, :] + np.array([ob.radius for ob in key])[:, None]
+            shapes = None
+            if any(ob.shape is not None for ob in key):
+                n_s = len(self._sphere_radii)
+                shapes = (stack_shapes([ob.primitive for ob in key], n_s),
+                          np.tile(self._sphere_radii, len(key)),
+                          np.repeat([ob.shape is None for ob in key], n_s))
             self._obstacle_const = (rad, static, reach * reach)
+            self._shape_const = shapes
             self._obstacle_key = key
         return self._obstacle_const
 
@@ -997,14 +1062,21 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         ``[h, h']`` (K, 2), ``n``, curvature, features ``xi`` (K, 20) and the obstacle
         accelerations per pair (None when every obstacle is static and seen exactly)."""
         p, v, _, _ = spheres
-        rad, static = self._obstacle_constants()[:2]
+        rad, static, _ = self._obstacle_constants()
+        shapes = self._shape_const
         if states is not self._obstacle_states:
             static = None  # measured: not the scenario's constants
         st = np.array(states) if static is None else static
         n_s = p.shape[0]
         d = (p[None, :, :] - st[:, None, 0, :]).reshape(-1, 3)
         vr = (v[None, :, :] - st[:, None, 1, :]).reshape(-1, 3)
-        h, hd, n, curv = sphere_barriers(d, vr, rad)
+        if shapes is None:  # spheres only: today's arithmetic
+            h, hd, n, curv = sphere_barriers(d, vr, rad)
+            offset = d
+        else:  # closest-feature geometry; the offset from the closest surface point
+            stack, sphere_rad, sphere_rows = shapes
+            h, hd, n, curv = pair_barriers(stack, d, vr, sphere_rad)
+            offset = np.where(sphere_rows[:, None], d, n * (h + sphere_rad)[:, None])
         k = len(h)
         derivs = np.empty((k, 2))
         derivs[:, 0] = h
@@ -1012,7 +1084,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         xi = np.empty((k, 20))
         xi[:, :7] = data.qpos
         xi[:, 7:14] = data.qvel
-        xi[:, 14:17] = d
+        xi[:, 14:17] = offset
         xi[:, 17:] = vr
         derivs.flags.writeable = xi.flags.writeable = False
         a_obs = None if static is not None else np.repeat(st[:, 2], n_s, axis=0)
@@ -1276,7 +1348,11 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         pos = d.geom_xpos[self._arm_geoms]
         for k, g_obs in enumerate(self._obstacle_geoms):
             diff = pos - self._obstacle_states[k][0]
-            near = np.einsum("ij,ij->i", diff, diff) < reach2[k]
+            shape = self.obstacles[k].shape
+            if isinstance(shape, Plane):  # the geoms' bounding spheres reaching the plane
+                near = diff @ shape.normal < self._arm_rbound
+            else:
+                near = np.einsum("ij,ij->i", diff, diff) < reach2[k]
             if not near.any():
                 continue
             for g in self._arm_geoms[near]:
@@ -1342,3 +1418,28 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
             d.qvel[:] = 0.0
         self._after_state_change()
         return unstable
+
+
+#: Half extent (m) of the rectangle drawn for a plane obstacle (its barrier and contact check
+#: use the infinite plane).
+PLANE_DRAW_HALF_EXTENT = 1.0
+
+
+def _obstacle_geom(ob: ObstacleSpec) -> fm.ObstacleGeom | None:
+    """The MuJoCo geom of a non-sphere obstacle (None for a sphere): a box's half sizes and
+    rotation, a capsule's radius and half length along its local z turned onto its axis, a
+    plane's drawn rectangle with its z along the normal."""
+    shape = ob.shape
+    if shape is None:
+        return None
+    quat = np.empty(4)
+    if isinstance(shape, Box):
+        mujoco.mju_mat2Quat(quat, np.ascontiguousarray(shape.rotation, dtype=np.float64).ravel())
+        return fm.ObstacleGeom("box", tuple(shape.half_sizes.tolist()), tuple(quat.tolist()))
+    axis = shape.axis if isinstance(shape, Capsule) else shape.normal
+    mujoco.mju_quatZ2Vec(quat, np.array(axis, dtype=np.float64))
+    if isinstance(shape, Capsule):
+        return fm.ObstacleGeom("capsule", (shape.radius, shape.half_length, 0.0),
+                               tuple(quat.tolist()))
+    half = PLANE_DRAW_HALF_EXTENT
+    return fm.ObstacleGeom("plane", (half, half, 0.05), tuple(quat.tolist()))

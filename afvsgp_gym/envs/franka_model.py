@@ -121,12 +121,31 @@ class PlantParameters:
 
 
 @dataclass(frozen=True)
+class ObstacleGeom:
+    """The MuJoCo geom of a non-sphere obstacle: ``kind`` ``"box"``, ``"capsule"`` or
+    ``"plane"``, MuJoCo's ``size`` (box: half sizes; capsule: radius, half length along its
+    local z; plane: half extents of the drawn rectangle and grid spacing, the collision
+    plane being infinite) and ``quat`` (w, x, y, z) of the geom in its obstacle body."""
+
+    kind: str
+    size: tuple[float, float, float]
+    quat: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
+
+
+_GEOM_TYPES = {"box": mujoco.mjtGeom.mjGEOM_BOX, "capsule": mujoco.mjtGeom.mjGEOM_CAPSULE,
+               "plane": mujoco.mjtGeom.mjGEOM_PLANE}
+
+
+@dataclass(frozen=True)
 class SceneOptions:
-    """Non-physical scene elements: obstacle spheres, reference marker, EE sphere."""
+    """Non-physical scene elements: obstacle spheres, reference marker, EE sphere.
+    ``obstacle_geoms[i]`` (when given and not None) replaces obstacle i's sphere of radius
+    ``obstacle_radii[i]``."""
 
     obstacle_radii: tuple[float, ...] = (0.05,)
     ee_radius: float = 0.05
     physics_dt: float = 0.001
+    obstacle_geoms: tuple[ObstacleGeom | None, ...] = ()
 
 
 def build_model(params: PlantParameters, scene: SceneOptions) -> mujoco.MjModel:
@@ -190,9 +209,16 @@ def build_model(params: PlantParameters, scene: SceneOptions) -> mujoco.MjModel:
         body.pos = [2.0 + i, 2.0, 0.0]
         g = body.add_geom()
         g.name = f"obstacle{i}"
-        g.type = mujoco.mjtGeom.mjGEOM_SPHERE
-        g.size = [radius, 0, 0]
-        g.rgba = [0.9, 0.15, 0.15, 0.6]
+        shape = scene.obstacle_geoms[i] if i < len(scene.obstacle_geoms) else None
+        if shape is None:
+            g.type = mujoco.mjtGeom.mjGEOM_SPHERE
+            g.size = [radius, 0, 0]
+        else:
+            g.type = _GEOM_TYPES[shape.kind]
+            g.size = list(shape.size)
+            g.quat = list(shape.quat)
+        g.rgba = [0.6, 0.45, 0.3, 0.5] if shape is not None and shape.kind == "plane" else [
+            0.9, 0.15, 0.15, 0.6]
         g.contype = g.conaffinity = 0
     ref = spec.worldbody.add_body()
     ref.name = "reference"

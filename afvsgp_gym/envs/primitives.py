@@ -81,7 +81,7 @@ from afvsgp_gym.envs.scenario import sphere_barriers
 
 __all__ = [
     "Box", "Capsule", "Plane", "ShapeStack", "Sphere", "box_distance", "capsule_distance",
-    "pair_barriers", "plane_distance", "sphere_distance", "stack_shapes",
+    "pair_barriers", "plane_distance", "point_distance", "sphere_distance", "stack_shapes",
 ]
 
 #: Largest ``|R' R - I|`` entry a rotation may have (m of distance error per m of offset).
@@ -280,6 +280,24 @@ def box_distance(p_rel, v_rel, rotation, half_sizes) -> Terms:
     curv = np.where(inside, 0.0, _dot(perp, perp) / safe)
     dist = np.where(inside, face.max(axis=1), dist_out)
     return dist, np.einsum("...ij,...j->...i", rot, n_box), curv
+
+
+def point_distance(shape: Primitive, p_rel) -> float:
+    """``d`` of one point ``p_rel`` (3,) (minus the shape's reference point, as the kernels
+    take it) in scalar arithmetic: the kernels' distances without their per-call overhead,
+    for a figure per step (a reference's clearance), not the barrier terms."""
+    p = np.asarray(p_rel, dtype=np.float64)
+    if isinstance(shape, Plane):
+        return float(shape.normal @ p)
+    if isinstance(shape, Capsule):
+        s = min(max(float(shape.axis @ p), -shape.half_length), shape.half_length)
+        return float(np.linalg.norm(p - s * shape.axis)) - shape.radius
+    if isinstance(shape, Box):
+        face = np.abs(shape.rotation.T @ p) - shape.half_sizes
+        if (face > 0.0).any():
+            return float(np.linalg.norm(np.maximum(face, 0.0)))
+        return float(face.max())
+    return float(np.linalg.norm(p)) - shape.radius
 
 
 # --- pairs: (h, h', n, curvature) like sphere_barriers ------------------------------------

@@ -11,8 +11,12 @@ import functools
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:  # primitives imports this module (sphere_barriers): import it lazily
+    from afvsgp_gym.envs.primitives import Primitive
 
 
 def quintic(tau: float) -> tuple[float, float, float]:
@@ -37,11 +41,19 @@ QUINTIC_PEAK_SLOPE = 1.875
 
 @dataclass(frozen=True)
 class ObstacleSpec:
-    """A sphere that rests at ``start``, then moves to ``position`` and stays there.
+    """An obstacle that rests at ``start``, then moves to ``position`` and stays there.
 
     The move starts at ``start_time`` (s) and follows the quintic blend with peak speed
     ``speed`` (m/s), so velocity and acceleration are continuous and bounded by
     ``speed`` and ``5.77 * speed**2 / |position - start|``. ``start=None`` means static.
+
+    ``shape`` None (the default) is a sphere of ``radius`` about ``position``. Otherwise it is
+    the obstacle's primitive (:mod:`afvsgp_gym.envs.primitives`: a ``Box``, ``Capsule`` or
+    ``Plane``) at its final place, whose centre (a plane's ``point``) is ``position``; the
+    motion translates it (the orientation stays). ``radius`` is then the radius of the
+    smallest ball about ``position`` that holds it (``inf`` for a plane), so code that treats
+    every obstacle as a sphere stays conservative; build such a spec with :meth:`of_shape`.
+    A plane does not move.
     """
 
     position: np.ndarray
@@ -49,6 +61,62 @@ class ObstacleSpec:
     start: np.ndarray | None = None
     start_time: float = 0.0
     speed: float = 0.2
+    shape: Primitive | None = None
+
+    def __post_init__(self) -> None:
+        if self.shape is None:
+            return
+        from afvsgp_gym.envs import primitives as pr
+
+        if not isinstance(self.shape, pr.Box | pr.Capsule | pr.Plane):
+            raise ValueError(f"shape must be a Box, Capsule or Plane (a sphere is shape=None "
+                             f"with its radius), got {self.shape!r}")
+        anchor = self.shape.point if isinstance(self.shape, pr.Plane) else self.shape.center
+        if not np.array_equal(anchor, self.position):
+            raise ValueError(f"position {self.position} must be the shape's centre (a plane's "
+                             f"point) {anchor}: build it with ObstacleSpec.of_shape")
+        if self.radius != bounding_radius(self.shape):
+            raise ValueError(f"radius of a {self.kind} must be its bounding radius "
+                             f"{bounding_radius(self.shape)}, got {self.radius}: build it "
+                             f"with ObstacleSpec.of_shape")
+        if isinstance(self.shape, pr.Plane) and self.start is not None:
+            raise ValueError("a plane obstacle is static: start must be None")
+
+    @classmethod
+    def of_shape(cls, shape: Primitive, start=None, start_time: float = 0.0,
+                 speed: float = 0.2) -> ObstacleSpec:
+        """The spec of ``shape`` (a primitive at its final place; a ``Sphere`` gives today's
+        sphere spec with ``shape=None``) moving from ``start`` like every obstacle."""
+        from afvsgp_gym.envs import primitives as pr
+
+        start = None if start is None else np.asarray(start, dtype=np.float64)
+        if isinstance(shape, pr.Sphere):
+            return cls(np.array(shape.center), shape.radius, start, start_time, speed)
+        anchor = shape.point if isinstance(shape, pr.Plane) else getattr(shape, "center", None)
+        if anchor is None:
+            raise ValueError(f"shape must be a Sphere, Box, Capsule or Plane, got {shape!r}")
+        return cls(np.array(anchor), bounding_radius(shape), start, start_time, speed, shape)
+
+    @property
+    def kind(self) -> str:
+        """``"sphere"``, ``"box"``, ``"capsule"`` or ``"plane"``."""
+        return "sphere" if self.shape is None else type(self.shape).__name__.lower()
+
+    @functools.cached_property
+    def primitive(self) -> Primitive:
+        """The primitive at ``position`` (a sphere's ``Sphere``)."""
+        if self.shape is not None:
+            return self.shape
+        from afvsgp_gym.envs.primitives import Sphere
+
+        return Sphere(self.position, self.radius)
+
+    def distance(self, offset) -> float:
+        """Signed distance (m) to the surface of the point at ``offset`` from the obstacle's
+        reference point (its centre, a plane's point, wherever the motion has moved it)."""
+        from afvsgp_gym.envs.primitives import point_distance
+
+        return point_distance(self.primitive, offset)
 
     @functools.cached_property
     def duration(self) -> float:
@@ -77,41 +145,160 @@ class ObstacleSpec:
         return self.start + s * delta, (ds / T) * delta, (dds / (T * T)) * delta
 
 
-OBSTACLE_KEYS = ("position", "radius", "start", "start_time", "speed")
+def bounding_radius(shape: Primitive) -> float:
+    """Radius (m) of the smallest ball about a primitive's centre that holds it (``inf`` for
+    a plane)."""
+    if hasattr(shape, "half_sizes"):
+        return float(np.linalg.norm(shape.half_sizes))
+    if hasattr(shape, "half_length"):
+        return float(shape.half_length + shape.radius)
+    if hasattr(shape, "normal"):
+        return math.inf
+    return float(shape.radius)
 
 
-def parse_obstacles(obstacles: Sequence[Mapping], dim: int, default_start_time: float) -> list:
-    """Build ObstacleSpecs from user dicts; ValueError names the bad key or value."""
+#: The obstacle kinds of ``obstacles=`` entries (``"type"``) and the keys each takes.
+OBSTACLE_TYPES = ("sphere", "box", "capsule", "plane")
+_MOTION_KEYS = ("start", "start_time", "speed")
+OBSTACLE_TYPE_KEYS: dict[str, tuple[str, ...]] = {
+    "sphere": ("type", "position", "radius", *_MOTION_KEYS),
+    "box": ("type", "position", "half_sizes", "quat", "rotation", *_MOTION_KEYS),
+    "capsule": ("type", "position", "radius", "half_length", "axis", "quat", *_MOTION_KEYS),
+    "plane": ("type", "position", "normal"),
+}
+#: Every key an ``obstacles=`` entry may have (which ones depend on its ``"type"``).
+OBSTACLE_KEYS = ("type", "position", "radius", *_MOTION_KEYS, "half_sizes", "quat",
+                 "rotation", "half_length", "axis", "normal")
+_REQUIRED = {"sphere": ("position", "radius"), "box": ("position", "half_sizes"),
+             "capsule": ("position", "radius", "half_length"), "plane": ("position", "normal")}
+
+
+def quat_to_rotation(quat) -> np.ndarray:
+    """Rotation matrix (3, 3) of a quaternion ``(w, x, y, z)`` (normalised here; MuJoCo's
+    convention)."""
+    w, x, y, z = np.asarray(quat, dtype=np.float64) / np.linalg.norm(quat)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def parse_obstacles(obstacles: Sequence[Mapping], dim: int, default_start_time: float,
+                    types: Sequence[str] = ("sphere",)) -> list:
+    """Build ObstacleSpecs from user dicts (or specs, kept); ValueError names the bad key
+    (``obstacles[i]['key']``) or value. ``types``: the kinds the env supports (``"type"``,
+    default ``"sphere"``; the others need ``dim`` 3, :data:`OBSTACLE_TYPE_KEYS`)."""
     if isinstance(obstacles, Mapping) or not isinstance(obstacles, Sequence) or not obstacles:
         raise ValueError(f"obstacles must be a non-empty list of dicts with keys {OBSTACLE_KEYS}")
     specs = []
     for i, ob in enumerate(obstacles):
         if isinstance(ob, ObstacleSpec):
+            if ob.kind not in types:
+                raise ValueError(f"obstacles[{i}] is a {ob.kind!r}; valid types: {tuple(types)}")
             specs.append(ob)
             continue
         if not isinstance(ob, Mapping):
             raise ValueError(f"obstacles[{i}] must be a dict with keys {OBSTACLE_KEYS}")
-        unknown = set(ob) - set(OBSTACLE_KEYS)
+        kind = ob.get("type", "sphere")
+        if kind not in types:
+            raise ValueError(f"obstacles[{i}]['type'] must be one of {tuple(types)}, got {kind!r}")
+        if kind == "plane":
+            for key in _MOTION_KEYS:
+                if key in ob:
+                    raise ValueError(f"obstacles[{i}]['{key}']: a plane is static (no "
+                                     f"start, start_time or speed)")
+        valid = OBSTACLE_TYPE_KEYS[kind]
+        unknown = sorted(set(ob) - set(valid))
         if unknown:
-            raise ValueError(
-                f"obstacles[{i}] has unknown keys {sorted(unknown)}; valid: {OBSTACLE_KEYS}"
-            )
-        if "position" not in ob or "radius" not in ob:
-            raise ValueError(f"obstacles[{i}] needs 'position' and 'radius'")
-        pos = np.asarray(ob["position"], dtype=np.float64)
-        start = None if ob.get("start") is None else np.asarray(ob["start"], dtype=np.float64)
-        for name, arr in (("position", pos), ("start", start)):
-            if arr is not None and (arr.shape != (dim,) or not np.all(np.isfinite(arr))):
-                raise ValueError(f"obstacles[{i}]['{name}'] must be finite with shape ({dim},)")
-        radius = float(ob["radius"])
-        speed = float(ob.get("speed", 0.2))
-        if not (np.isfinite(radius) and radius > 0):
-            raise ValueError(f"obstacles[{i}]['radius'] must be > 0, got {radius}")
-        if not (np.isfinite(speed) and speed > 0):
-            raise ValueError(f"obstacles[{i}]['speed'] must be > 0, got {speed}")
-        t0 = float(ob.get("start_time", default_start_time))
-        specs.append(ObstacleSpec(pos, radius, start, t0, speed))
+            raise ValueError(f"obstacles[{i}]['{unknown[0]}'] is not a key of a {kind!r} "
+                             f"obstacle (unknown keys {unknown}); valid: {valid}")
+        for key in _REQUIRED[kind]:
+            if key not in ob:
+                raise ValueError(f"obstacles[{i}]['{key}'] is missing: a {kind!r} needs "
+                                 f"{_REQUIRED[kind]}")
+        pos = _obstacle_vector(i, "position", ob["position"], dim)
+        start = None if ob.get("start") is None else _obstacle_vector(i, "start", ob["start"],
+                                                                      dim)
+        speed = _obstacle_positive(i, "speed", ob.get("speed", 0.2))
+        t0 = _obstacle_real(i, "start_time", ob.get("start_time", default_start_time))
+        if kind == "sphere":
+            radius = _obstacle_positive(i, "radius", ob["radius"])
+            specs.append(ObstacleSpec(pos, radius, start, t0, speed))
+        else:
+            specs.append(ObstacleSpec.of_shape(_obstacle_shape(i, kind, ob, pos), start, t0,
+                                               speed))
     return specs
+
+
+def _obstacle_real(i: int, key: str, value) -> float:
+    try:
+        out = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"obstacles[{i}]['{key}'] must be a number, got {value!r}") from None
+    if not math.isfinite(out):
+        raise ValueError(f"obstacles[{i}]['{key}'] must be finite, got {out}")
+    return out
+
+
+def _obstacle_positive(i: int, key: str, value) -> float:
+    out = _obstacle_real(i, key, value)
+    if not out > 0:
+        raise ValueError(f"obstacles[{i}]['{key}'] must be > 0, got {out}")
+    return out
+
+
+def _obstacle_vector(i: int, key: str, value, n: int) -> np.ndarray:
+    try:
+        arr = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        arr = None
+    if arr is None or arr.shape != (n,) or not np.all(np.isfinite(arr)):
+        raise ValueError(f"obstacles[{i}]['{key}'] must be finite with shape ({n},), "
+                         f"got {value!r}")
+    return arr
+
+
+def _obstacle_shape(i: int, kind: str, ob: Mapping, pos: np.ndarray) -> Primitive:
+    """The primitive of a box, capsule or plane entry (ValueError names the key)."""
+    from afvsgp_gym.envs import primitives as pr
+
+    if len(pos) != 3:
+        raise ValueError(f"obstacles[{i}]['type'] {kind!r} needs 3-D positions")
+    rotation, key = None, None
+    if "quat" in ob:
+        for other in ("rotation", "axis"):
+            if other in ob:
+                raise ValueError(f"obstacles[{i}]['{other}']: give 'quat' or '{other}', "
+                                 f"not both")
+        quat = _obstacle_vector(i, "quat", ob["quat"], 4)
+        if not np.linalg.norm(quat) > 0:
+            raise ValueError(f"obstacles[{i}]['quat'] must be a non-zero (w, x, y, z)")
+        rotation, key = quat_to_rotation(quat), "quat"
+    elif "rotation" in ob:
+        rotation, key = ob["rotation"], "rotation"
+    try:
+        if kind == "box":
+            half = _obstacle_vector(i, "half_sizes", ob["half_sizes"], 3)
+            if not np.all(half > 0):
+                raise ValueError(f"obstacles[{i}]['half_sizes'] must be > 0, got {half}")
+            key = key or "rotation"
+            return pr.Box(pos, np.eye(3) if rotation is None else rotation, half)
+        if kind == "capsule":
+            radius = _obstacle_positive(i, "radius", ob["radius"])
+            half_length = _obstacle_positive(i, "half_length", ob["half_length"])
+            if rotation is not None:
+                axis = rotation[:, 2]  # the local z axis, as MuJoCo's capsules
+            else:
+                axis = _obstacle_vector(i, "axis", ob.get("axis", (0.0, 0.0, 1.0)), 3)
+                key = "axis"
+            return pr.Capsule(pos, axis, half_length, radius)
+        key = "normal"
+        return pr.Plane(pos, _obstacle_vector(i, "normal", ob["normal"], 3))
+    except ValueError as exc:
+        if str(exc).startswith(f"obstacles[{i}]"):
+            raise
+        raise ValueError(f"obstacles[{i}]['{key}']: {exc}") from None
 
 
 @dataclass(frozen=True)

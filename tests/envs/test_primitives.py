@@ -286,6 +286,16 @@ def test_box_and_capsule_distance_match_independent_formulas():
                                    atol=64 * EPS * scale)
 
 
+@pytest.mark.parametrize("kind, region", CASES)
+def test_point_distance_is_the_kernels_distance(kind, region):
+    """The scalar one-point distance agrees with pair_barriers' (rounding: other sums)."""
+    shape, p, _, _ = _sample(kind, region, np.random.default_rng(5), n=40)
+    d = pr.pair_barriers([shape], p, np.zeros_like(p), 0.0)[0]
+    scale = np.linalg.norm(p, axis=1).max() + 1.0
+    np.testing.assert_allclose([pr.point_distance(shape, x) for x in p], d, rtol=0,
+                               atol=64 * EPS * scale)
+
+
 _GEOMS = """<mujoco><worldbody>
   <geom type="sphere" size="{r}"/>
   <geom type="box" size="{b[0]} {b[1]} {b[2]}"/>

@@ -5,6 +5,7 @@ NaN state, a limit violation, the robot's reflex, a NaN policy)."""
 import numpy as np
 import pytest
 
+from afvsgp_gym.envs.primitives import Box
 from afvsgp_gym.envs.safety_spheres import sphere_arrays
 from afvsgp_gym.envs.scenario import ObstacleSpec
 from afvsgp_gym.robots.bridge import Brake
@@ -269,6 +270,9 @@ def test_bad_arguments_name_the_argument():
         SimulatedFranka(payload_mass=-1.0)
     with pytest.raises(ValueError, match="budget"):
         _bridge(robot, budget=0.0)
+    box = ObstacleSpec.of_shape(Box(np.array([0.5, 0.0, 0.4]), np.eye(3), [0.05] * 3))
+    with pytest.raises(ValueError, match=r"obstacles\[0\] is a 'box'"):
+        SimulatedFranka(obstacles=[box], realtime=False)
 
 
 @pytest.mark.parametrize("bound, safe", [([3, 3, 3, 3, 1, 1, 1], True), (0.0, False)])
