@@ -69,10 +69,12 @@ def rates(recs: list[dict]) -> dict:
 
     n, n_true = total("calibration_samples"), total("true_band_samples")
     n_near = total("calibration_near_samples")
+    counted = n and all(r.get("calibration_near_samples") is not None for r in recs)
     return {"samples": n,
             "miss": total("calibration_misses") / n if n else math.nan,
             "near_miss": total("calibration_near_misses") / n_near if n_near else math.nan,
-            "near_share": n_near / n if n else math.nan,
+            # (records from before the near-binding count hold none: not 0 %)
+            "near_share": n_near / n if counted else math.nan,
             "true_miss": total("true_band_misses") / n_true if n_true else math.nan,
             **{f"cov{k}": total(f"calibration_within_{k}std") / n if n else math.nan
                for k in (1, 2, 3)}}
@@ -141,6 +143,7 @@ def decision(verdict: dict) -> list[str]:
         near = f"{v['near_cells']} of {v['near_of']}" if v["near_of"] else "-"
         lines.append((b, f"{v['cells']} of {v['of']}", near, f"{v['cost']} of {v['n']}",
                       ratios, "yes" if honest(v) and tracks(v) else "no"))
+    near = {b: v for b, v in shown.items() if v["near_of"]}
     both = [b for b, v in shown.items() if honest(v) and tracks(v)]
     honest_bands = [b for b, v in shown.items() if honest(v)]
     out = ["## The decision", "",
@@ -149,6 +152,15 @@ def decision(verdict: dict) -> list[str]:
            "x the oracle's in every cell.", "",
            table(("band", "cells within the target", "near binding: cells within",
                   "episodes with cost", "tracking / oracle, per cell", "both"), lines), ""]
+    if near:
+        out += ["Near binding, where the band decides the action (the steps whose margin is "
+                "below the band's width), "
+                + "; ".join(f"`{b}` meets the target in {v['near_cells']} of {v['near_of']} "
+                            "cells" for b, v in near.items())
+                + ". The gate corrects the band on those steps only: elsewhere its misses "
+                "stay as the GP makes them (the `miss` column), and the correction learns "
+                "from the few samples near binding (the `near binding` share of the scored "
+                "pairs).", ""]
     if both:
         out += [f"`{both[0]}` meets both.", ""]
     else:
