@@ -6,6 +6,8 @@ imported when an environment is made):
 - ``afvsgp_gym/FrankaObstacleStatic-v0``
 - ``afvsgp_gym/FrankaObstacleDynamic-v0``
 - ``afvsgp_gym/FrankaObstacleRandom-v0``
+- ``afvsgp_gym/FrankaTabletop-v0``
+- ``afvsgp_gym/FrankaShelf-v0``
 - ``afvsgp_gym/FrankaObstacleReach-v0``
 - ``afvsgp_gym/PointMassObstacle-v0``
 

@@ -24,6 +24,6 @@ def test_import_does_not_import_mujoco():
 
 def test_docstring_lists_every_registered_id():
     ids = sorted(i for i in gym.registry if i.startswith("afvsgp_gym/"))
-    assert len(ids) == 5
+    assert len(ids) == 7
     for env_id in ids:
         assert f"``{env_id}``" in afvsgp_gym.__doc__

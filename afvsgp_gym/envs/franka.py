@@ -14,6 +14,7 @@ from gymnasium import spaces
 from gymnasium.envs.mujoco import MujocoEnv
 
 from afvsgp_gym.envs import franka_model as fm
+from afvsgp_gym.envs import scenes
 from afvsgp_gym.envs.base import (
     NOMINAL_MODELS,
     SCENARIOS,
@@ -64,6 +65,11 @@ _BAD_WARNINGS = np.array(
         int(mujoco.mjtWarning.mjWARN_BADQVEL),
     ]
 )
+
+
+#: The Franka env's scenarios: the shared ones and the scenes of several typed obstacles
+#: (:mod:`afvsgp_gym.envs.scenes`).
+FRANKA_SCENARIOS = (*SCENARIOS, "tabletop", "shelf")
 
 
 class StateView(NamedTuple):
@@ -232,16 +238,28 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
       [r + 0.15, 0.24] m on either side, offset in z in [-0.09, -0.06] m and x in +-0.02 m,
       approach from +x or from outside along y at 0.3-0.5 m, peak speed in [0.05, 0.2] m/s
       and an optional switch, drawn per reset.
+    - ``"tabletop"`` (:mod:`~afvsgp_gym.envs.scenes`): a table (a plane at the mount,
+      z = 0), 10 clutter obstacles (4 boxes, 3 capsules lying with a drawn yaw, 3 spheres;
+      sizes, yaws and places drawn per reset, each one's bounding ball outside the arm's swept
+      volume under the tracker, :data:`~afvsgp_gym.envs.scenes.ARM_SWEEP`, so near the path
+      but off it and clear of the warm-up) and a forearm: a capsule (r = 0.04 m, half length
+      0.15 m) along x that comes in 0.5 m from +x, 0-1 s after the warm-up at 0.15-0.25 m/s,
+      to rest across the path's end, c + (0, +-[0.17, 0.24], [-0.09, -0.06]). 12 obstacles.
+    - ``"shelf"``: a table and a shelf of five boxes open towards the robot (lower and upper
+      boards 0.14 m under and 0.33 m over c, side walls at y = +-0.2 m, the opening 0.2 m and
+      the back wall 0.33 m in front of c, 3 cm thick); the reference moves along x about
+      c + (0.1, 0, 0) with amplitude 0.2 m, into the opening and out (no switch unless set):
+      the hand would reach the back wall. Static. 6 obstacles.
 
     With the exact model and no joint friction a CBF-filtered run keeps every barrier h >= 0
     with no arm contact in every scenario and seed tested (tests/envs/test_franka.py,
-    docs/safety.md); with friction the true terms are not exact (above) and it does not
-    always (docs/safety.md, "What this does not show").
+    test_franka_scenes.py, docs/safety.md); with friction the true terms are not exact
+    (above) and it does not always (docs/safety.md, "What this does not show").
 
     ## Arguments
     | Parameter | Default | Description |
     |---|---|---|
-    | scenario | "static" | "static", "dynamic", "random" |
+    | scenario | "static" | "static", "dynamic", "random", "tabletop", "shelf" |
     | nominal_model | "zero" | "zero", "kinematic", "perturbed", "exact" |
     | safety_spheres | "arm" | "arm", "ee" or a list of (body, offset, radius) |
     | payload_mass | 1.0 | kg at the flange, not gravity compensated |
@@ -292,6 +310,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
     another type they raise ValueError (the joint encoders and pushes work with every type).
 
     ## Version History
+    - v0: the ``"tabletop"`` and ``"shelf"`` scenes (issue 46) joined the scenarios.
     - v0: initial version; whole-arm safety spheres (``safety_spheres="arm"``) are the
       default, contacts count as cost; the joint range and speed limits count as cost and
       have barriers (``limit_barriers``), and the brake stops and holds every joint
@@ -382,7 +401,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         width: int = 480,
         height: int = 480,
     ) -> None:
-        self.scenario = check_choice("scenario", scenario, SCENARIOS)
+        self.scenario = check_choice("scenario", scenario, FRANKA_SCENARIOS)
         self.nominal_model = check_choice("nominal_model", nominal_model, NOMINAL_MODELS)
         payload_mass = check_real(payload_mass, "payload_mass", low=0.0)
         damping = check_real(damping, "damping", low=0.0)
@@ -421,19 +440,18 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
             else parse_obstacles(obstacles, 3, self.warmup_steps * self._control_dt,
                                  OBSTACLE_TYPES)
         )
+        # the obstacles the geoms are built from: the user's, or a scene's (the tabletop's at
+        # their largest sizes: a drawn scene resizes the geoms per reset), or None (a sphere)
+        self._layout_obstacles = self._user_obstacles or self._scene_layout()
         self._check_camera_obstacles()
         self.plant = self._plant_parameters(mass_scale, plant_seed, payload_mass, damping,
                                             friction, armature)
-        n_obs = 1 if self._user_obstacles is None else len(self._user_obstacles)
-        radii = (
-            (0.05,) * n_obs
-            if self._user_obstacles is None
-            else tuple(o.radius for o in self._user_obstacles)
-        )
-        if self.scenario == "random" and self._user_obstacles is None:
+        layout = self._layout_obstacles
+        n_obs = 1 if layout is None else len(layout)
+        radii = (0.05,) * n_obs if layout is None else tuple(o.radius for o in layout)
+        if self.scenario == "random" and layout is None:
             radii = (0.07,)  # drawn radii <= 0.07: the visual sphere is rescaled per reset
-        geoms = () if self._user_obstacles is None else tuple(
-            _obstacle_geom(o) for o in self._user_obstacles)
+        geoms = () if layout is None else tuple(_obstacle_geom(o) for o in layout)
         self._scene = fm.SceneOptions(radii, self.ee_radius, physics_dt, geoms)
         if render_mode is not None:
             check_choice("render_mode", render_mode, self.metadata["render_modes"])
@@ -518,7 +536,8 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
     def _check_camera_obstacles(self) -> None:
         """The camera (and the estimate's covariance) model sphere centres only: refuse it
         with another obstacle type, naming the options set and the obstacle."""
-        shaped = [i for i, o in enumerate(self._user_obstacles or ()) if o.shape is not None]
+        layout = self._layout_obstacles or ()
+        shaped = [i for i, o in enumerate(layout) if o.shape is not None]
         per = self.perception
         if shaped and per.camera:
             names = [name for name, on in (("obstacle_noise", per.obstacle_noise > 0),
@@ -527,7 +546,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
             i = shaped[0]
             raise ValueError(f"{', '.join(names)}: the obstacle camera senses sphere obstacles "
                              f"only, and obstacles[{i}] is a "
-                             f"{self._user_obstacles[i].kind!r}; sense it exactly (leave "
+                             f"{layout[i].kind!r}; sense it exactly (leave "
                              f"obstacle_noise, obstacle_rate and obstacle_delay at their "
                              f"defaults)")
 
@@ -569,7 +588,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
             and np.count_nonzero(site_pos) <= 1
         )
         self._kinematics = self._site_kinematics if at_site else self._point_kinematics
-        shaped = any(o.shape is not None for o in self._user_obstacles or ())
+        shaped = any(o.shape is not None for o in self._layout_obstacles or ())
         self._geometry_of = (
             self._one_pair_geometry if self._n_pairs == 1 and not shaped
             else self._pair_geometry
@@ -751,7 +770,15 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         if switch is None:
             switch = 10.0 if self.scenario == "static" else np.inf
         centre = c + along * ey + dz * ez + dx * ex
-        if kind == "static":
+        center, axis1, amplitude = c.copy(), ey, self.AMPLITUDE
+        if kind == "tabletop":
+            obstacles = scenes.draw_tabletop(
+                np.random.default_rng(0) if rng is None else rng, c, t_w)
+        elif kind == "shelf":
+            obstacles = scenes.shelf_obstacles(c)
+            center = c + scenes.SHELF_REFERENCE["offset"]
+            axis1, amplitude = ex, scenes.SHELF_REFERENCE["amplitude"]
+        elif kind == "static":
             obstacles = [ObstacleSpec(centre, radius)]
         else:
             obstacles = [ObstacleSpec(centre, radius, centre + start_off, t_w, speed)]
@@ -760,11 +787,13 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         if self._user_obstacles is None and self.scenario == "random":
             # visual sphere follows the drawn radius
             self.model.geom_size[self._obstacle_geoms[0], 0] = radius
+        if self._user_obstacles is None and self.scenario == "tabletop":
+            self._resize_geoms()
         self.reference = CyclicReference(
-            center=c.copy(),
-            axis1=ey,
+            center=center,
+            axis1=axis1,
             axis2=ez,
-            amplitude=self.AMPLITUDE,
+            amplitude=amplitude,
             warmup_amplitude=self.WARMUP_AMPLITUDE,
             period=self.PERIOD,
             ramp_start=t_w,
@@ -772,6 +801,31 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
             switch_time=switch,
         )
         self._obstacle_radii = np.array([ob.radius for ob in self.obstacles])
+
+    def _scene_layout(self) -> list[ObstacleSpec] | None:
+        """The obstacles the tabletop's and the shelf's geoms are built from (None for the
+        other scenarios, whose one obstacle is a sphere)."""
+        c = scenes.READY_CENTER  # the sizes and kinds matter here, not the places
+        t_w = self.warmup_steps * self._control_dt
+        if self.scenario == "tabletop":
+            return scenes.tabletop_template(c, t_w)
+        if self.scenario == "shelf":
+            return scenes.shelf_obstacles(c)
+        return None
+
+    def _resize_geoms(self) -> None:
+        """Fit the obstacle geoms (built at the largest sizes) to a drawn scene: sizes,
+        orientations in their bodies and bounding radii."""
+        m = self.model
+        for g, ob in zip(self._obstacle_geoms, self.obstacles, strict=True):
+            geom = _obstacle_geom(ob)
+            if geom is None:
+                m.geom_size[g, 0] = ob.radius
+                m.geom_rbound[g] = ob.radius
+            elif geom.kind != "plane":
+                m.geom_size[g] = geom.size
+                m.geom_quat[g] = geom.quat
+                m.geom_rbound[g] = ob.radius
 
     # ------------------------------------------------------------------ state
     @property
@@ -1362,7 +1416,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
 
     def reset_model(self) -> np.ndarray:
         self._steps = 0
-        if self.scenario == "random":
+        if self.scenario in ("random", "tabletop"):
             self._build_scenario(self.np_random)
         noise = self.np_random.uniform(-self.reset_noise, self.reset_noise, 7)
         self.data.qpos[:] = self.q_home + noise

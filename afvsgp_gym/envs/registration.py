@@ -18,6 +18,12 @@ def register_envs() -> None:
         "afvsgp_gym/FrankaObstacleRandom-v0": dict(
             entry_point=franka, max_episode_steps=4000, kwargs={"scenario": "random"}
         ),
+        "afvsgp_gym/FrankaTabletop-v0": dict(
+            entry_point=franka, max_episode_steps=4000, kwargs={"scenario": "tabletop"}
+        ),
+        "afvsgp_gym/FrankaShelf-v0": dict(
+            entry_point=franka, max_episode_steps=4000, kwargs={"scenario": "shelf"}
+        ),
         "afvsgp_gym/FrankaObstacleReach-v0": dict(
             entry_point="afvsgp_gym.envs.reach:FrankaObstacleReachEnv", max_episode_steps=1250
         ),

@@ -1,0 +1,136 @@
+"""The tabletop and shelf scenes: registration, the clutter drawn per seed, a clear start
+and warm-up, the oracle filter without cost where the bare tracker collides, bad kwargs."""
+
+import math
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+import afvsgp_gym  # noqa: F401
+from afvsgp_gym.agents import NominalController
+from afvsgp_gym.envs import scenes
+from afvsgp_gym.envs.base import UnknownArgumentError
+from afvsgp_gym.envs.franka import FrankaObstacleEnv
+from afvsgp_gym.wrappers import SafetyFilter
+
+TABLETOP, SHELF = "afvsgp_gym/FrankaTabletop-v0", "afvsgp_gym/FrankaShelf-v0"
+
+
+def _scene(env):
+    """Everything that defines the drawn obstacles, as one comparable list."""
+    out = []
+    for ob in env.unwrapped.obstacles:
+        shape = ob.primitive
+        out.append((ob.kind, ob.position.tolist(), ob.start is None or ob.start.tolist(),
+                    ob.start_time, ob.speed,
+                    [np.asarray(v).tolist() for v in vars(shape).values()]))
+    return out
+
+
+@pytest.mark.parametrize("env_id", [TABLETOP, SHELF])
+def test_make_and_check_env(env_id):
+    env = gym.make(env_id)
+    assert env.spec.max_episode_steps == 4000
+    check_env(env.unwrapped, skip_render_check=True)
+    env.close()
+
+
+def test_tabletop_clutter_is_drawn_per_seed():
+    env = gym.make(TABLETOP)
+    base = env.unwrapped
+    kinds = [ob.kind for ob in base.obstacles]
+    assert kinds == ["plane", "capsule", *scenes.CLUTTER_KINDS]
+    assert len(scenes.CLUTTER_KINDS) >= 10 and {"box", "capsule", "sphere"} <= set(kinds)
+    n_barriers = base.n_barriers
+    env.reset(seed=1)
+    first = _scene(env)
+    env.reset(seed=2)
+    assert _scene(env) != first and base.n_barriers == n_barriers
+    env.reset(seed=1)
+    assert _scene(env) == first
+    table, forearm = base.obstacles[:2]
+    assert table.position[2] <= 0.0 and table.start is None  # at the mount, static
+    assert forearm.shape.radius == 0.04 and forearm.shape.half_length == 0.15
+    t_warmup = base.warmup_steps * base.dt
+    assert forearm.start_time >= t_warmup and np.linalg.norm(forearm.start - forearm.position) > 0.3
+    # the MuJoCo geoms follow the drawn shapes (sizes and bounding radii)
+    for g, ob in zip(base._obstacle_geoms[2:], base.obstacles[2:], strict=True):
+        assert math.isclose(base.model.geom_rbound[g], ob.radius)
+        if ob.kind == "sphere":
+            assert base.model.geom_size[g, 0] == ob.radius
+        elif ob.kind == "box":
+            np.testing.assert_allclose(base.model.geom_size[g], ob.shape.half_sizes)
+    # the clutter is off the tracker's path, near it (some within 0.25 m of the reference
+    # centre's sweep), and apart
+    for seed in range(5):
+        env.reset(seed=seed)
+        clutter = base.obstacles[2:]
+        assert all(scenes.off_path(ob.position, ob.radius) for ob in clutter)
+        assert all(ob.position[2] - ob.radius >= 0.0 for ob in clutter)
+        assert min(scenes._ball_box_distance(ob.position, *scenes.ARM_SWEEP["box"]) - ob.radius
+                   for ob in clutter) < 0.1
+
+
+def _run(env_id, seed, filtered, steps=None):
+    """The tracker (behind the oracle filter when ``filtered``): the cost, the number of
+    steps with contact, min h over the run and over the warm-up."""
+    env = gym.make(env_id)
+    if filtered:
+        env = SafetyFilter(env, learner="oracle")
+    policy = NominalController(env)
+    obs, info = env.reset(seed=seed)
+    base = env.unwrapped
+    assert info["h"] > 0.0 and not info["collision"]  # clear at the start
+    if steps is None:  # until the moving obstacles have arrived, and 1 s more
+        end = max(ob.start_time + ob.duration for ob in base.obstacles)
+        steps = int(math.ceil((end + 1.0) / base.dt))
+    cost, contacts, h_min, h_warmup = 0.0, 0, np.inf, np.inf
+    for k in range(steps):
+        obs, _, term, _, info = env.step(policy(obs))
+        assert not term
+        cost += info["cost"]
+        contacts += info["collision"]
+        h_min = min(h_min, info["h"])
+        if k < base.warmup_steps:
+            h_warmup = min(h_warmup, info["h"])
+    env.close()
+    return cost, contacts, h_min, h_warmup
+
+
+@pytest.mark.parametrize(("env_id", "seed", "steps"), [(TABLETOP, 0, None), (SHELF, 0, 1500)])
+def test_tracker_alone_collides_after_a_clear_warmup(env_id, seed, steps):
+    cost, contacts, h_min, h_warmup = _run(env_id, seed, filtered=False, steps=steps)
+    assert h_warmup > 0.03  # nothing near the robot at the start or during the warm-up
+    assert cost > 50 and contacts > 0 and h_min < -0.02
+
+
+@pytest.mark.parametrize(("env_id", "seed", "steps"),
+                         [(TABLETOP, 0, None), (TABLETOP, 1, None), (TABLETOP, 2, None),
+                          (SHELF, 0, 1500), (SHELF, 1, 1500)])
+def test_oracle_filter_has_no_cost(env_id, seed, steps):
+    cost, contacts, h_min, h_warmup = _run(env_id, seed, filtered=True, steps=steps)
+    assert cost == 0.0 and contacts == 0 and h_min >= 0.0 and h_warmup > 0.03
+
+
+def test_shelf_reference_enters_the_opening():
+    base = gym.make(SHELF).unwrapped
+    walls = base.obstacles[1:]
+    opening = min(ob.position[0] - ob.shape.half_sizes[0] for ob in walls)
+    c, a = base.reference.center, base.reference.amplitude
+    np.testing.assert_allclose(base.reference.axis1, [1.0, 0.0, 0.0])
+    assert c[0] - a < opening < c[0] + a  # the path goes in and comes out
+    assert all(ob.start is None for ob in base.obstacles)
+
+
+@pytest.mark.parametrize(("kwargs", "match"), [
+    ({"scenario": "tabeltop"}, "scenario"),
+    ({"scenario": "tabletop", "obstacle_noise": 0.01}, "obstacle_noise"),
+    ({"scenario": "shelf", "obstacle_rate": 30.0}, "obstacle_rate"),
+])
+def test_bad_scene_kwargs_are_refused_by_name(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        FrankaObstacleEnv(**kwargs)
+    with pytest.raises(UnknownArgumentError, match="clutter"):
+        gym.make(TABLETOP, clutter=5)
