@@ -39,6 +39,8 @@ SOURCE = RESULTS / "acceptance.jsonl.gz"
 #: optional: ``afvsgp-gym sweep benchmarks/configs/shared.toml`` (its tracker block), the
 #: shared learner on the priors grid's first seeds
 SHARED = RESULTS / "shared.jsonl.gz"
+#: the adversarial suite, for the per-pair learners beside the shared one on the same seeds
+ADVERSARIAL = RESULTS / "adversarial.jsonl.gz"
 LIMIT_BANDS = (("margin on all 28", RESULTS / "acceptance_limit_margin.jsonl.gz"),
                ("mixed, every step", RESULTS / "acceptance_limit_mixed_ungated.jsonl.gz"))
 #: the one-sided miss probability the default band promises, Phi(-2.5)
@@ -135,7 +137,8 @@ def shared_section(recs: list[dict]) -> list[str]:
     the priors grid on the same scenarios, priors and seeds."""
     if not SHARED.exists():
         return []
-    shared = read_jsonl(SHARED)
+    everything = read_jsonl(SHARED)
+    shared = [r for r in everything if r["block"] == "tracker"]
     rows = []
     for sc in SCENARIOS:
         for pr in PRIORS:
@@ -163,7 +166,37 @@ def shared_section(recs: list[dict]) -> list[str]:
             "results/shared.jsonl.gz), beside the default per-pair learners on the same "
             "seeds; tracking with its ratio to the oracle's.", "",
             table(("scenario", "prior", "learner", "episodes", "with cost", "min h [m]",
-                   "tracking [m]", "backup / episode", "kept"), rows), ""]
+                   "tracking [m]", "backup / episode", "kept"), rows), ""] + \
+        shared_adversarial(everything)
+
+
+def shared_adversarial(everything: list[dict]) -> list[str]:
+    """The shared learner's ``adversarial`` block beside the per-pair learners' episodes of
+    the adversarial suite (``results/adversarial.jsonl.gz``) on the same seeds and priors."""
+    mine = [r for r in everything if r["block"] == "adversarial"]
+    if not mine or not ADVERSARIAL.exists():
+        return []
+    keys = {(r["config"]["agent"], r["config"]["env_id"],
+             r["config"]["env_kwargs"].get("nominal_model"), r["seed"]) for r in mine}
+    per = [r for r in read_jsonl(ADVERSARIAL) if r["config"]["learner"] == "afvsgp"
+           and (r["config"]["agent"], r["config"]["env_id"],
+                r["config"]["env_kwargs"].get("nominal_model"), r["seed"]) in keys]
+    rows = []
+    for pr in PRIORS:
+        for name, group in (("per-pair (default)", per), ("shared", mine)):
+            g = [r for r in group if r["config"]["env_kwargs"].get("nominal_model") == pr]
+            if g:
+                s = summary(g)
+                rows.append((pr, name, s["n"], s["cost"], f"{s['min_h']:.4f}",
+                             f"{s['backup']:.1f}"))
+    codes = [" / ".join(sorted({str(r["code_version"]) for r in g})) for g in (per, mine)]
+    return ["Against the adversarial policies ([Any policy](adversarial.md): the ram, the "
+            "swings of every joint, random actions, the greedy policy and an untrained PPO "
+            "policy, over the three scenarios), the `adversarial` block of the same config "
+            f"(code `{codes[1]}`) beside the per-pair learners' episodes of the suite on the "
+            f"same seeds (code `{codes[0]}`):", "",
+            table(("prior", "learner", "episodes", "with cost", "min h [m]",
+                   "backup / episode"), rows), ""]
 
 
 def limit_band_section(recs: list[dict]) -> list[str]:
