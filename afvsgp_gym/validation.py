@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["check_choice", "check_count", "check_real"]
+__all__ = ["check_choice", "check_count", "check_finite_array", "check_real"]
 
 
 def check_count(value: Any, name: str, minimum: int = 1) -> int:
@@ -43,3 +43,16 @@ def check_choice(name: str, value: Any, valid: Sequence[str]) -> str:
     if not isinstance(value, str) or value not in valid:
         raise ValueError(f"{name}={value!r} is not valid; choose one of {list(valid)}")
     return value
+
+
+def check_finite_array(value: Any, name: str, shape: tuple[int, ...]) -> np.ndarray:
+    """A float64 copy of ``value`` with ``shape`` and finite entries."""
+    try:
+        arr = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name} must be numeric with shape {shape}: {exc}") from None
+    if arr.shape != shape:
+        raise ValueError(f"{name} must have shape {shape}, got {arr.shape}")
+    if not np.isfinite(arr).all():
+        raise ValueError(f"{name} must be finite (no NaN/inf), got {arr}")
+    return arr

@@ -78,6 +78,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from afvsgp_gym.envs.scenario import sphere_barriers
+from afvsgp_gym.validation import check_finite_array
 
 __all__ = [
     "Box", "Capsule", "Plane", "ShapeStack", "Sphere", "box_distance", "capsule_distance",
@@ -94,14 +95,7 @@ Terms = tuple[np.ndarray, np.ndarray, np.ndarray]
 
 def _array(name: str, value, shape: tuple[int, ...]) -> np.ndarray:
     """A read-only float64 copy of ``value``; ValueError unless finite with ``shape``."""
-    try:
-        arr = np.array(value, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"{name} must be numeric with shape {shape}: {exc}") from None
-    if arr.shape != shape:
-        raise ValueError(f"{name} must have shape {shape}, got {arr.shape}")
-    if not np.isfinite(arr).all():
-        raise ValueError(f"{name} must be finite (no NaN/inf), got {arr}")
+    arr = check_finite_array(value, name, shape)
     arr.flags.writeable = False
     return arr
 

@@ -15,6 +15,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from afvsgp_gym.validation import check_finite_array
+
 if TYPE_CHECKING:  # primitives imports this module (sphere_barriers): import it lazily
     from afvsgp_gym.envs.primitives import Primitive
 
@@ -398,12 +400,4 @@ def sphere_barrier(
 
 def check_action(action, shape: tuple[int, ...]) -> np.ndarray:
     """float64 copy of ``action``; ValueError on wrong shape or non-finite entries."""
-    try:
-        a = np.array(action, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"action must be numeric with shape {shape}: {exc}") from None
-    if a.shape != shape:
-        raise ValueError(f"action must have shape {shape}, got {a.shape}")
-    if not np.isfinite(a).all():
-        raise ValueError(f"action must be finite (no NaN/inf), got {a}")
-    return a
+    return check_finite_array(action, "action", shape)
