@@ -503,6 +503,9 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         self._arm_geoms = fm.arm_collision_geoms(m)
         self._arm_rbound = m.geom_rbound[self._arm_geoms].copy()
         self._obstacle_geoms = np.array([m.geom(f"obstacle{i}").id for i in range(n_obs)])
+        # their orientations change per reset (the tabletop's clutter): the compiler's
+        # "same frame as the body" shortcut would keep the compiled one in data.geom_xmat
+        m.geom_sameframe[self._obstacle_geoms] = 0
         self._obstacle_mocap = np.array(
             [m.body_mocapid[m.body(f"obstacle{i}").id] for i in range(n_obs)]
         )

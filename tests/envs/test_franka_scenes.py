@@ -62,6 +62,16 @@ def test_tabletop_clutter_is_drawn_per_seed():
             assert base.model.geom_size[g, 0] == ob.radius
         elif ob.kind == "box":
             np.testing.assert_allclose(base.model.geom_size[g], ob.shape.half_sizes)
+    # ... and the simulated geoms (what contact is checked against) have the drawn
+    # orientation, at a reset after the first: the barrier's shape is the simulated one
+    for seed in (3, 4):
+        env.reset(seed=seed)
+        for g, ob in zip(base._obstacle_geoms, base.obstacles, strict=True):
+            frame = base.data.geom_xmat[g].reshape(3, 3)
+            if ob.kind == "box":
+                np.testing.assert_allclose(frame, ob.shape.rotation, atol=1e-12)
+            elif ob.kind == "capsule":
+                assert abs(frame[:, 2] @ ob.shape.axis) > 1.0 - 1e-12
     # the clutter is off the tracker's path, near it (some within 0.25 m of the reference
     # centre's sweep), and apart
     for seed in range(5):
