@@ -146,11 +146,15 @@ class FilterConfig:
     relax_to_mean : bool
         When no action satisfies the chance constraints, apply the solution of the mean-only
         constraints (``beta = 0``) if it exists (status ``"relaxed:..."``, flagged
-        infeasible) instead of the backup action; False goes to the backup at once. The
-        barriers of relative degree 1 keep their band in the relaxation: they have no state
-        to absorb one control period's model error (a joint speed barrier relaxed to a
-        confidently wrong mean let a policy's full torque add 0.8 rad/s to joint 4 in one
-        period), and the backup brake always satisfies them.
+        infeasible) instead of the backup action; False (default) goes to the backup at
+        once. The relaxation drops the band exactly where the learner is unsure: with nothing
+        known, an arm held millimetres above a table by infeasible programs sank into it on
+        the relaxed steps' confidently wrong mean, and on the one-obstacle suite it had more
+        episodes with cost than the brake (docs/adversarial.md). The barriers of relative
+        degree 1 keep their band in the relaxation: they have no state to absorb one control
+        period's model error (a joint speed barrier relaxed to a confidently wrong mean let a
+        policy's full torque add 0.8 rad/s to joint 4 in one period), and the backup brake
+        always satisfies them.
     learner_kwargs : dict
         Passed to the learner's constructor, on top of the registry's defaults.
     learn_hyperparameters : bool
@@ -192,7 +196,7 @@ class FilterConfig:
     online_exploration: float = 0.4
     exploration_threshold: float = 1.0
     residual_correction: float = DEFAULT_RESIDUAL_CORRECTION
-    relax_to_mean: bool = True
+    relax_to_mean: bool = False
     learner_kwargs: dict = field(default_factory=dict)
     learn_hyperparameters: bool = True
     shared_hyperparameters: bool = True

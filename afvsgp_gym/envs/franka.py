@@ -278,6 +278,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
     | reset_noise | 0.01 | rad |
     | normalize_action | True | action in [-1, 1] (tau = u tau_max); False: action = tau in Nm |
     | brake_frequency | 50.0 | 1/s, ``backup_action``'s stop-and-hold bandwidth |
+    | brake_hold_memory | 0.1 | s, the brake keeps its hold point across feasible gaps this short |
     | limit_barriers | True | joint range and speed barriers after the obstacle ones |
     | range_margin, speed_margin | 0.1, 0.4 | rad, rad/s: the limit barriers' margins |
     | check_acceleration, check_torque_rate | False, False | optional limit checks (Cost) |
@@ -386,6 +387,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         reset_noise: float = 0.01,
         normalize_action: bool = True,
         brake_frequency: float = 50.0,
+        brake_hold_memory: float = 0.1,
         limit_barriers: bool = True,
         range_margin: float = 0.1,
         speed_margin: float = 0.4,
@@ -492,6 +494,8 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         self._ctrl_per_action = self.action_scale / self._gear
         self.brake_frequency = check_real(brake_frequency, "brake_frequency", low=0.0,
                                           low_open=True)
+        self.brake_hold_memory = check_real(brake_hold_memory, "brake_hold_memory", low=0.0)
+        self._hold_memory_steps = int(round(self.brake_hold_memory / self._control_dt))
         self._brake_model: tuple[mujoco.MjModel, mujoco.MjData] | None = None
         self._hold: np.ndarray | None = None
         self._backup_step = -2
@@ -1281,9 +1285,10 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         """The robot's own brake for the safety filter's backup: stop every joint and hold it,
         ``tau = C_cat(q, q') q' + M_cat(q) (-2 w q' - w^2 (q - q_hold))`` as an action (``w`` =
         ``brake_frequency``, critically damped; ``C_cat`` the catalogue's Coriolis term), with
-        ``q_hold`` the joint angles when the backup was first asked for in a run of
-        consecutive control periods. Beyond the torque limits it only damps, with the largest
-        share ``s`` in [0, 1] of ``M_cat (-2 w q')`` that the limits admit, and holds from
+        ``q_hold`` the joint angles when the backup was first asked for in a run of control
+        periods none more than ``brake_hold_memory`` apart. Beyond the torque limits it only
+        damps, with the largest share ``s`` in [0, 1] of ``M_cat (-2 w q')`` that the limits
+        admit, and holds from
         where it is: the commanded joint accelerations keep their direction, so every joint
         keeps decelerating. (Clipping each joint's torque apart bent it through the coupled
         inertia and drove joint 4 to 7 rad/s while braking, 3x its datasheet speed; a
@@ -1303,9 +1308,14 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         loop well damped; the spring holds the arm against its uncompensated weight (a sag of
         ``residual torque / (M w^2)``, a few mrad). Far from rest it saturates: the torque
         limits brake, at the largest deceleration of that direction.
+
+        The hold point outlives short runs of feasible steps (``brake_hold_memory``): where
+        the chance program flips between feasible and infeasible every few periods, a hold
+        point taken anew at each engagement starts from the sagged pose each time, and the
+        sag ratchets (on the tabletop a hand sank 3 cm into the table in 1000 such periods).
         """
         d = self._sensed_view.data  # the robot's own sensors
-        if self._backup_step != self._steps - 1 or self._hold is None:
+        if self._hold is None or self._steps - self._backup_step - 1 > self._hold_memory_steps:
             self._hold = d.qpos[:7].copy()
         self._backup_step = self._steps
         w = self.brake_frequency

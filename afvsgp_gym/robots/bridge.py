@@ -36,8 +36,9 @@ collector is off during the loop (its pauses reach milliseconds; the loop's garb
 by reference counting).
 
 **The brake** (:class:`Brake`) is the simulation's backup with the robot's own model:
-``tau = c + M (-2 w q' - w^2 (q - q_hold))``, ``q_hold`` where it engaged; beyond the torque
-limits only the largest share of the damping the limits admit.
+``tau = c + M (-2 w q' - w^2 (q - q_hold))``, ``q_hold`` where it engaged (kept across up to
+0.1 s of feasible ticks); beyond the torque limits only the largest share of the damping the
+limits admit.
 """
 
 from __future__ import annotations
@@ -89,19 +90,34 @@ class Brake:
         Torque limits (Nm).
     frequency : float
         ``w`` (1/s), critically damped.
+    memory : int
+        Ticks without the brake (:meth:`release`) after which it engages anew; up to this
+        many in a row it keeps its hold point (100: 0.1 s at 1 kHz, as the simulation's
+        ``brake_hold_memory``). A hold point taken anew whenever the filter flips back to
+        infeasible starts from the sagged pose each time, and the sag ratchets.
     """
 
-    def __init__(self, tau_max=TAU_MAX, frequency: float = 50.0) -> None:
+    def __init__(self, tau_max=TAU_MAX, frequency: float = 50.0, memory: int = 100) -> None:
         self.tau_max = np.asarray(tau_max, dtype=np.float64)
         self.frequency = check_real(frequency, "frequency", low=0.0, low_open=True)
+        self.memory = int(check_real(memory, "memory", low=0.0))
         self.hold: np.ndarray | None = None
+        self._idle = 0
 
     def release(self) -> None:
-        """The next call engages anew (holds where it is then)."""
-        self.hold = None
+        """A tick without the brake: after more than ``memory`` in a row the next call engages
+        anew (holds where it is then)."""
+        self._idle += 1
+        if self._idle > self.memory:
+            self.hold = None
+
+    def reset(self) -> None:
+        """Forget the hold point: the next call engages anew."""
+        self.hold, self._idle = None, 0
 
     def __call__(self, q: np.ndarray, dq: np.ndarray, mass: np.ndarray,
                  coriolis: np.ndarray) -> np.ndarray:
+        self._idle = 0
         w = self.frequency
         if self.hold is None:
             self.hold = q.copy()
@@ -346,7 +362,7 @@ class Bridge:
                 self._step(state, t, self.clock())
             except _Stop as stop:
                 raise RuntimeError(f"the robot's state stops the bridge: {stop}") from None
-        self.brake.release()
+        self.brake.reset()
         self._filter_time = 0.0
 
     def run(self, seconds: float, warm_up: int = 50) -> BridgeReport:

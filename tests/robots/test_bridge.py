@@ -286,3 +286,23 @@ def test_the_bound_keeps_the_undeclared_payload_out_of_the_moving_sphere(bound, 
     assert report.stop_reason == "completed" and report.filter_active_steps > 500
     assert (report.cost_steps == 0) == safe
     assert report.min_h < 0.05
+
+
+def test_the_brake_keeps_its_hold_point_across_short_feasible_gaps():
+    """Up to ``memory`` ticks without the brake keep its hold point (a flipping filter must
+    not ratchet the sag); one more, or ``reset``, and it engages where the arm is then."""
+    mass, coriolis, dq = np.eye(7), np.zeros(7), np.zeros(7)
+    q0, q1 = np.zeros(7), np.full(7, 0.001)  # within the torque limits
+    brake = Brake(memory=3)
+    brake(q0, dq, mass, coriolis)
+    for _ in range(3):
+        brake.release()
+    tau = brake(q1, dq, mass, coriolis)  # pulled back to q0
+    np.testing.assert_allclose(tau, -brake.frequency ** 2 * (q1 - q0), rtol=1e-12)
+    for _ in range(4):
+        brake.release()
+    np.testing.assert_array_equal(brake(q1, dq, mass, coriolis), np.zeros(7))  # anew at q1
+    brake.reset()
+    np.testing.assert_array_equal(brake(q0, dq, mass, coriolis), np.zeros(7))
+    with pytest.raises(ValueError, match="memory"):
+        Brake(memory=-1)
