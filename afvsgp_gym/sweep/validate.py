@@ -14,6 +14,7 @@ the key and the value.
 from __future__ import annotations
 
 import inspect
+import json
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
@@ -107,35 +108,48 @@ def _check_names(where: str, block: Block) -> None:
         raise ConfigError(f"{where}: filter_kwargs given but every learner is {UNFILTERED!r}")
 
 
-def _check_values(where: str, block: Block) -> None:
+def _check_values(where: str, block: Block, made: dict[str, Any], built: set[str]) -> None:
+    """Make every env of ``block`` (one kwargs axis at a time) and build the filter of every
+    learner and filter-kwargs alternative on the first. ``made`` (envs by their kwargs) and
+    ``built`` (filters checked) carry over between blocks: an entry already checked is not
+    checked again."""
     import gymnasium as gym
 
     from afvsgp_gym.wrappers import SafetyFilter
 
     learners = [x for x in block.learners if x is not None]
     for env_id in block.envs:
-        envs = [_checked(where, f"env {env_id} with env_kwargs {kw}", gym.make, env_id, **kw)
-                for kw in _one_axis_at_a_time(block.env_kwargs)]
-        first = envs[0]
-        try:
-            for learner in learners:
-                for fkw in _one_axis_at_a_time(block.filter_kwargs):
+        keys = []
+        for kw in _one_axis_at_a_time(block.env_kwargs):
+            key = json.dumps([env_id, kw], sort_keys=True, default=repr)
+            if key not in made:
+                made[key] = _checked(where, f"env {env_id} with env_kwargs {kw}", gym.make,
+                                     env_id, **kw)
+            keys.append(key)
+        first = made[keys[0]]
+        for learner in learners:
+            for fkw in _one_axis_at_a_time(block.filter_kwargs):
+                key = json.dumps([keys[0], learner, fkw], sort_keys=True, default=repr)
+                if key not in built:
                     _checked(where, f"learner {learner!r} with filter_kwargs {fkw} on {env_id}",
                              SafetyFilter, first, learner=learner, seed=0, **fkw)
-            for agent in block.agents:
-                if agent.endswith(".zip"):
-                    from afvsgp_gym.agents.sb3 import load_policy
+                    built.add(key)
+        for agent in block.agents:
+            if agent.endswith(".zip"):
+                from afvsgp_gym.agents.sb3 import load_policy
 
-                    _checked(where, f"agent {agent!r} on {env_id}", load_policy, agent,
-                             env=first)
-        finally:
-            for env in envs:
-                env.close()
+                _checked(where, f"agent {agent!r} on {env_id}", load_policy, agent, env=first)
 
 
 def validate(sweep: Sweep) -> None:
     """Raise :class:`ConfigError` at the first entry of ``sweep`` that cannot run."""
-    for i, block in enumerate(sweep.blocks):
-        where = f"grid[{i}] {block.name!r}"
-        _check_names(where, block)
-        _check_values(where, block)
+    made: dict[str, Any] = {}
+    built: set[str] = set()
+    try:
+        for i, block in enumerate(sweep.blocks):
+            where = f"grid[{i}] {block.name!r}"
+            _check_names(where, block)
+            _check_values(where, block, made, built)
+    finally:
+        for env in made.values():
+            env.close()
