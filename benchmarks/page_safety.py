@@ -460,9 +460,9 @@ def build() -> dict:
             "- Nothing is certified before a learner has seen a region. With a zero nominal "
             "model the filter cannot act during its warm-up; the scenarios keep the obstacles "
             "away then.",
-            "- When no action meets the chance constraints the filter degrades, first to the "
-            "mean-only program's action, then to the environment's brake, which removes kinetic "
-            "energy and gives way to a moving obstacle within 10 cm, but certifies nothing: "
+            "- When no action meets the chance constraints the filter applies the "
+            "environment's brake, which removes kinetic energy, holds the arm and gives way "
+            "to a moving obstacle within 10 cm, but certifies nothing: "
             "giving way can lead into another obstacle, and a retreat that needs a joint held "
             "at its range margin is carried by the other joints only, if they can.",
             "- The oracle takes the true model's joint friction at u = 0; with friction it is "
