@@ -33,6 +33,10 @@ from acceptance_tables import (
 from docgen import DOCS, RESULTS, ROOT, main, measured, provenance, read_jsonl, replace_block, table
 
 SOURCE = RESULTS / "acceptance.jsonl.gz"
+#: Code versions of the episodes run again after the brake change (the filter brakes at once
+#: instead of relaxing to the mean, and the brake keeps its hold point): only the episodes
+#: that had reached the brake, the others being identical at that code.
+BRAKE_RERUN_CODES = ("104f9db",)
 #: optional: the priors grid at the code versions whose Franka envs suggested the conformal
 #: margin on all 28 joint-limit barriers, and the margin on the ranges with the multiplier on
 #: the speeds adapted on every step (before ``calibration_gate``)
@@ -350,16 +354,26 @@ def build() -> dict:
             f"obstacle, which is why the whole arm is the default{code('paper_ee')}.",
             f"- `pointmass`: `PointMassObstacle-v0`{code('pointmass')}.", ""]
     if several:
-        newest = str(select(recs, "priors")[0]["code_version"])  # the grid the page leads
-        stale = sorted({r["block"] for r in recs if str(r["code_version"]) != newest
-                        and r["block"] not in ("oracle", "nominal_only", "pointmass")},
-                       key=[r["block"] for r in recs].index)
-        out += [f"Blocks of several codes: those at `{newest}` were run again after the band "
-                "on the joint limits changed (\"The band on the joint limits and tracking\" "
-                "below). The oracle and the nominal-only filter learn nothing and the point "
-                "mass has no joint limits, so the change does not touch their blocks"
-                + (("; " + ", ".join(f"`{b}`" for b in stale) + " ran with an earlier band "
-                    "on the joint limits and were not run again") if stale else "") + ".", ""]
+        rerun = sorted({str(r["code_version"]) for r in recs
+                        if str(r["code_version"]) in BRAKE_RERUN_CODES})
+        band = sorted({str(r["code_version"]) for r in recs if r["block"] == "priors"}
+                      - set(rerun))
+        text = "Blocks of several codes."
+        if rerun:
+            n = sum(str(r["code_version"]) in rerun for r in recs)
+            text += (f" The {n} episodes at `{' / '.join(rerun)}` are those that had reached "
+                     "the brake (a step on which no action met the chance constraints) at their "
+                     "earlier code, and a sample of the others, run again when the filter "
+                     "stopped relaxing to the mean-only program and the brake began to keep its "
+                     "hold point: an episode that never reaches the brake runs identically at "
+                     "both codes, and the sample's records are identical.")
+        if band:
+            text += (f" The other learning episodes ran at `{' / '.join(band)}`, after the band "
+                     "on the joint limits changed (\"The band on the joint limits and "
+                     "tracking\" below); the oracle and the nominal-only filter learn nothing "
+                     "and the point mass has no joint limits, so that change does not touch "
+                     "their blocks.")
+        out += [text, ""]
 
     out += ["## Tracking against the oracle", "",
             "Mean tracking error where the reference is at least 5 cm clear of the obstacle "
