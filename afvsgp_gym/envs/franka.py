@@ -152,10 +152,11 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
     With ``self_collision`` (off by default; needs ``safety_spheres="arm"``) the arm's own
     links are kept apart too: after the obstacle barriers come ``n_self_collision_barriers``
     barriers, one per pair of :data:`~afvsgp_gym.envs.self_collision.PANDA_SELF_COLLISION_PAIRS`
-    (spheres on links at least two apart in the chain that can come within 0.1 m of each
-    other and do not overlap at the ready pose; :mod:`~afvsgp_gym.envs.self_collision` says
-    how they were chosen), named ``"link1[0]/link7[14]"``. Each is the obstacle pair's
-    barrier with the second sphere in the obstacle's place: ``h = |p_a - p_b| - r_a - r_b``,
+    (67: spheres on links at least two apart in the chain that can come within 0.01 m of
+    each other within the joint ranges and do not overlap at the ready pose;
+    :mod:`~afvsgp_gym.envs.self_collision` says how they were chosen), named
+    ``"link1[0]/link7[14]"``. Each is the obstacle pair's barrier with the second sphere in
+    the obstacle's place: ``h = |p_a - p_b| - r_a - r_b``,
     ``lf = n.(a_a - a_b) + curvature`` with ``a_s = J_s q''_0 + J_s' q'``, ``lg = n'(J_a -
     J_b) M^-1 diag(action_scale)``, from the same models (``"kinematic"``: ``lg = 0``,
     ``"zero"``: both 0), features ``[q, q', p_a - p_b, v_a - v_b]``, one learner each, and the

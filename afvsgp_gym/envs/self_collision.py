@@ -17,17 +17,19 @@ no sphere and is left out. Spheres of one link never move apart, and those of ne
 links overlap round their joint by construction: only pairs on links at least two apart are
 candidates (:func:`non_adjacent_pairs`: 146 of the 210 pairs of
 :data:`~afvsgp_gym.envs.safety_spheres.PANDA_ARM_SPHERES`). Of these,
-:data:`PANDA_SELF_COLLISION_PAIRS` keeps 110 (:func:`select_pairs`):
+:data:`PANDA_SELF_COLLISION_PAIRS` keeps 67 (:func:`select_pairs`):
 
 - 1 pair overlaps at the ready pose ``Q_HOME`` (``link5[9]/link7[15]``, the wrist's
   spheres round joint 6): it would be violated at every reset and is left out;
-- 35 pairs never come within :data:`SELF_COLLISION_CLEARANCE` (0.10 m) of each other in
-  :data:`SELECTION_SAMPLES` joint configurations drawn uniformly within the MuJoCo model's
-  joint ranges (seed :data:`SELECTION_SEED`), and are left out: the clearance covers what a
-  finite sample misses of a pair's closest approach.
+- 78 pairs cannot come within :data:`SELF_COLLISION_CLEARANCE` (0.01 m) of each other
+  anywhere within the MuJoCo model's joint ranges, and are left out: the least ``h`` of
+  :data:`SELECTION_SAMPLES` configurations drawn uniformly within the ranges (seed
+  :data:`SELECTION_SEED`), refined by L-BFGS-B from the pair's :data:`REFINE_STARTS` best
+  samples, is at least that.
 
-``benchmarks/select_self_pairs.py`` regenerates the table; tests/envs/test_self_collision.py
-re-derives it.
+``benchmarks/select_self_pairs.py`` regenerates the table and writes every candidate's
+minima and minimiser to ``benchmarks/results/self_pairs.json``; tests/envs/test_self_collision.py
+checks the table against that file and re-checks the file in part.
 """
 
 from __future__ import annotations
@@ -41,15 +43,19 @@ import numpy as np
 from afvsgp_gym.envs.safety_spheres import SafetySphere
 from afvsgp_gym.envs.scenario import sphere_barriers
 
-__all__ = ["FLANGE_HEIGHT", "HAND_INDEX", "PANDA_SELF_COLLISION_PAIRS", "SELECTION_SAMPLES",
-           "SELECTION_SEED", "SELF_COLLISION_CLEARANCE", "SelfCollisionPairs",
-           "SelfPairGeometry", "chain_index", "non_adjacent_pairs", "select_pairs"]
+__all__ = ["FLANGE_HEIGHT", "HAND_INDEX", "PANDA_SELF_COLLISION_PAIRS", "REFINE_STARTS",
+           "SELECTION_SAMPLES", "SELECTION_SEED", "SELF_COLLISION_CLEARANCE",
+           "SelfCollisionPairs", "SelfPairGeometry", "chain_index", "non_adjacent_pairs",
+           "select_pairs"]
 
-#: m: a pair is a barrier only when its ``h`` came below this in the sampled configurations.
-SELF_COLLISION_CLEARANCE = 0.10
+#: m: a pair is a barrier only when its least ``h`` over the joint ranges (refined) is below
+#: this: the pairs that can touch, and a centimetre more for a minimiser that stops short.
+SELF_COLLISION_CLEARANCE = 0.01
 #: Joint configurations sampled to choose the pairs, and their seed.
 SELECTION_SAMPLES = 20000
 SELECTION_SEED = 0
+#: Local minimisations of each pair's ``h``, from its best samples.
+REFINE_STARTS = 5
 #: m along link7's z axis: the flange plane (``franka_model.FLANGE_POS``); a sphere on link7
 #: beyond it lies on the hand.
 FLANGE_HEIGHT = 0.107
@@ -59,20 +65,16 @@ HAND_INDEX = 8
 # The kept pairs: sphere index of PANDA_ARM_SPHERES -> the spheres it is paired with
 # (benchmarks/select_self_pairs.py prints this table).
 _KEPT: dict[int, tuple[int, ...]] = {
-    0: (5, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16, 17, 18, 19, 20),
-    1: (5, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16, 17, 18, 19, 20),
-    2: (6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16, 17, 18, 19, 20),
-    3: (7, 8, 9, 10, 11, 12, 13, 14, 15, 16, 17, 18, 19, 20),
-    4: (8, 10, 18, 19, 20),
-    5: (8, 10, 16, 17, 18, 19, 20),
-    6: (18, 19, 20),
-    7: (15, 16, 17, 18, 19, 20),
-    8: (14, 15, 16, 17, 18, 19, 20),
-    9: (14, 16, 17, 18, 19),
-    10: (14, 15, 16, 17, 18, 19, 20),
-    11: (14, 15, 16, 17, 18),
-    12: (16, 17, 18),
-    13: (16, 17, 18),
+    0: (8, 9, 10, 11, 12, 13, 14, 15, 16, 17, 18, 19, 20),
+    1: (9, 10, 11, 12, 13, 14, 15, 16, 17, 18, 19, 20),
+    2: (8, 10, 14, 15, 16, 17, 18, 19, 20),
+    3: (9, 10, 11, 12, 13, 14, 15, 16, 17, 18, 19, 20),
+    5: (20,),
+    7: (19, 20),
+    8: (15, 16, 17, 18, 19, 20),
+    9: (14, 16, 17),
+    10: (14, 15, 16, 17, 18, 19),
+    11: (14, 15, 16),
 }
 
 #: ``(a, b)`` sphere indices into ``PANDA_ARM_SPHERES``, ``a < b`` (module docstring).
@@ -106,7 +108,7 @@ def non_adjacent_pairs(spheres: Sequence[SafetySphere]) -> np.ndarray:
 def select_pairs(candidates: np.ndarray, home_h: np.ndarray, closest_h: np.ndarray,
                  clearance: float = SELF_COLLISION_CLEARANCE) -> np.ndarray:
     """The ``candidates`` (C, 2) not overlapping at the ready pose (``home_h`` >= 0) whose
-    smallest sampled ``h`` (``closest_h``, (C,)) is below ``clearance``."""
+    least ``h`` over the joint ranges (``closest_h``, (C,)) is below ``clearance``."""
     keep = (np.asarray(home_h) >= 0.0) & (np.asarray(closest_h) < clearance)
     return np.asarray(candidates)[keep]
 
@@ -136,7 +138,7 @@ class SelfCollisionPairs:
         >>> p = np.outer(0.3 * np.arange(21), [0.0, 0.0, 1.0])
         >>> geometry = pairs.geometry(p, np.zeros((21, 3)))
         >>> len(pairs), pairs.names(PANDA_ARM_SPHERES)[0], round(float(geometry.h[0]), 4)
-        (110, 'link1[0]/link3[5]', 1.3258)
+        (67, 'link1[0]/link5[8]', 2.2336)
     """
 
     first: np.ndarray

@@ -2,6 +2,8 @@
 finite differences of the simulation and an independent computation, the barriers' place
 among the others, the self-contact flag against a direct check, the oracle filter."""
 
+import json
+import pathlib
 import subprocess
 import sys
 
@@ -22,6 +24,8 @@ from afvsgp_gym.wrappers import EpisodeSafetyStats, SafetyFilter
 FOLDED = np.array([0.0, 0.0, 0.0, -2.8, 0.0, -0.3, 0.785])
 #: A deeper fold (fingers ~6 cm into link1), inside the joint-limit barriers' margins.
 FOLD_TARGET = np.array([0.0, 0.2, 0.0, -2.9, 0.0, -0.3, 0.785])
+#: Every candidate pair's clearances, written by benchmarks/select_self_pairs.py.
+MINIMA = pathlib.Path(__file__).parents[2] / "benchmarks" / "results" / "self_pairs.json"
 
 
 def _self_rows(env) -> slice:
@@ -62,56 +66,101 @@ def _pair_h(p, pairs):
 
 @pytest.fixture(scope="module")
 def derivation():
-    """The selection done again: adjacency from the body tree, the ready pose's overlaps and
-    the closest sampled approach of each candidate pair, with its configuration."""
+    """The selection's inputs: the candidates from the body tree, their clearance at the
+    ready pose (computed here), and their sampled and refined minima and the refined
+    minimiser (``witness``) from benchmarks/results/self_pairs.json."""
     m = fm.build_model(fm.PlantParameters(), fm.SceneOptions())
     d = mujoco.MjData(m)
     link = _sphere_links(m)
     a, b = np.triu_indices(len(link), 1)
     candidates = np.column_stack([a, b])[np.abs(link[a] - link[b]) >= 2]
     home = _pair_h(_centres(m, d, fm.Q_HOME), candidates)
-    rng = np.random.default_rng(sc.SELECTION_SEED)  # the table's samples
-    q = rng.uniform(m.jnt_range[:7, 0], m.jnt_range[:7, 1], (sc.SELECTION_SAMPLES, 7))
-    closest = np.full(len(candidates), np.inf)
-    witness = np.zeros((len(candidates), 7))
-    for qi in q:
-        h = _pair_h(_centres(m, d, qi), candidates)
-        better = h < closest
-        closest[better], witness[better] = h[better], qi
-    return candidates, home, closest, witness
+    table = json.loads(MINIMA.read_text())
+    rows = table.pop("pairs")
+    assert table == {"clearance": sc.SELF_COLLISION_CLEARANCE, "samples": sc.SELECTION_SAMPLES,
+                     "seed": sc.SELECTION_SEED, "refine_starts": sc.REFINE_STARTS}
+    np.testing.assert_array_equal([r["pair"] for r in rows], candidates)
+    np.testing.assert_allclose([r["home"] for r in rows], home, rtol=0, atol=1e-12)
+    sampled = np.array([r["sampled"] for r in rows])
+    refined = np.array([r["refined"] for r in rows])
+    witness = np.array([r["q"] for r in rows])
+    return candidates, home, refined, witness, sampled
+
+
+def _kept(derivation) -> np.ndarray:
+    candidates, home, refined = derivation[:3]
+    return (home >= 0) & (refined < sc.SELF_COLLISION_CLEARANCE)
 
 
 def test_pair_table_is_rederived(derivation):
     """Non-adjacent links only (the hand and fingers one link after link7), none overlapping
-    at the ready pose, each coming within the clearance in the samples: the committed table,
-    with the counts the module docstring gives."""
-    candidates, home, closest, _ = derivation
+    at the ready pose, each able to come within the clearance by the committed minima: the
+    committed table, with the counts the module docstring gives."""
+    candidates, home, refined, _, _ = derivation
     assert sc.FLANGE_HEIGHT == fm.FLANGE_POS[2]
     np.testing.assert_array_equal(sc.non_adjacent_pairs(PANDA_ARM_SPHERES), candidates)
-    kept = (home >= 0) & (closest < sc.SELF_COLLISION_CLEARANCE)
+    kept = _kept(derivation)
     assert {tuple(p) for p in candidates[kept]} == set(sc.PANDA_SELF_COLLISION_PAIRS)
     assert len(sc.PANDA_SELF_COLLISION_PAIRS) == len(set(sc.PANDA_SELF_COLLISION_PAIRS))
     assert (len(candidates), int((home < 0).sum()), int((~kept & (home >= 0)).sum()),
-            int(kept.sum())) == (146, 1, 35, 110)
+            int(kept.sum())) == (146, 1, 78, 67)
     assert [tuple(p) for p in candidates[home < 0]] == [(9, 15)]  # link5[9]/link7[15]
     # no two spheres of one link or of neighbouring links are paired
     links = _sphere_links(fm.build_model(fm.PlantParameters(), fm.SceneOptions()))
     assert all(abs(links[a] - links[b]) >= 2 for a, b in sc.PANDA_SELF_COLLISION_PAIRS)
 
 
-def test_a_kept_pair_meets_in_a_sampled_configuration(derivation):
-    """The closest sampled approach of the kept pairs overlaps (the barriers are not idle),
-    and the env's barrier reads that pair's h at that configuration."""
-    candidates, home, closest, witness = derivation
-    kept = np.flatnonzero((home >= 0) & (closest < sc.SELF_COLLISION_CLEARANCE))
-    c = kept[np.argmin(closest[kept])]
-    assert closest[c] < 0
+def test_the_committed_minima_are_attained_and_below_the_samples(derivation):
+    """Each refined minimum is the clearance at its minimiser, within the joint ranges, and
+    at most the sampled one, which is at most the least over the first 2000 of the table's
+    draws (computed here)."""
+    candidates, _, refined, witness, sampled = derivation
+    m = fm.build_model(fm.PlantParameters(), fm.SceneOptions())
+    d = mujoco.MjData(m)
+    lo, hi = m.jnt_range[:7, 0], m.jnt_range[:7, 1]
+    assert np.all((witness >= lo) & (witness <= hi))
+    at = np.array([_pair_h(_centres(m, d, q), candidates[c : c + 1])[0]
+                   for c, q in enumerate(witness)])
+    np.testing.assert_allclose(at, refined, rtol=0, atol=1e-12)
+    assert np.all(refined <= sampled)
+    rng = np.random.default_rng(sc.SELECTION_SEED)
+    q = rng.uniform(lo, hi, (sc.SELECTION_SAMPLES, 7))[:2000]
+    least = np.min([_pair_h(_centres(m, d, qi), candidates) for qi in q], axis=0)
+    assert np.all(sampled <= least + 1e-12)  # (the same numbers summed in another order)
+    assert (sampled - refined).max() > 0.02  # the refinement finds what the samples miss
+
+
+def test_left_out_pairs_stay_apart_from_other_starts(derivation):
+    """Minimising again every pair left out by its clearance, from other draws (seed 1, the
+    5 best of 2000 for each): none comes within the clearance."""
+    from select_self_pairs import PairClearance, refine
+
+    candidates, home, refined, _, _ = derivation
+    far = np.flatnonzero((home >= 0) & (refined >= sc.SELF_COLLISION_CLEARANCE))
+    clearance = PairClearance(fm.build_model(fm.PlantParameters(), fm.SceneOptions()))
+    m = clearance.model
+    q = np.random.default_rng(1).uniform(m.jnt_range[:7, 0], m.jnt_range[:7, 1], (2000, 7))
+    h = clearance.values(q, candidates[far])
+    again = np.array([refine(clearance, tuple(int(i) for i in candidates[c]),
+                             q[np.argsort(h[:, j])[: sc.REFINE_STARTS]])[0]
+                      for j, c in enumerate(far)])
+    assert np.all(again >= sc.SELF_COLLISION_CLEARANCE)
+    assert np.abs(again - refined[far]).max() < 0.01  # the same minima, near enough
+
+
+def test_a_kept_pair_meets_in_a_configuration(derivation):
+    """The closest approach of the kept pairs overlaps (the barriers are not idle), and the
+    env's barrier reads that pair's h at its minimiser."""
+    candidates, home, refined, witness, _ = derivation
+    kept = np.flatnonzero(_kept(derivation))
+    c = kept[np.argmin(refined[kept])]
+    assert refined[c] < 0
     env = FrankaObstacleEnv(self_collision=True)
     env.reset(seed=0)
     env.set_state(witness[c], np.zeros(7))
     row = sc.PANDA_SELF_COLLISION_PAIRS.index(tuple(candidates[c]))
     h = env.barrier_values()[_self_rows(env)]
-    assert h[row] == pytest.approx(closest[c], abs=1e-12)
+    assert h[row] == pytest.approx(refined[c], abs=1e-12)
     assert h.min() == pytest.approx(h[row], abs=0.05)  # it is among the closest
 
 
@@ -146,11 +195,11 @@ def fd_env():
 
 
 def _near_contact_state(derivation, clearance=0.005):
-    """A state approaching contact: on the segment from the ready pose to the configuration
-    where the kept pair closest in the samples overlaps, where its h is within
-    ``clearance``, moving on along the segment (h' < 0)."""
-    candidates, home, closest, witness = derivation
-    kept = np.flatnonzero((home >= 0) & (closest < sc.SELF_COLLISION_CLEARANCE))
+    """A state approaching contact: on the segment from the ready pose to the minimiser of
+    the deepest kept pair, where its h is within ``clearance``, moving on along the segment
+    (h' < 0)."""
+    candidates, _, closest, witness, _ = derivation
+    kept = np.flatnonzero(_kept(derivation))
     c = kept[np.argmin(closest[kept])]
     m = fm.build_model(fm.PlantParameters(), fm.SceneOptions())
     d = mujoco.MjData(m)
