@@ -70,7 +70,8 @@ class EpisodeCounter:
     violation_steps, contact_steps, limit_steps : int
         Steps with ``info["h"] < 0``, ``info["collision"]``, ``info["limit_violation"]``.
     self_contact_steps : int
-        Steps with ``info["self_contact"]`` (the arm touching itself; not part of the cost).
+        Steps with ``info["self_contact"]`` (the arm touching itself or its base; not part
+        of the cost).
     min_h : float
         Smallest ``info["h"]`` (``inf`` while none was reported).
     interventions, infeasible_steps : int

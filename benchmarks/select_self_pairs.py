@@ -5,11 +5,13 @@ writes every candidate's clearances to ``benchmarks/results/self_pairs.json``:
 
     python benchmarks/select_self_pairs.py
 
-The candidates are the pairs of :data:`~afvsgp_gym.envs.safety_spheres.PANDA_ARM_SPHERES` on
-non-adjacent links (:func:`~afvsgp_gym.envs.self_collision.non_adjacent_pairs`). Left out:
-those overlapping at the ready pose ``Q_HOME``, and those whose clearance ``h`` cannot come below
-``SELF_COLLISION_CLEARANCE`` anywhere within the model's joint ranges. Each candidate's
-smallest ``h`` over that box is found in two stages:
+The candidates are the pairs of ``PANDA_SELF_COLLISION_SPHERES`` (the arm's spheres and the
+base's, which do not move) on non-adjacent links
+(:func:`~afvsgp_gym.envs.self_collision.non_adjacent_pairs`; the base's with link2 are
+candidates, two links apart). Left out: those overlapping at the ready pose ``Q_HOME``, and
+those whose clearance ``h`` cannot come below ``SELF_COLLISION_CLEARANCE`` anywhere within
+the model's joint ranges. Each candidate's smallest ``h`` over that box is found in two
+stages:
 
 1. ``SELECTION_SAMPLES`` joint configurations drawn uniformly within the ranges (seed
    ``SELECTION_SEED``): the sampled minimum;
@@ -34,10 +36,10 @@ from scipy.optimize import minimize
 
 from afvsgp_gym.envs import franka_model as fm
 from afvsgp_gym.envs import self_collision as sc
-from afvsgp_gym.envs.safety_spheres import PANDA_ARM_SPHERES, sphere_arrays
+from afvsgp_gym.envs.safety_spheres import sphere_arrays
 
 RESULTS = pathlib.Path(__file__).parent / "results" / "self_pairs.json"
-SPHERES = PANDA_ARM_SPHERES
+SPHERES = sc.PANDA_SELF_COLLISION_SPHERES
 
 
 def build() -> mujoco.MjModel:

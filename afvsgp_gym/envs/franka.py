@@ -42,6 +42,7 @@ from afvsgp_gym.envs.perception import (
 from afvsgp_gym.envs.primitives import Box, Capsule, Plane, pair_barriers, stack_shapes
 from afvsgp_gym.envs.safety_spheres import (
     PANDA_ARM_SPHERES,
+    PANDA_BASE_SPHERES,
     end_effector_sphere,
     parse_spheres,
     sphere_arrays,
@@ -55,7 +56,12 @@ from afvsgp_gym.envs.scenario import (
     sphere_barrier,
     sphere_barriers,
 )
-from afvsgp_gym.envs.self_collision import SelfCollisionPairs, SelfPairGeometry, chain_index
+from afvsgp_gym.envs.self_collision import (
+    PANDA_SELF_COLLISION_SPHERES,
+    SelfCollisionPairs,
+    SelfPairGeometry,
+    chain_index,
+)
 from afvsgp_gym.types import BarrierLayout, BarrierSet
 from afvsgp_gym.validation import check_choice, check_real
 
@@ -152,11 +158,13 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
     With ``self_collision`` (off by default; needs ``safety_spheres="arm"``) the arm's own
     links are kept apart too: after the obstacle barriers come ``n_self_collision_barriers``
     barriers, one per pair of :data:`~afvsgp_gym.envs.self_collision.PANDA_SELF_COLLISION_PAIRS`
-    (67: spheres on links at least two apart in the chain that can come within 0.01 m of
-    each other within the joint ranges and do not overlap at the ready pose;
+    (93: spheres on links at least two apart in the chain, the base's two spheres of
+    :data:`~afvsgp_gym.envs.safety_spheres.PANDA_BASE_SPHERES` included, that can come within
+    0.01 m of each other within the joint ranges and do not overlap at the ready pose;
     :mod:`~afvsgp_gym.envs.self_collision` says how they were chosen), named
-    ``"link1[0]/link7[14]"``. Each is the obstacle pair's barrier with the second sphere in
-    the obstacle's place: ``h = |p_a - p_b| - r_a - r_b``,
+    ``"link1[0]/link7[14]"`` or, with the base, ``"link7[20]/link0[22]"``. Each is the
+    obstacle pair's barrier with the second sphere in the obstacle's place (a base sphere
+    does not move: zero velocity, Jacobian and acceleration): ``h = |p_a - p_b| - r_a - r_b``,
     ``lf = n.(a_a - a_b) + curvature`` with ``a_s = J_s q''_0 + J_s' q'``, ``lg = n'(J_a -
     J_b) M^-1 diag(action_scale)``, from the same models (``"kinematic"``: ``lg = 0``,
     ``"zero"``: both 0), features ``[q, q', p_a - p_b, v_a - v_b]``, one learner each, and the
@@ -218,8 +226,8 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
     (2.175 rad/s joints 1-4, 2.61 rad/s joints 5-7); with ``check_acceleration`` also above
     the datasheet acceleration limits (15, 7.5, 10, 12.5, 15, 20, 20 rad/s^2, measured over a
     control period) and with ``check_torque_rate`` above 1000 Nm/s of commanded torque. The
-    limits count whether or not ``limit_barriers`` are on. The arm touching itself
-    (``info["self_contact"]``) does not count in this version.
+    limits count whether or not ``limit_barriers`` are on. The arm touching itself or its
+    base (``info["self_contact"]``) does not count in this version.
 
     ## Starting State
     The ready pose ``q = (0, -0.785, 0, -2.356, 0, 0, 0.785)`` (end-effector at the reference
@@ -234,12 +242,12 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
     ``cost``, ``h`` (min over the obstacle barriers, m), ``h_per_barrier`` (every barrier, in
     its own unit), ``collision`` (contact), ``limit_violation``, ``delta_b_true`` (true minus
     nominal highest derivative per barrier for the applied action at the pre-step state),
-    ``tracking_error`` (|p_ee - r|, m), ``self_contact`` (two collision geoms of the arm
+    ``tracking_error`` (|p_ee - r|, m), ``self_contact`` (two collision geoms of the robot
     on links at least two apart in the chain touch, the hand and fingers counting as one link
-    after link7; the base, link0, is not checked, and pairs touching at the ready pose would
-    be left out: none do), ``reference_h`` (clearance of an ``ee_radius`` sphere
-    at the reference point from every obstacle: the reference is "away from the obstacle"
-    when it is >= 0.05 m), ``unstable``, ``time``, ``reward_tracking``,
+    after link7 and the base, link0, as the link before link1 (its neighbour); pairs touching
+    at the ready pose would be left out: none do), ``reference_h`` (clearance of an
+    ``ee_radius`` sphere at the reference point from every obstacle: the reference is "away
+    from the obstacle" when it is >= 0.05 m), ``unstable``, ``time``, ``reward_tracking``,
     ``reward_ctrl``.
 
     ## Scenarios (c = reference centre, y = axis of the cyclic motion)
@@ -323,7 +331,8 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
       obstacle (a table: ``normal`` up); static only. The barrier and the contact check take
       the infinite half-space; the drawn rectangle is 2 m wide.
 
-    The base (link0) has no safety sphere and is not in the contact check, so a table the
+    The base (link0) has no safety sphere against obstacles (its spheres serve the
+    self-collision barriers only) and is not in the obstacle contact check, so a table the
     robot stands on is a plane at or below the mount (z <= 0); the lowest safety spheres
     (link1's) reach 0.11 m above it, and a plane above that violates their barriers at every
     pose. The obstacle camera (``obstacle_noise``, ``obstacle_rate``, ``obstacle_delay``) and
@@ -331,7 +340,8 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
     another type they raise ValueError (the joint encoders and pushes work with every type).
 
     ## Version History
-    - v0: ``self_collision`` barriers (opt-in) and ``info["self_contact"]`` (issue 46).
+    - v0: ``self_collision`` barriers (opt-in) and ``info["self_contact"]``, the base
+      included in both (issue 46).
     - v0: the ``"tabletop"`` and ``"shelf"`` scenes (issue 46) joined the scenarios.
     - v0: initial version; whole-arm safety spheres (``safety_spheres="arm"``) are the
       default, contacts count as cost; the joint range and speed limits count as cost and
@@ -603,7 +613,8 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         n_s = len(spheres)
         self._n_pairs = n_s * self.n_obstacles
         self._self_pairs = self._self_collision_pairs(spec, spheres)
-        self_names = () if self._self_pairs is None else self._self_pairs.names(spheres)
+        self_names = (() if self._self_pairs is None
+                      else self._self_pairs.names(PANDA_SELF_COLLISION_SPHERES))
         limits = self.joint_limits.names() if self.limit_barriers else ()
         self.n_barriers = self._n_pairs + len(self_names) + len(limits)
         self.barrier_names = tuple(
@@ -630,20 +641,29 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         )
 
     def _self_collision_pairs(self, spec, spheres) -> SelfCollisionPairs | None:
-        """The self-collision pairs (``self_collision``), chosen for the ``"arm"`` spheres:
-        with another sphere set ``ValueError`` names both options."""
+        """The self-collision pairs (``self_collision``), chosen for the ``"arm"`` spheres
+        and the base's, which stay where the model puts link0: with another sphere set
+        ``ValueError`` names both options."""
         if not self.self_collision:
             return None
         if tuple(spheres) != PANDA_ARM_SPHERES:
             raise ValueError(f"self_collision=True needs safety_spheres='arm' (its pairs are "
                              f"chosen for those spheres). Got: safety_spheres={spec!r}")
-        return SelfCollisionPairs.of(spheres)
+        m = self.model
+        d = mujoco.MjData(m)
+        mujoco.mj_kinematics(m, d)
+        base = m.body("panda0_link0").id
+        offsets = np.array([s.offset for s in PANDA_BASE_SPHERES])
+        fixed = d.xpos[base] + offsets @ d.xmat[base].reshape(3, 3).T
+        return SelfCollisionPairs.of(PANDA_SELF_COLLISION_SPHERES, fixed_centres=fixed)
 
     def _self_contact_geoms(self) -> _GeomPairs:
-        """The pairs of the arm's collision geoms on links at least two apart in the chain
-        (:func:`~afvsgp_gym.envs.self_collision.chain_index`: a geom on link7 beyond the
-        flange is the hand's) that do not touch at the ready pose."""
-        m, g = self.model, self._arm_geoms
+        """The pairs of the robot's collision geoms (the base's and the arm's) on links at
+        least two apart in the chain (:func:`~afvsgp_gym.envs.self_collision.chain_index`: a
+        geom on link7 beyond the flange is the hand's) that do not touch at the ready
+        pose."""
+        m = self.model
+        g = np.concatenate([fm.base_collision_geoms(m), self._arm_geoms])
         index = np.array([chain_index(m.body(m.geom_bodyid[i]).name, m.geom_pos[i, 2])
                           for i in g])
         ia, ib = np.triu_indices(len(g), 1)
@@ -1567,9 +1587,9 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         return info
 
     def _self_contact(self) -> bool:
-        """Some two collision geoms of the arm on non-adjacent links touch
-        (``mj_geomDistance`` < 0; the pairs of :meth:`_self_contact_geoms`, those whose
-        bounding spheres overlap)."""
+        """Some two collision geoms of the robot (the arm's and the base's) on non-adjacent
+        links touch (``mj_geomDistance`` < 0; the pairs of :meth:`_self_contact_geoms`, those
+        whose bounding spheres overlap)."""
         m, d, pairs = self.model, self.data, self._self_contact_pairs
         for a, b in pairs.near(d.geom_xpos):
             if mujoco.mj_geomDistance(m, d, a, b, 0.01, None) < 0:

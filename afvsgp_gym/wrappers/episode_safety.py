@@ -46,7 +46,7 @@ class EpisodeSafetyStats(gym.Wrapper, gym.utils.RecordConstructorArgs):
       ``info["warmup"]`` False (the filter's learners fitted; every step without a filter);
       ``violation_steps`` h < 0; ``contact_steps`` ``info["collision"]``;
       ``self_contact_steps`` ``info["self_contact"]`` (the Franka envs: the arm touching
-      itself, not a cost); ``limit_steps`` ``info["limit_violation"]``; ``min_h`` the
+      itself or its base, not a cost); ``limit_steps`` ``info["limit_violation"]``; ``min_h`` the
       smallest h.
     - ``interventions``: ``info["filter_active"]``; ``infeasible_steps`` not
       ``info["filter_feasible"]``, split by ``info["filter_status"]`` into ``backup_steps``

@@ -16,7 +16,11 @@ import afvsgp_gym  # noqa: F401
 from afvsgp_gym.envs import franka_model as fm
 from afvsgp_gym.envs import self_collision as sc
 from afvsgp_gym.envs.franka import FrankaObstacleEnv
-from afvsgp_gym.envs.safety_spheres import COVERAGE_TOLERANCE, PANDA_ARM_SPHERES
+from afvsgp_gym.envs.safety_spheres import (
+    COVERAGE_TOLERANCE,
+    PANDA_ARM_SPHERES,
+    PANDA_BASE_SPHERES,
+)
 from afvsgp_gym.evaluation.factories import make_policy
 from afvsgp_gym.wrappers import EpisodeSafetyStats, SafetyFilter
 
@@ -24,6 +28,8 @@ from afvsgp_gym.wrappers import EpisodeSafetyStats, SafetyFilter
 FOLDED = np.array([0.0, 0.0, 0.0, -2.8, 0.0, -0.3, 0.785])
 #: A deeper fold (fingers ~6 cm into link1), inside the joint-limit barriers' margins.
 FOLD_TARGET = np.array([0.0, 0.2, 0.0, -2.9, 0.0, -0.3, 0.785])
+SPHERES = sc.PANDA_SELF_COLLISION_SPHERES
+N_ARM = len(PANDA_ARM_SPHERES)
 #: Every candidate pair's clearances, written by benchmarks/select_self_pairs.py.
 MINIMA = pathlib.Path(__file__).parents[2] / "benchmarks" / "results" / "self_pairs.json"
 
@@ -44,22 +50,22 @@ def _chain_depth(m: mujoco.MjModel, body: int) -> int:
 
 
 def _sphere_links(m: mujoco.MjModel) -> np.ndarray:
-    """The link of each arm sphere from the body tree; link7's spheres past the flange (the
-    hand's) one further, with the fingers (children of link7)."""
+    """The link of each sphere (the arm's and the base's) from the body tree; link7's
+    spheres past the flange (the hand's) one further, with the fingers (children of link7)."""
     return np.array([_chain_depth(m, m.body(s.body).id)
                      + (s.body == "panda0_link7" and s.offset[2] > fm.FLANGE_POS[2])
-                     for s in PANDA_ARM_SPHERES])
+                     for s in SPHERES])
 
 
 def _centres(m, d, q):
     d.qpos[:7] = q
     mujoco.mj_kinematics(m, d)
     return np.array([d.xpos[m.body(s.body).id] + d.xmat[m.body(s.body).id].reshape(3, 3)
-                     @ np.array(s.offset) for s in PANDA_ARM_SPHERES])
+                     @ np.array(s.offset) for s in SPHERES])
 
 
 def _pair_h(p, pairs):
-    radii = np.array([s.radius for s in PANDA_ARM_SPHERES])
+    radii = np.array([s.radius for s in SPHERES])
     a, b = pairs[:, 0], pairs[:, 1]
     return np.linalg.norm(p[a] - p[b], axis=1) - radii[a] - radii[b]
 
@@ -93,21 +99,28 @@ def _kept(derivation) -> np.ndarray:
 
 
 def test_pair_table_is_rederived(derivation):
-    """Non-adjacent links only (the hand and fingers one link after link7), none overlapping
-    at the ready pose, each able to come within the clearance by the committed minima: the
-    committed table, with the counts the module docstring gives."""
+    """Non-adjacent links only (the base link 0, the hand and fingers one link after link7),
+    none overlapping at the ready pose, each able to come within the clearance by the
+    committed minima: the committed table, with the counts the module docstring gives."""
     candidates, home, refined, _, _ = derivation
     assert sc.FLANGE_HEIGHT == fm.FLANGE_POS[2]
-    np.testing.assert_array_equal(sc.non_adjacent_pairs(PANDA_ARM_SPHERES), candidates)
+    assert SPHERES == PANDA_ARM_SPHERES + PANDA_BASE_SPHERES
+    np.testing.assert_array_equal(sc.non_adjacent_pairs(SPHERES), candidates)
     kept = _kept(derivation)
     assert {tuple(p) for p in candidates[kept]} == set(sc.PANDA_SELF_COLLISION_PAIRS)
     assert len(sc.PANDA_SELF_COLLISION_PAIRS) == len(set(sc.PANDA_SELF_COLLISION_PAIRS))
     assert (len(candidates), int((home < 0).sum()), int((~kept & (home >= 0)).sum()),
-            int(kept.sum())) == (146, 1, 78, 67)
+            int(kept.sum())) == (184, 1, 90, 93)
+    base = candidates[:, 1] >= N_ARM
+    assert (int(base.sum()), int((kept & base).sum())) == (38, 26)
     assert [tuple(p) for p in candidates[home < 0]] == [(9, 15)]  # link5[9]/link7[15]
     # no two spheres of one link or of neighbouring links are paired
     links = _sphere_links(fm.build_model(fm.PlantParameters(), fm.SceneOptions()))
     assert all(abs(links[a] - links[b]) >= 2 for a, b in sc.PANDA_SELF_COLLISION_PAIRS)
+    # the base with link2 (two apart): candidates, none kept
+    link2 = base & (links[candidates[:, 0]] == links[N_ARM] + 2)
+    assert link2.sum() == 4 and not kept[link2].any()
+    assert refined[link2].min() > 0.08
 
 
 def test_the_committed_minima_are_attained_and_below_the_samples(derivation):
@@ -149,12 +162,12 @@ def test_left_out_pairs_stay_apart_from_other_starts(derivation):
 
 
 def test_a_kept_pair_meets_in_a_configuration(derivation):
-    """The closest approach of the kept pairs overlaps (the barriers are not idle), and the
-    env's barrier reads that pair's h at its minimiser."""
+    """The closest approach of the kept pairs overlaps (the barriers are not idle): it is
+    a pair with the base, and the env's barrier reads that pair's h at its minimiser."""
     candidates, home, refined, witness, _ = derivation
     kept = np.flatnonzero(_kept(derivation))
     c = kept[np.argmin(refined[kept])]
-    assert refined[c] < 0
+    assert refined[c] < 0 and candidates[c, 1] >= N_ARM
     env = FrankaObstacleEnv(self_collision=True)
     env.reset(seed=0)
     env.set_state(witness[c], np.zeros(7))
@@ -175,12 +188,77 @@ def test_chain_index_and_pairs_refuse_what_they_do_not_know():
     assert sc.chain_index("panda0_link7", 0.05) == 7
     assert sc.chain_index("panda0_link7", 0.2) == sc.HAND_INDEX
     assert sc.chain_index("panda0_rightfinger") == sc.HAND_INDEX
-    with pytest.raises(ValueError, match="panda0_link0"):
-        sc.chain_index("panda0_link0")
+    assert sc.chain_index("panda0_link0", 0.3) == sc.BASE_INDEX == 0
+    for body in ("panda0_link8", "world", "obstacle0"):
+        with pytest.raises(ValueError, match="is not a link of the Panda"):
+            sc.chain_index(body)
     with pytest.raises(ValueError, match="pairs must index"):
         sc.SelfCollisionPairs.of(PANDA_ARM_SPHERES, [(0, 21)])
     with pytest.raises(ValueError, match="different spheres"):
         sc.SelfCollisionPairs.of(PANDA_ARM_SPHERES, [(3, 3)])
+    with pytest.raises(ValueError, match="pairs must join a moving sphere"):
+        sc.SelfCollisionPairs.of(SPHERES, [(0, 21), (21, 22)], fixed_centres=np.zeros((2, 3)))
+    for bad in (np.zeros((24, 3)), [[0.0, np.nan, 0.0]]):
+        with pytest.raises(ValueError, match="fixed_centres must be finite"):
+            sc.SelfCollisionPairs.of(SPHERES, [(0, 5)], fixed_centres=bad)
+    pairs = sc.SelfCollisionPairs.of(PANDA_ARM_SPHERES, [(0, 5)])  # nothing fixed
+    assert pairs.n_moving == N_ARM and pairs.fixed.shape == (0, 3)
+
+
+# --- the base's spheres ------------------------------------------------------------------
+
+def _base_spheres(m, d):
+    """World centres (2, 3) and radii of PANDA_BASE_SPHERES."""
+    b = m.body("panda0_link0").id
+    centres = np.array([d.xpos[b] + d.xmat[b].reshape(3, 3) @ np.array(s.offset)
+                        for s in PANDA_BASE_SPHERES])
+    return centres, np.array([s.radius for s in PANDA_BASE_SPHERES])
+
+
+def test_base_spheres_cover_every_vertex_of_its_collision_mesh():
+    """As the arm's (test_franka): every vertex of link0's collision mesh lies inside the
+    union of PANDA_BASE_SPHERES up to COVERAGE_TOLERANCE."""
+    m = fm.build_model(fm.PlantParameters(), fm.SceneOptions())
+    d = mujoco.MjData(m)
+    mujoco.mj_kinematics(m, d)
+    centres, radii = _base_spheres(m, d)
+    points = []
+    for g in _base_geoms(m):
+        assert m.geom_type[g] == mujoco.mjtGeom.mjGEOM_MESH
+        i = m.geom_dataid[g]
+        local = m.mesh_vert[m.mesh_vertadr[i] : m.mesh_vertadr[i] + m.mesh_vertnum[i]]
+        points.append(d.geom_xpos[g] + local @ d.geom_xmat[g].reshape(3, 3).T)
+    points = np.vstack(points)
+    gap = np.min(np.linalg.norm(points[:, None] - centres[None], axis=2) - radii, axis=1)
+    assert len(points) > 50 and gap.max() <= COVERAGE_TOLERANCE
+
+
+@pytest.mark.skipif(not hasattr(mujoco, "mj_geomDistance"), reason="needs mj_geomDistance")
+def test_base_geom_keeps_at_least_its_spheres_clearance():
+    """As the arm's (test_franka_obstacles): for sphere probes of 1, 5 and 15 cm round the
+    base, MuJoCo's distance from link0's collision geom is at least the base spheres' least
+    clearance less COVERAGE_TOLERANCE, and tight for some."""
+    radii_probe = (0.01, 0.05, 0.15)
+    env = FrankaObstacleEnv(obstacles=[{"position": [2.0, 2.0 * i, 1.0], "radius": r}
+                                       for i, r in enumerate(radii_probe)])
+    env.reset(seed=0)
+    m, d = env.model, env.data
+    centres, radii = _base_spheres(m, d)
+    (g_base,) = _base_geoms(m)
+    rng = np.random.default_rng(0)
+    margins = []
+    for _ in range(150):
+        for i, r in enumerate(radii_probe):
+            c = rng.uniform([-0.35, -0.3, -0.15], [0.3, 0.3, 0.4])
+            d.mocap_pos[env._obstacle_mocap[i]] = c
+            mujoco.mj_kinematics(m, d)
+            h = np.min(np.linalg.norm(c - centres, axis=1) - radii) - r
+            if h < 0.2:
+                dist = mujoco.mj_geomDistance(m, d, int(g_base), int(env._obstacle_geoms[i]),
+                                              1.0, None)
+                assert dist >= h - COVERAGE_TOLERANCE, (c, r, dist, h)
+                margins.append(dist - h)
+    assert len(margins) > 100 and min(margins) < 0.1 * COVERAGE_TOLERANCE  # some are tight
 
 
 # --- the terms ---------------------------------------------------------------------------
@@ -194,12 +272,12 @@ def fd_env():
     return env
 
 
-def _near_contact_state(derivation, clearance=0.005):
+def _near_contact_state(derivation, base: bool, clearance=0.005):
     """A state approaching contact: on the segment from the ready pose to the minimiser of
-    the deepest kept pair, where its h is within ``clearance``, moving on along the segment
-    (h' < 0)."""
+    the deepest kept pair with the base (``base``) or of two moving spheres, where its h is
+    within ``clearance``, moving on along the segment (h' < 0)."""
     candidates, _, closest, witness, _ = derivation
-    kept = np.flatnonzero(_kept(derivation))
+    kept = np.flatnonzero(_kept(derivation) & ((candidates[:, 1] >= N_ARM) == base))
     c = kept[np.argmin(closest[kept])]
     m = fm.build_model(fm.PlantParameters(), fm.SceneOptions())
     d = mujoco.MjData(m)
@@ -220,19 +298,21 @@ def _probe(env, q, qd, u):
     return env.barrier_terms("true").derivatives[_self_rows(env)].copy()
 
 
-@pytest.mark.parametrize("state", ["random", "near contact"])
+@pytest.mark.parametrize("state", ["random", "near contact", "near the base"])
 def test_terms_match_finite_differences(fd_env, derivation, state):
     """h' from the difference of h, lf and lg from the difference of h' over one simulated
     step at u = 0 and unit actions. The error model of test_franka_obstacles: a forward
     difference over dt = 1e-4 s misses dt/2 h''' and the Euler step's implicit damping
     shifts q'' by ~dt D M^-1 (1e-3 of it), both under the 2 % (relative, and of the largest
-    term) allowed; h' from h is first order in dt too (1e-3)."""
+    term) allowed; h' from h is first order in dt too (1e-3). Near the base the pair's
+    second sphere is fixed (zero velocity and Jacobian): its terms are the moving one's."""
     env, rows = fd_env, _self_rows(fd_env)
     if state == "random":
         rng = np.random.default_rng(3)
         q, qd = fm.Q_HOME + rng.uniform(-0.3, 0.3, 7), rng.uniform(-0.5, 0.5, 7)
     else:
-        q, qd, row = _near_contact_state(derivation)
+        q, qd, row = _near_contact_state(derivation, base=state == "near the base")
+        assert (sc.PANDA_SELF_COLLISION_PAIRS[row][1] >= N_ARM) == (state == "near the base")
     env.set_state(q, qd)
     t0 = env.barrier_terms("true")
     d_now, lf, lg = t0.derivatives[rows].copy(), t0.lf[rows].copy(), t0.lg[rows].copy()
@@ -248,6 +328,11 @@ def test_terms_match_finite_differences(fd_env, derivation, state):
     np.testing.assert_allclose(lf_fd, lf, rtol=2e-2, atol=2e-2 * np.abs(lf).max())
     np.testing.assert_allclose(lg_fd, lg, rtol=2e-2, atol=2e-2 * np.abs(lg).max())
     assert np.abs(lg).max() > 1.0
+    if state != "random":  # that pair's own row, to its own scale
+        np.testing.assert_allclose(lg_fd[row], lg[row], rtol=2e-2,
+                                   atol=2e-2 * np.abs(lg[row]).max())
+        assert abs(lf_fd[row] - lf[row]) <= 2e-2 * max(abs(lf[row]), np.abs(lf).max() / 10)
+        assert np.abs(lg[row]).max() > 0.1
 
 
 def _independent_terms(m, state, pairs):
@@ -259,7 +344,7 @@ def _independent_terms(m, state, pairs):
     minv = np.empty((m.nv, m.nv))
     mujoco.mj_solveM(m, d, minv, np.eye(m.nv))
     out = []
-    for s in PANDA_ARM_SPHERES:
+    for s in SPHERES:  # link0's: MuJoCo's Jacobians of a body without joints are 0
         body = m.body(s.body).id
         p = d.xpos[body] + d.xmat[body].reshape(3, 3) @ np.array(s.offset)
         jac, jdot = np.zeros((3, m.nv)), np.zeros((3, m.nv))
@@ -274,6 +359,15 @@ def _independent_terms(m, state, pairs):
         lf.append(n @ (aa - ab) + (vr @ vr - (n @ vr) ** 2) / dist)
         lg.append(n @ (ga - gb))
     return np.array(lf), np.array(lg)
+
+
+def _with_base(pairs, p, v, jac, bias):
+    """The arm spheres' kinematics with the base's after them: where they are fixed, with
+    zero velocity, Jacobian and ``J' q'``."""
+    f = len(pairs.fixed)
+    return (np.concatenate([p, pairs.fixed]), np.concatenate([v, np.zeros((f, 3))]),
+            np.concatenate([jac, np.zeros((f, *jac.shape[1:]))]),
+            np.concatenate([bias, np.zeros((f, 3))]))
 
 
 def test_every_model_and_the_barriers_around_them():
@@ -293,8 +387,9 @@ def test_every_model_and_the_barriers_around_them():
     assert n_self == len(sc.PANDA_SELF_COLLISION_PAIRS) and off.n_self_collision_barriers == 0
     assert on.n_barriers == off.n_barriers + n_self
     assert on.barrier_names == (off.barrier_names[:k] + tuple(
-        f"{PANDA_ARM_SPHERES[a].body[7:]}[{a}]/{PANDA_ARM_SPHERES[b].body[7:]}[{b}]"
+        f"{SPHERES[a].body[7:]}[{a}]/{SPHERES[b].body[7:]}[{b}]"
         for a, b in sc.PANDA_SELF_COLLISION_PAIRS) + off.barrier_names[k:])
+    assert on.barrier_names[rows.stop - 1] == "link7[20]/link0[22]"
     others = np.r_[0:k, rows.stop:on.n_barriers]
     for model in ("nominal", "true"):
         a, b = on.barrier_terms(model), off.barrier_terms(model)
@@ -310,7 +405,9 @@ def test_every_model_and_the_barriers_around_them():
     np.testing.assert_array_equal(nominal.derivatives, true.derivatives)
     # the features, the sensing covariance (encoders only) and the projection rows
     view, pairs = on._sensed_view, on._self_pairs
-    p, v, jac, bias = view.spheres
+    np.testing.assert_allclose(pairs.fixed, _centres(on.model, mujoco.MjData(on.model),
+                                                     q)[N_ARM:], rtol=0, atol=1e-15)
+    p, v, jac, bias = _with_base(pairs, *view.spheres)
     first, second = pairs.first, pairs.second
     np.testing.assert_allclose(true.xi[rows, 14:17], p[first] - p[second], atol=1e-15)
     np.testing.assert_allclose(true.xi[rows, 17:20], v[first] - v[second], atol=1e-15)
@@ -331,7 +428,7 @@ def test_every_model_and_the_barriers_around_them():
         if model == "zero":
             assert not t.lf[rows].any()
             continue
-        p, v, _, bias = env._spheres
+        p, v, _, bias = _with_base(pairs, *env._spheres)
         offset, vr, n = p[first] - p[second], v[first] - v[second], env._true_view.self_pairs.n
         np.testing.assert_allclose(n, offset / np.linalg.norm(offset, axis=1)[:, None],
                                    rtol=1e-12)
@@ -378,13 +475,21 @@ def _touching(m, d, pairs):
     return any(mujoco.mj_geomDistance(m, d, a, b, 0.01, None) < 0 for a, b in pairs)
 
 
+def _base_geoms(m) -> np.ndarray:
+    """The base's (link0's) collision geoms: group 3, as the arm's."""
+    return np.flatnonzero((m.geom_bodyid == m.body("panda0_link0").id) & (m.geom_group == 3))
+
+
 @pytest.fixture(scope="module")
 def contact_pairs():
-    """Every pair of arm collision geoms on links two apart, none touching at the ready
-    pose (so none is left out)."""
+    """Every pair of collision geoms of the base and the arm on links two apart, none
+    touching at the ready pose (so none is left out)."""
     m = fm.build_model(fm.PlantParameters(), fm.SceneOptions())
     d = mujoco.MjData(m)
-    link = _geom_links(m, fm.arm_collision_geoms(m))
+    base = _base_geoms(m)
+    assert len(base) == 1
+    np.testing.assert_array_equal(fm.base_collision_geoms(m), base)
+    link = _geom_links(m, np.concatenate([base, fm.arm_collision_geoms(m)]))
     pairs = [(a, b) for a in link for b in link if a < b and abs(link[a] - link[b]) >= 2]
     d.qpos[:7] = fm.Q_HOME
     mujoco.mj_kinematics(m, d)
@@ -393,21 +498,25 @@ def contact_pairs():
 
 
 def test_self_contact_flag_equals_a_direct_check(contact_pairs):
-    """Full random torques fold the arm onto itself; the flag is the direct check of every
-    pair at every step, and the folded pose is a contact, the ready pose not."""
+    """Full random torques fold the arm onto itself and onto its base; the flag is the
+    direct check of every pair at every step (the base's included: some steps touch only
+    the base), and the folded pose is a contact, the ready pose not."""
     env = FrankaObstacleEnv()
     _, info = env.reset(seed=0)
     assert info["self_contact"] is False
     assert sorted(zip(env._self_contact_pairs.first, env._self_contact_pairs.second,
                       strict=True)) == sorted(contact_pairs)
+    base = set(_base_geoms(env.model).tolist())
+    arm_pairs = [(a, b) for a, b in contact_pairs if a not in base]
     rng = np.random.default_rng(0)
-    flags = []
+    flags, base_only = [], 0
     for _ in range(400):
         _, _, term, _, info = env.step(rng.uniform(-1.0, 1.0, 7))
         assert not term
         flags.append(info["self_contact"])
         assert flags[-1] == _touching(env.model, env.data, contact_pairs)
-    assert 20 < sum(flags) < 380
+        base_only += flags[-1] and not _touching(env.model, env.data, arm_pairs)
+    assert 20 < sum(flags) < 380 and base_only > 0
     env.set_state(FOLDED, np.zeros(7))
     _, _, _, _, info = env.step(np.zeros(7))
     assert info["self_contact"] and info["cost"] == 0.0  # not a cost in this version
