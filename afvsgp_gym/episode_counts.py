@@ -2,12 +2,12 @@
 
 Both the episode runner (:func:`afvsgp_gym.evaluation.run_episode`) and the
 :class:`~afvsgp_gym.wrappers.EpisodeSafetyStats` wrapper count with :class:`EpisodeCounter`;
-the keys it reads are the envs' (``cost``, ``h``, ``collision``, ``limit_violation``,
-``success``, ``unstable``, ``torque_saturated``) and the safety filter's (``filter_active``,
-``filter_feasible``, ``filter_status``, ``warmup``, ``filter_time_s``,
-``proposal_true_margin``, ``action_proposed``, ``action_applied``, ``learner_error``,
-``calibration``, ``delta_b_lower``), each with a default when absent (an env without a filter
-counts no intervention).
+the keys it reads are the envs' (``cost``, ``h``, ``collision``, ``self_contact``,
+``limit_violation``, ``success``, ``unstable``, ``torque_saturated``) and the safety
+filter's (``filter_active``, ``filter_feasible``, ``filter_status``, ``warmup``,
+``filter_time_s``, ``proposal_true_margin``, ``action_proposed``, ``action_applied``,
+``learner_error``, ``calibration``, ``delta_b_lower``), each with a default when absent (an
+env without a filter counts no intervention).
 """
 
 from __future__ import annotations
@@ -69,6 +69,9 @@ class EpisodeCounter:
         ``info["warmup"]`` False (or absent).
     violation_steps, contact_steps, limit_steps : int
         Steps with ``info["h"] < 0``, ``info["collision"]``, ``info["limit_violation"]``.
+    self_contact_steps : int
+        Steps with ``info["self_contact"]`` (the arm touching itself or its base; not part
+        of the cost).
     min_h : float
         Smallest ``info["h"]`` (``inf`` while none was reported).
     interventions, infeasible_steps : int
@@ -111,6 +114,7 @@ class EpisodeCounter:
         self.return_ = 0.0
         self.cost_steps = self.cost_steps_after_warmup = 0
         self.violation_steps = self.contact_steps = self.limit_steps = 0
+        self.self_contact_steps = 0
         self.min_h = math.inf
         self.interventions = self.infeasible_steps = 0
         self.backup_steps = self.relaxed_steps = 0
@@ -137,6 +141,7 @@ class EpisodeCounter:
         self.violation_steps += h < 0.0
         self.min_h = min(self.min_h, h)
         self.contact_steps += bool(info.get("collision", False))
+        self.self_contact_steps += bool(info.get("self_contact", False))
         self.limit_steps += bool(info.get("limit_violation", False))
         self.interventions += bool(info.get("filter_active", False))
         if not info.get("filter_feasible", True):

@@ -1,16 +1,19 @@
 """Fit the whole-arm safety spheres to the gymnasium-robotics Panda's collision geometry.
 
-Prints the sphere list of ``afvsgp_gym.envs.safety_spheres.PANDA_ARM_SPHERES``:
+Prints the sphere lists of ``afvsgp_gym.envs.safety_spheres.PANDA_ARM_SPHERES`` and
+``PANDA_BASE_SPHERES``:
 
     python benchmarks/fit_safety_spheres.py
 
 Per group of rigidly attached bodies (links 1-6 one each; link 7 with the hand and the fixed
-fingers), the surface points of the collision geoms (mesh vertices plus 6000 area-weighted
-samples per mesh; capsules and boxes sampled on their surfaces) in the group's body frame are
-clustered (k-means, 20 restarts), each cluster gets its minimal enclosing ball
-(Badoiu-Clarkson iterations), points are reassigned to the ball they fit best and the balls
-refitted; the restart with the smallest total volume wins. Every sampled surface point is
-inside the union by construction; tests/envs/test_franka.py checks every mesh vertex.
+fingers; the base, link0, last, for the self-collision barriers only: 2 spheres, the fewest
+of total volume below one's), the surface points of the collision geoms (mesh vertices plus
+6000 area-weighted samples per mesh; capsules and boxes sampled on their surfaces) in the
+group's body frame are clustered (k-means, 20 restarts), each cluster gets its minimal
+enclosing ball (Badoiu-Clarkson iterations), points are reassigned to the ball they fit best
+and the balls refitted; the restart with the smallest total volume wins. Every sampled
+surface point is inside the union by construction; tests/envs/test_franka.py checks every
+mesh vertex (tests/envs/test_self_collision.py the base's).
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ GROUPS = (
     (("panda0_link5",), "panda0_link5", 4),
     (("panda0_link6",), "panda0_link6", 2),
     (("panda0_link7", "panda0_leftfinger", "panda0_rightfinger"), "panda0_link7", 7),
+    (("panda0_link0",), "panda0_link0", 2),  # PANDA_BASE_SPHERES; last: the others' draws stay
 )
 
 
@@ -62,7 +66,7 @@ def group_points(env: FrankaObstacleEnv, bodies, frame: str, rng) -> np.ndarray:
     fb = m.body(frame).id
     rot, pos = d.xmat[fb].reshape(3, 3), d.xpos[fb]
     out = []
-    for g in fm.arm_collision_geoms(m):
+    for g in np.concatenate([fm.base_collision_geoms(m), fm.arm_collision_geoms(m)]):
         if m.body(m.geom_bodyid[g]).name in bodies:
             world = d.geom_xpos[g] + surface_points(m, g, rng) @ d.geom_xmat[g].reshape(3, 3).T
             out.append((world - pos) @ rot)
@@ -103,6 +107,8 @@ def main() -> None:
     env.reset(seed=0)
     rng = np.random.default_rng(0)
     for bodies, frame, k in GROUPS:
+        if bodies == ("panda0_link0",):
+            print("PANDA_BASE_SPHERES:")
         for c, r in fit(group_points(env, bodies, frame, rng), k):
             print(f'    _s("{frame.removeprefix("panda0_")}", {c[0]:.4f}, {c[1]:.4f}, '
                   f'{c[2]:.4f}, {r:.4f}),')

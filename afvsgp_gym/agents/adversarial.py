@@ -133,8 +133,9 @@ class GreedyDescent:
         h = terms.h
         n_obs = base.n_obstacle_barriers
         k = int(np.argmin(h[:n_obs]))
-        if h[k] > self.reach and len(h) > n_obs:
-            k = n_obs + int(np.argmin(h[n_obs:]))
+        limit = n_obs + base.n_self_collision_barriers  # the first joint-limit barrier
+        if h[k] > self.reach and len(h) > limit:
+            k = limit + int(np.argmin(h[limit:]))
         g = terms.lg[k]
         return np.where(g > 0, self.low, self.high)
 

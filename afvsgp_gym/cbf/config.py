@@ -82,7 +82,7 @@ class FilterConfig:
         (``>= 0``; a learner takes the largest of its barriers'; 0 keeps that learner's band
         the paper's): standard deviations per miss (the multiplier), or the learner's noise
         standard deviations per miss (the margin). E.g. on the Franka envs
-        ``[0.0] * env.unwrapped.n_obstacle_barriers + [1.0] * 28`` corrects the joint-limit
+        ``[0.0] * (env.unwrapped.n_barriers - 28) + [1.0] * 28`` corrects the joint-limit
         barriers' band only.
     calibration_gate : bool
         Adapt the conformal correction only on the steps where a miss could decide the

@@ -42,6 +42,7 @@ from afvsgp_gym.envs.perception import (
 from afvsgp_gym.envs.primitives import Box, Capsule, Plane, pair_barriers, stack_shapes
 from afvsgp_gym.envs.safety_spheres import (
     PANDA_ARM_SPHERES,
+    PANDA_BASE_SPHERES,
     end_effector_sphere,
     parse_spheres,
     sphere_arrays,
@@ -54,6 +55,12 @@ from afvsgp_gym.envs.scenario import (
     parse_obstacles,
     sphere_barrier,
     sphere_barriers,
+)
+from afvsgp_gym.envs.self_collision import (
+    PANDA_SELF_COLLISION_SPHERES,
+    SelfCollisionPairs,
+    SelfPairGeometry,
+    chain_index,
 )
 from afvsgp_gym.types import BarrierLayout, BarrierSet
 from afvsgp_gym.validation import check_choice, check_real
@@ -74,15 +81,16 @@ FRANKA_SCENARIOS = (*SCENARIOS, "tabletop", "shelf")
 
 class StateView(NamedTuple):
     """One view of the state: the joint state (an ``MjData`` after ``mj_forward``), the
-    safety spheres' and end-effector's kinematics, every barrier's geometry and the obstacle
-    states ``(p, v, a)``. The env keeps the true view and the sensed one (the same object
-    when it senses exactly)."""
+    safety spheres' and end-effector's kinematics, every barrier's geometry, the obstacle
+    states ``(p, v, a)`` and the self-collision pairs' geometry (None without them). The env
+    keeps the true view and the sensed one (the same object when it senses exactly)."""
 
     data: mujoco.MjData
     spheres: tuple[np.ndarray, ...]
     ee: tuple[np.ndarray, np.ndarray]
     geometry: tuple[np.ndarray, ...]
     obstacle_states: list
+    self_pairs: SelfPairGeometry | None = None
 
 
 class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
@@ -147,8 +155,23 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
     ``true_terms_error_bound`` (``2 sum_j |n' J_s M^-1|_j f_j``), for an oracle safe under
     friction (``SafetyFilter(..., learner="oracle", oracle_terms="true_robust")``).
 
-    With ``limit_barriers`` (default) the robot's own limits follow the obstacle barriers
-    (``n_obstacle_barriers`` of them): per joint a lower and an upper range barrier (relative
+    With ``self_collision`` (off by default; needs ``safety_spheres="arm"``) the arm's own
+    links are kept apart too: after the obstacle barriers come ``n_self_collision_barriers``
+    barriers, one per pair of :data:`~afvsgp_gym.envs.self_collision.PANDA_SELF_COLLISION_PAIRS`
+    (93: spheres on links at least two apart in the chain, the base's two spheres of
+    :data:`~afvsgp_gym.envs.safety_spheres.PANDA_BASE_SPHERES` included, that can come within
+    0.01 m of each other within the joint ranges and do not overlap at the ready pose;
+    :mod:`~afvsgp_gym.envs.self_collision` says how they were chosen), named
+    ``"link1[0]/link7[14]"`` or, with the base, ``"link7[20]/link0[22]"``. Each is the
+    obstacle pair's barrier with the second sphere in the obstacle's place (a base sphere
+    does not move: zero velocity, Jacobian and acceleration): ``h = |p_a - p_b| - r_a - r_b``,
+    ``lf = n.(a_a - a_b) + curvature`` with ``a_s = J_s q''_0 + J_s' q'``, ``lg = n'(J_a -
+    J_b) M^-1 diag(action_scale)``, from the same models (``"kinematic"``: ``lg = 0``,
+    ``"zero"``: both 0), features ``[q, q', p_a - p_b, v_a - v_b]``, one learner each, and the
+    obstacle pairs' suggested filter settings.
+
+    With ``limit_barriers`` (default) the robot's own limits follow the obstacle (and
+    self-collision) barriers: per joint a lower and an upper range barrier (relative
     degree 2, ``range_margin`` rad inside the model's joint range) and a lower and an upper
     speed barrier (relative degree 1, ``speed_margin`` rad/s below the datasheet speed),
     28 in all (:mod:`afvsgp_gym.envs.joint_limits`); their ``lf``/``lg`` are ``+-(q''_0,
@@ -203,7 +226,8 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
     (2.175 rad/s joints 1-4, 2.61 rad/s joints 5-7); with ``check_acceleration`` also above
     the datasheet acceleration limits (15, 7.5, 10, 12.5, 15, 20, 20 rad/s^2, measured over a
     control period) and with ``check_torque_rate`` above 1000 Nm/s of commanded torque. The
-    limits count whether or not ``limit_barriers`` are on.
+    limits count whether or not ``limit_barriers`` are on. The arm touching itself or its
+    base (``info["self_contact"]``) does not count in this version.
 
     ## Starting State
     The ready pose ``q = (0, -0.785, 0, -2.356, 0, 0, 0.785)`` (end-effector at the reference
@@ -218,9 +242,12 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
     ``cost``, ``h`` (min over the obstacle barriers, m), ``h_per_barrier`` (every barrier, in
     its own unit), ``collision`` (contact), ``limit_violation``, ``delta_b_true`` (true minus
     nominal highest derivative per barrier for the applied action at the pre-step state),
-    ``tracking_error`` (|p_ee - r|, m), ``reference_h`` (clearance of an ``ee_radius`` sphere
-    at the reference point from every obstacle: the reference is "away from the obstacle"
-    when it is >= 0.05 m), ``unstable``, ``time``, ``reward_tracking``,
+    ``tracking_error`` (|p_ee - r|, m), ``self_contact`` (two collision geoms of the robot
+    on links at least two apart in the chain touch, the hand and fingers counting as one link
+    after link7 and the base, link0, as the link before link1 (its neighbour); pairs touching
+    at the ready pose would be left out: none do), ``reference_h`` (clearance of an
+    ``ee_radius`` sphere at the reference point from every obstacle: the reference is "away
+    from the obstacle" when it is >= 0.05 m), ``unstable``, ``time``, ``reward_tracking``,
     ``reward_ctrl``.
 
     ## Scenarios (c = reference centre, y = axis of the cyclic motion)
@@ -280,6 +307,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
     | brake_frequency | 50.0 | 1/s, ``backup_action``'s stop-and-hold bandwidth |
     | brake_hold_memory | 0.1 | s, the brake keeps its hold point across feasible gaps this short |
     | limit_barriers | True | joint range and speed barriers after the obstacle ones |
+    | self_collision | False | barriers between the arm's own links, after the obstacle ones |
     | range_margin, speed_margin | 0.1, 0.4 | rad, rad/s: the limit barriers' margins |
     | check_acceleration, check_torque_rate | False, False | optional limit checks (Cost) |
     | obstacle_noise, obstacle_rate, obstacle_delay | 0.0, None, 0.0 | m, Hz, s: the camera |
@@ -303,7 +331,8 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
       obstacle (a table: ``normal`` up); static only. The barrier and the contact check take
       the infinite half-space; the drawn rectangle is 2 m wide.
 
-    The base (link0) has no safety sphere and is not in the contact check, so a table the
+    The base (link0) has no safety sphere against obstacles (its spheres serve the
+    self-collision barriers only) and is not in the obstacle contact check, so a table the
     robot stands on is a plane at or below the mount (z <= 0); the lowest safety spheres
     (link1's) reach 0.11 m above it, and a plane above that violates their barriers at every
     pose. The obstacle camera (``obstacle_noise``, ``obstacle_rate``, ``obstacle_delay``) and
@@ -311,6 +340,8 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
     another type they raise ValueError (the joint encoders and pushes work with every type).
 
     ## Version History
+    - v0: ``self_collision`` barriers (opt-in) and ``info["self_contact"]``, the base
+      included in both (issue 46).
     - v0: the ``"tabletop"`` and ``"shelf"`` scenes (issue 46) joined the scenarios.
     - v0: initial version; whole-arm safety spheres (``safety_spheres="arm"``) are the
       default, contacts count as cost; the joint range and speed limits count as cost and
@@ -389,6 +420,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         brake_frequency: float = 50.0,
         brake_hold_memory: float = 0.1,
         limit_barriers: bool = True,
+        self_collision: bool = False,
         range_margin: float = 0.1,
         speed_margin: float = 0.4,
         check_acceleration: bool = False,
@@ -430,6 +462,9 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         self.reset_noise = float(reset_noise)
         self.normalize_action = bool(normalize_action)
         self.limit_barriers = bool(limit_barriers)
+        if not isinstance(self_collision, bool | np.bool_):
+            raise ValueError(f"self_collision must be True or False. Got: {self_collision!r}")
+        self.self_collision = bool(self_collision)
         range_margin = check_real(range_margin, "range_margin", low=0.0)
         speed_margin = check_real(speed_margin, "speed_margin", low=0.0)
         self.perception = Perception(obstacle_noise, obstacle_rate, obstacle_delay,
@@ -506,6 +541,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         self._setup_spheres(safety_spheres)
         self._arm_geoms = fm.arm_collision_geoms(m)
         self._arm_rbound = m.geom_rbound[self._arm_geoms].copy()
+        self._self_contact_pairs = self._self_contact_geoms()
         self._obstacle_geoms = np.array([m.geom(f"obstacle{i}").id for i in range(n_obs)])
         # their orientations change per reset (the tabletop's clutter): the compiler's
         # "same frame as the body" shortcut would keep the compiled one in data.geom_xmat
@@ -576,13 +612,16 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         self._sphere_bodies = self._sphere_body_ids.tolist()
         n_s = len(spheres)
         self._n_pairs = n_s * self.n_obstacles
+        self._self_pairs = self._self_collision_pairs(spec, spheres)
+        self_names = (() if self._self_pairs is None
+                      else self._self_pairs.names(PANDA_SELF_COLLISION_SPHERES))
         limits = self.joint_limits.names() if self.limit_barriers else ()
-        self.n_barriers = self._n_pairs + len(limits)
+        self.n_barriers = self._n_pairs + len(self_names) + len(limits)
         self.barrier_names = tuple(
             f"{s.body.removeprefix('panda0_')}[{i}]/obstacle{o}"
             for o in range(self.n_obstacles)
             for i, s in enumerate(spheres)
-        ) + limits
+        ) + self_names + limits
         # One-sphere shortcuts (the paper's "ee"), each giving the general path's numbers:
         # the sphere at the end-effector site is the site (MuJoCo's site_xpos is xmat @ pos +
         # xpos, the sum _sphere_centres forms; with one nonzero offset entry the order of the
@@ -601,24 +640,75 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
             else self._pair_geometry
         )
 
+    def _self_collision_pairs(self, spec, spheres) -> SelfCollisionPairs | None:
+        """The self-collision pairs (``self_collision``), chosen for the ``"arm"`` spheres
+        and the base's, which stay where the model puts link0: with another sphere set
+        ``ValueError`` names both options."""
+        if not self.self_collision:
+            return None
+        if tuple(spheres) != PANDA_ARM_SPHERES:
+            raise ValueError(f"self_collision=True needs safety_spheres='arm' (its pairs are "
+                             f"chosen for those spheres). Got: safety_spheres={spec!r}")
+        m = self.model
+        d = mujoco.MjData(m)
+        mujoco.mj_kinematics(m, d)
+        base = m.body("panda0_link0").id
+        offsets = np.array([s.offset for s in PANDA_BASE_SPHERES])
+        fixed = d.xpos[base] + offsets @ d.xmat[base].reshape(3, 3).T
+        return SelfCollisionPairs.of(PANDA_SELF_COLLISION_SPHERES, fixed_centres=fixed)
+
+    def _self_contact_geoms(self) -> _GeomPairs:
+        """The pairs of the robot's collision geoms (the base's and the arm's) on links at
+        least two apart in the chain (:func:`~afvsgp_gym.envs.self_collision.chain_index`: a
+        geom on link7 beyond the flange is the hand's) that do not touch at the ready
+        pose."""
+        m = self.model
+        g = np.concatenate([fm.base_collision_geoms(m), self._arm_geoms])
+        index = np.array([chain_index(m.body(m.geom_bodyid[i]).name, m.geom_pos[i, 2])
+                          for i in g])
+        ia, ib = np.triu_indices(len(g), 1)
+        far = np.abs(index[ia] - index[ib]) >= 2
+        a, b = g[ia[far]], g[ib[far]]
+        d = mujoco.MjData(m)
+        d.qpos[:7] = fm.Q_HOME
+        mujoco.mj_kinematics(m, d)
+        apart = np.array([mujoco.mj_geomDistance(m, d, int(x), int(y), 0.01, None) >= 0.0
+                          for x, y in zip(a, b, strict=True)], dtype=bool)
+        return _GeomPairs.of(a[apart], b[apart], m.geom_rbound)
+
     @property
     def n_obstacle_barriers(self) -> int:
-        """The (sphere, obstacle) barriers come first; the joint-limit barriers follow."""
+        """The (sphere, obstacle) barriers come first; the self-collision barriers
+        (:attr:`n_self_collision_barriers`) and the joint-limit barriers follow."""
         return self._n_pairs
 
     @property
+    def n_self_collision_barriers(self) -> int:
+        """The self-collision barriers, after the obstacle ones (0 without
+        ``self_collision``)."""
+        return 0 if self._self_pairs is None else len(self._self_pairs)
+
+    @property
+    def _n_pair_barriers(self) -> int:
+        """The barriers of sphere pairs (obstacle and self-collision), all of relative
+        degree 2 with one learner each, before the joint-limit barriers."""
+        return self._n_pairs + self.n_self_collision_barriers
+
+    @property
     def barrier_layout(self) -> BarrierLayout:
-        """Relative degree 2 for the obstacle barriers, one learner each; the joint-limit
-        barriers (2 for ranges, 1 for speeds) share one learner per joint, with their own
-        hyperparameter group (:mod:`afvsgp_gym.envs.joint_limits`)."""
-        return arm_layout(self._n_pairs, self.joint_limits if self.limit_barriers else None)
+        """Relative degree 2 for the obstacle and self-collision barriers, one learner each;
+        the joint-limit barriers (2 for ranges, 1 for speeds) share one learner per joint,
+        with their own hyperparameter group (:mod:`afvsgp_gym.envs.joint_limits`)."""
+        return arm_layout(self._n_pair_barriers,
+                          self.joint_limits if self.limit_barriers else None)
 
     @property
     def shared_barrier_layout(self) -> BarrierLayout:
         """:attr:`barrier_layout` with every obstacle pair projected onto the joint-limit
         barriers' seven learners (``learner = -1``; ``learner="afvsgp-shared"``, issue 45):
         a pair's model error is ``Delta h'' = n' J_s(q) Delta q''`` when the kinematics are
-        known, so the terms carry ``projection`` = ``n' J_s`` (m/rad) per pair and the seven
+        known, so the terms carry ``projection`` = ``n' J_s`` (m/rad) per pair (a
+        self-collision pair likewise, ``n'(J_a - J_b)``) and the seven
         joint-acceleration learners (each fed by its joint's range and speed barriers) predict
         every pair's band. Needs the joint-limit barriers and a nominal model that knows the
         kinematics (not ``"zero"``, whose terms hold no kinematics to project through)."""
@@ -626,17 +716,18 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
             raise ValueError("the shared learner needs the kinematics, which "
                              "nominal_model='zero' does not know: use 'kinematic' or "
                              "'perturbed', or the per-barrier learner 'afvsgp'")
-        return arm_layout(self._n_pairs, self.joint_limits if self.limit_barriers else None,
-                          projected=True)
+        return arm_layout(self._n_pair_barriers,
+                          self.joint_limits if self.limit_barriers else None, projected=True)
 
     @property
     def activation_distance(self) -> float | np.ndarray:
-        """Suggested activation distance: one per barrier (m for the obstacle barriers, rad
-        and rad/s for the joint-limit ones), or ``OBSTACLE_ACTIVATION`` without limits."""
+        """Suggested activation distance: one per barrier (m for the obstacle and
+        self-collision barriers, rad and rad/s for the joint-limit ones), or
+        ``OBSTACLE_ACTIVATION`` without limits."""
         if not self.limit_barriers:
             return self.OBSTACLE_ACTIVATION
         n = self.joint_limits.n_joints
-        return np.concatenate([np.full(self._n_pairs, self.OBSTACLE_ACTIVATION),
+        return np.concatenate([np.full(self._n_pair_barriers, self.OBSTACLE_ACTIVATION),
                                np.full(2 * n, self.RANGE_ACTIVATION),
                                np.full(2 * n, self.SPEED_ACTIVATION)])
 
@@ -644,7 +735,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
     def first_gain(self) -> np.ndarray:
         """Suggested first class-K gain per barrier: ``SPEED_GAIN`` for the joint speed
         barriers, NaN (the filter's ``alpha``) for the others."""
-        parts = [np.full(self._n_pairs, np.nan)]
+        parts = [np.full(self._n_pair_barriers, np.nan)]
         if self.limit_barriers:
             n = self.joint_limits.n_joints
             parts += [np.full(2 * n, np.nan), np.full(2 * n, self.SPEED_GAIN)]
@@ -662,14 +753,14 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
                "braking_deceleration": self.braking_deceleration,
                "first_gain": self.first_gain, **self.WARMUP_FILTER_DEFAULTS}
         if self.limit_barriers:
-            out.update(limit_calibration(self._n_pairs, self.joint_limits.n_joints))
+            out.update(limit_calibration(self._n_pair_barriers, self.joint_limits.n_joints))
         return out
 
     @property
     def braking_deceleration(self) -> np.ndarray:
-        """Suggested braking deceleration per barrier (m/s^2 obstacles, rad/s^2 joint
-        ranges, inf for the speed barriers of relative degree 1)."""
-        parts = [np.full(self._n_pairs, self.OBSTACLE_DECELERATION)]
+        """Suggested braking deceleration per barrier (m/s^2 obstacles and self-collision
+        pairs, rad/s^2 joint ranges, inf for the speed barriers of relative degree 1)."""
+        parts = [np.full(self._n_pair_barriers, self.OBSTACLE_DECELERATION)]
         if self.limit_barriers:
             n = self.joint_limits.n_joints
             parts += [np.repeat(self.RANGE_DECELERATION, 2), np.full(2 * n, np.inf)]
@@ -860,22 +951,44 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         self._place_markers()
         mujoco.mj_forward(self.model, d)
         self._spheres, self._ee = self._kinematics(d)
-        self._geometry = self._state_geometry(d, self._spheres, self._obstacle_states)
+        self_pairs = self._self_geometry(self._spheres)
+        self._geometry = self._state_geometry(d, self._spheres, self._obstacle_states,
+                                              self_pairs)
         self._true_view = StateView(d, self._spheres, self._ee, self._geometry,
-                                    self._obstacle_states)
+                                    self._obstacle_states, self_pairs)
         self._sensed_view = self._true_view if self.perception.exact else self._sense()
         self._invalidate_barriers()
 
-    def _state_geometry(self, d: mujoco.MjData, spheres, states) -> tuple[np.ndarray, ...]:
+    def _self_geometry(self, spheres) -> SelfPairGeometry | None:
+        """The self-collision pairs' geometry at the sphere kinematics ``spheres`` (None
+        without ``self_collision``)."""
+        pairs = self._self_pairs
+        return None if pairs is None else pairs.geometry(spheres[0], spheres[1])
+
+    def _state_geometry(self, d: mujoco.MjData, spheres, states,
+                        self_pairs: SelfPairGeometry | None = None) -> tuple[np.ndarray, ...]:
         """``(derivs, n, curv, xi, a_obs)`` of every barrier at joint state ``d``, sphere
-        kinematics ``spheres`` and obstacle states ``states``."""
+        kinematics ``spheres``, obstacle states ``states`` and self-collision geometry
+        ``self_pairs`` (``n``, ``curv`` and ``a_obs`` are the obstacle pairs' only)."""
         geometry = self._geometry_of(d, spheres, states)
+        if self_pairs is not None:
+            geometry = self._with_self_geometry(geometry, d, self_pairs)
         return self._with_limit_geometry(geometry, d) if self.limit_barriers else geometry
+
+    def _with_self_geometry(self, geometry: tuple[np.ndarray, ...], d: mujoco.MjData,
+                            self_pairs: SelfPairGeometry) -> tuple[np.ndarray, ...]:
+        """``geometry`` with the self-collision pairs' ``[h, h']`` and features appended."""
+        derivs, n, curv, xi, a_obs = geometry
+        derivs = np.concatenate([derivs, np.column_stack([self_pairs.h, self_pairs.hd])])
+        xi = np.concatenate([xi, self._self_pairs.features(self_pairs, d.qpos[:7],
+                                                           d.qvel[:7], self.feature_dim)])
+        derivs.flags.writeable = xi.flags.writeable = False
+        return derivs, n, curv, xi, a_obs
 
     def _with_limit_geometry(self, geometry: tuple[np.ndarray, ...],
                              d: mujoco.MjData) -> tuple[np.ndarray, ...]:
-        """The obstacle pairs' ``(derivs, n, curv, xi, a_obs)`` with the joint-limit
-        barriers' derivatives and features appended (``n``, ``curv``, ``a_obs`` stay the
+        """The pairs' ``(derivs, n, curv, xi, a_obs)`` with the joint-limit barriers'
+        derivatives and features appended (``n``, ``curv``, ``a_obs`` stay the obstacle
         pairs')."""
         derivs, n, curv, xi, a_obs = geometry
         lim, q, qd = self.joint_limits, d.qpos[:7], d.qvel[:7]
@@ -935,8 +1048,10 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
             ds.ctrl[:] = 0.0
             mujoco.mj_forward(self.model, ds)
             spheres, ee = self._kinematics(ds)
+            self_pairs = self._self_geometry(spheres)
         else:
             ds, spheres, ee = d, self._spheres, self._ee
+            self_pairs = self._true_view.self_pairs
         states = self._obstacle_states
         if self._camera is not None:
             est = self._estimate
@@ -944,7 +1059,8 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
                       else self._camera.raw_states(self.time, self.obstacles))
         if ds is d and states is self._obstacle_states:
             return self._true_view
-        return StateView(ds, spheres, ee, self._state_geometry(ds, spheres, states), states)
+        return StateView(ds, spheres, ee, self._state_geometry(ds, spheres, states, self_pairs),
+                         states, self_pairs)
 
     def obstacle_reading(self) -> tuple[np.ndarray, float]:
         """The camera's newest sample of the obstacle centres (O, 3) and its sample time
@@ -980,8 +1096,9 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         self._estimate = (self._steps, states, covariance)
         view = self._sensed_view  # the same joint reading: only the obstacles change
         self._sensed_view = StateView(view.data, view.spheres, view.ee,
-                                      self._state_geometry(view.data, view.spheres, states),
-                                      states)
+                                      self._state_geometry(view.data, view.spheres, states,
+                                                           view.self_pairs),
+                                      states, view.self_pairs)
         self._invalidate_barriers()
 
     def _sensed_covariance(self, view: StateView, sphere_acc: np.ndarray | None
@@ -990,11 +1107,12 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         whose ``lf`` holds the spheres' accelerations ``sphere_acc`` (S, 3; None: ``lf = 0``):
         the obstacle estimate's (when one with a covariance is set;
         :func:`~afvsgp_gym.envs.perception.pair_covariance`) and the encoders' noise (to first
-        order: ``n' J_s`` times the joint noise for the pairs; ``q``, ``q'`` directly for the
-        joint limits); None when neither is known. And the mean of ``lf``'s error (K,) to
-        second order, which ``lf`` loses (None: none): the curvature ``|P v|^2 / |d|`` is
-        convex in the obstacle's velocity, so its estimate is high by ``tr(P Sigma_v) / |d| =
-        2 sigma_v^2 / |d|`` on average."""
+        order: ``n' J_s`` times the joint noise for the pairs, ``n'(J_a - J_b)`` for the
+        self-collision pairs, which the obstacle estimate does not touch; ``q``, ``q'``
+        directly for the joint limits); None when neither is known. And the mean of ``lf``'s
+        error (K,) to second order, which ``lf`` loses (None: none): the curvature ``|P v|^2
+        / |d|`` is convex in the obstacle's velocity, so its estimate is high by ``tr(P
+        Sigma_v) / |d| = 2 sigma_v^2 / |d|`` on average."""
         est = self._estimate
         obstacle_cov = est[2] if est is not None and est[0] == self._steps else None
         enc = self._encoders
@@ -1024,11 +1142,17 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
                 gain = np.einsum("kj,kj->k", rows, rows)
                 cov[:k, 0, 0] += sq * gain
                 cov[:k, 1, 1] += sv * gain
+            pairs = view.self_pairs
+            if pairs is not None:
+                rows = self._self_pairs.rows(pairs, view.spheres[2])[:, :7]
+                gain = np.einsum("kj,kj->k", rows, rows)
+                cov[k : k + len(gain), 0, 0] += sq * gain
+                cov[k : k + len(gain), 1, 1] += sv * gain
             if self.limit_barriers:
-                j = self.joint_limits.n_joints
-                cov[k : k + 2 * j, 0, 0] += sq
-                cov[k : k + 2 * j, 1, 1] += sv
-                cov[k + 2 * j :, 0, 0] += sv
+                j, s = self.joint_limits.n_joints, self._n_pair_barriers
+                cov[s : s + 2 * j, 0, 0] += sq
+                cov[s : s + 2 * j, 1, 1] += sv
+                cov[s + 2 * j :, 0, 0] += sv
         cov.flags.writeable = False
         return cov, bias
 
@@ -1216,7 +1340,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         """The terms of model ``kind`` at ``view``, and the spheres' accelerations at zero
         action (S, 3) that their ``lf`` holds (None for the zero model)."""
         derivs, n, curv, xi, a_obs = view.geometry
-        k = len(curv)  # obstacle pairs; the joint-limit barriers follow
+        k = len(curv)  # obstacle pairs; the self-collision and joint-limit barriers follow
         if kind == "zero":
             return BarrierSet(derivs, *self._zero_terms(len(derivs)), xi), None
         _, _, jac, bias = view.spheres
@@ -1224,7 +1348,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         ns = n.reshape(-1, n_s, 3)  # (obstacles, spheres, 3)
         limits = None
         if kind == "kinematic":  # joint accelerations are dynamics: nothing known
-            acc, lg = bias, np.zeros((k, 7))
+            acc, gain, lg = bias, None, np.zeros((k, 7))
             if self.limit_barriers:
                 limits = (np.zeros(self.joint_limits.n_barriers),
                           np.zeros((self.joint_limits.n_barriers, 7)))
@@ -1261,12 +1385,18 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
             if a_obs is not None:  # static obstacles: a_o = 0
                 lf -= np.einsum("ki,ki->k", n, a_obs)
             lf += curv
+        pairs = view.self_pairs
+        if pairs is not None:
+            lf_self, lg_self = self._self_pairs.terms(pairs, acc, gain, lg.shape[1])
+            lf, lg = np.concatenate([lf, lf_self]), np.concatenate([lg, lg_self])
         projection = None
         if limits is not None:
             lf = np.concatenate([lf, limits[0]])
             lg = np.concatenate([lg, limits[1]])
-            projection = joint_projection(
-                np.einsum("osi,sij->osj", ns, jac).reshape(k, -1), self.joint_limits)
+            rows = np.einsum("osi,sij->osj", ns, jac).reshape(k, -1)
+            if pairs is not None:
+                rows = np.concatenate([rows, self._self_pairs.rows(pairs, jac)])
+            projection = joint_projection(rows, self.joint_limits)
         lf.flags.writeable = lg.flags.writeable = False
         return BarrierSet(derivs, lf, lg, xi, projection=projection), acc
 
@@ -1447,12 +1577,24 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         return self._reset_info()
 
     def _safety_info(self) -> dict[str, Any]:
-        """The base's (from the true state), and the sensing errors (:meth:`sensing_errors`)
-        and whether a push acts."""
+        """The base's (from the true state), whether the arm touches itself
+        (:meth:`_self_contact`), the sensing errors (:meth:`sensing_errors`) and whether a
+        push acts."""
         info = super()._safety_info()
+        info["self_contact"] = self._self_contact()
         info.update(self.sensing_errors())
         info["push_active"] = self._pushes is not None and self._pushes.body >= 0
         return info
+
+    def _self_contact(self) -> bool:
+        """Some two collision geoms of the robot (the arm's and the base's) on non-adjacent
+        links touch (``mj_geomDistance`` < 0; the pairs of :meth:`_self_contact_geoms`, those
+        whose bounding spheres overlap)."""
+        m, d, pairs = self.model, self.data, self._self_contact_pairs
+        for a, b in pairs.near(d.geom_xpos):
+            if mujoco.mj_geomDistance(m, d, a, b, 0.01, None) < 0:
+                return True
+        return False
 
     def _limit_violation(self) -> bool:
         """A joint at its range stop or above its speed (or, with ``check_acceleration`` /
@@ -1485,6 +1627,31 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
             d.qvel[:] = 0.0
         self._after_state_change()
         return unstable
+
+
+class _GeomPairs(NamedTuple):
+    """Pairs ``(first[i], second[i])`` of geom ids with the squared sums of their bounding
+    radii ``reach2``; ``first_xyz``, ``second_xyz`` index the flat ``geom_xpos``."""
+
+    first: list[int]
+    second: list[int]
+    first_xyz: np.ndarray
+    second_xyz: np.ndarray
+    reach2: np.ndarray
+
+    @classmethod
+    def of(cls, first: np.ndarray, second: np.ndarray, rbound: np.ndarray) -> _GeomPairs:
+        reach = rbound[first] + rbound[second]
+        xyz = np.arange(3)
+        return cls(first.tolist(), second.tolist(), (3 * first[:, None] + xyz).ravel(),
+                   (3 * second[:, None] + xyz).ravel(), reach * reach)
+
+    def near(self, geom_xpos: np.ndarray) -> list[tuple[int, int]]:
+        """The pairs whose bounding spheres overlap at the geom positions ``geom_xpos``."""
+        flat = geom_xpos.ravel()
+        diff = (flat[self.first_xyz] - flat[self.second_xyz]).reshape(-1, 3)
+        rows = np.flatnonzero(np.einsum("ij,ij->i", diff, diff) < self.reach2).tolist()
+        return [(self.first[i], self.second[i]) for i in rows]
 
 
 #: Half extent (m) of the rectangle drawn for a plane obstacle (its barrier and contact check

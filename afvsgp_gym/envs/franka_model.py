@@ -240,3 +240,10 @@ def arm_collision_geoms(model: mujoco.MjModel) -> np.ndarray:
         if body >= first_link and model.geom_group[g] == 3:
             ids.append(g)
     return np.array(ids, dtype=int)
+
+
+def base_collision_geoms(model: mujoco.MjModel) -> np.ndarray:
+    """Ids of the base's (link0's) collision geoms: it does not move, and
+    :func:`arm_collision_geoms` leaves it out."""
+    base = model.body("panda0_link0").id
+    return np.flatnonzero((model.geom_bodyid == base) & (model.geom_group == 3))

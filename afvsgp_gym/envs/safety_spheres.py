@@ -11,8 +11,12 @@ enclosing ball per cluster (``benchmarks/fit_safety_spheres.py`` regenerates the
 Every surface point of those collision geoms lies inside the union up to
 :data:`COVERAGE_TOLERANCE` (tests/envs check every mesh vertex and points on the finger
 primitives, and that ``mj_geomDistance`` from the collision geoms to sphere, box, capsule and
-plane obstacles is at least the smallest barrier ``h`` less it). The base (link0) does not
-move and is left out.
+plane obstacles is at least the smallest barrier ``h`` less it).
+
+The base (link0) does not move and has no obstacle barrier. ``PANDA_BASE_SPHERES``, fitted to
+its collision mesh the same way and held to the same tolerance, serve the self-collision
+barriers only (:mod:`~afvsgp_gym.envs.self_collision`): the sphere sets of
+``safety_spheres`` never include them.
 """
 
 from __future__ import annotations
@@ -23,12 +27,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["COVERAGE_TOLERANCE", "PANDA_ARM_SPHERES", "SafetySphere", "end_effector_sphere",
-           "parse_spheres"]
+__all__ = ["COVERAGE_TOLERANCE", "PANDA_ARM_SPHERES", "PANDA_BASE_SPHERES", "SafetySphere",
+           "end_effector_sphere", "parse_spheres"]
 
 #: How far (m) a point of the arm's collision geoms may lie outside the union of
 #: :data:`PANDA_ARM_SPHERES` (the fit misses by millimetres at most, on the finger
-#: primitives): a distance from the geoms is at least the spheres' less this.
+#: primitives), and a point of the base's outside :data:`PANDA_BASE_SPHERES`: a distance
+#: from the geoms is at least the spheres' less this.
 COVERAGE_TOLERANCE = 0.01
 
 
@@ -69,6 +74,13 @@ PANDA_ARM_SPHERES: tuple[SafetySphere, ...] = (
     _s("link7", -0.0023, -0.0021, 0.1492, 0.0501),
     _s("link7", -0.0000, -0.0000, 0.2039, 0.0320),
     _s("link7", -0.0001, 0.0003, 0.2395, 0.0255),
+)
+
+#: The base's (link0's) spheres, in the link0 frame: for the self-collision barriers only
+#: (see the module docstring).
+PANDA_BASE_SPHERES: tuple[SafetySphere, ...] = (
+    _s("link0", -0.0717, -0.0009, 0.0039, 0.0929),
+    _s("link0", -0.0001, -0.0001, 0.0489, 0.1066),
 )
 
 

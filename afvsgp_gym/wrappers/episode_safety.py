@@ -17,6 +17,7 @@ EPISODE_SAFETY_FIELDS = (
     "cost_steps_after_warmup",
     "violation_steps",
     "contact_steps",
+    "self_contact_steps",
     "limit_steps",
     "min_h",
     "interventions",
@@ -43,8 +44,10 @@ class EpisodeSafetyStats(gym.Wrapper, gym.utils.RecordConstructorArgs):
     - ``cost_steps``: ``info["cost"] > 0``
       (:data:`~afvsgp_gym.episode_counts.COST_DEFINITION`); ``cost_steps_after_warmup`` those with
       ``info["warmup"]`` False (the filter's learners fitted; every step without a filter);
-      ``violation_steps`` h < 0; ``contact_steps`` ``info["collision"]``; ``limit_steps``
-      ``info["limit_violation"]``; ``min_h`` the smallest h.
+      ``violation_steps`` h < 0; ``contact_steps`` ``info["collision"]``;
+      ``self_contact_steps`` ``info["self_contact"]`` (the Franka envs: the arm touching
+      itself or its base, not a cost); ``limit_steps`` ``info["limit_violation"]``; ``min_h`` the
+      smallest h.
     - ``interventions``: ``info["filter_active"]``; ``infeasible_steps`` not
       ``info["filter_feasible"]``, split by ``info["filter_status"]`` into ``backup_steps``
       (the backup or max-margin fallback applied) and ``relaxed_steps`` (the mean-only
