@@ -9,7 +9,9 @@ executors of :mod:`afvsgp_gym.executors` (in-process, a local process pool, or R
 
 Per episode (see :data:`EPISODE_FIELDS`): ``cost_steps`` (``info["cost"] > 0``, see
 :data:`COST_DEFINITION`), and by kind ``violation_steps`` (``info["h"] < 0``), ``contact_steps``
-(``info["collision"]``), ``limit_steps`` (``info["limit_violation"]``), ``min_h``,
+(``info["collision"]``), ``limit_steps`` (``info["limit_violation"]``),
+``self_contact_steps`` (``info["self_contact"]``: the arm touching itself, not part of the
+cost yet), ``min_h``,
 ``interventions`` (``info["filter_active"]``),
 ``infeasible_steps`` (``not info["filter_feasible"]``: the filter applied its backup),
 ``learner_error_steps`` (``info["learner_error"]``: a learner failed, the filter went on),

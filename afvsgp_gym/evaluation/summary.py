@@ -18,6 +18,7 @@ SUMMARY_FIELDS = (
     "episodes_with_violation",
     "episodes_with_contact",
     "episodes_with_limit_violation",
+    "episodes_with_self_contact",
     "cost_steps",
     "violation_steps",
     "contact_steps",
@@ -101,6 +102,9 @@ def summarize(records: Iterable[Mapping[str, Any]], confidence: float = 0.95) ->
         "episodes_with_contact": int(sum(int(r["contact_steps"]) > 0 for r in records)),
         "episodes_with_limit_violation": int(sum(int(r.get("limit_steps") or 0) > 0
                                                  for r in records)),
+        # (absent from the records of older sweeps: not counted then)
+        "episodes_with_self_contact": int(sum(int(r.get("self_contact_steps") or 0) > 0
+                                              for r in records)),
         "cost_steps": int(sum(int(r["cost_steps"]) for r in records)),
         "violation_steps": int(sum(int(r["violation_steps"]) for r in records)),
         "contact_steps": int(sum(int(r["contact_steps"]) for r in records)),

@@ -32,6 +32,7 @@ REPORT_COLUMNS = (
     ("episodes_with_violation", "w/ h<0"),
     ("episodes_with_contact", "w/ contact"),
     ("episodes_with_limit_violation", "w/ limits"),
+    ("episodes_with_self_contact", "w/ self"),
     ("contact_steps", "contacts"),
     ("min_h", "min_h"),
     ("tracking_error_mean", "track"),
