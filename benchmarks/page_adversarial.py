@@ -38,6 +38,10 @@ SOURCE = RESULTS / "adversarial.jsonl.gz"
 ROUTES = RESULTS / "routes.jsonl.gz"
 AUTHORITY = RESULTS / "braking_authority.json"
 BRAKE = RESULTS / "brake.jsonl.gz"
+#: Code versions of the AFVSGP episodes run again after the brake change (the filter brakes at
+#: once instead of relaxing to the mean, and the brake keeps its hold point): the episodes
+#: that had reached the brake and a sample of the others.
+BRAKE_RERUN_CODES = ("49e78fd",)
 #: the suite's AFVSGP grid with the conformal additive margin on every joint-limit band (the
 #: Franka envs' suggestion at that code version)
 MARGIN = RESULTS / "adversarial_limit_margin.jsonl.gz"
@@ -249,6 +253,30 @@ def authority(res: dict) -> list[str]:
             + "."]
 
 
+def codes_paragraph(recs: list[dict]) -> list[str]:
+    """Why the rows come from several code versions (none when they do not)."""
+    if len({r.get("code_version") for r in recs}) < 2:
+        return []
+    text = ("Rows of several codes: the AFVSGP rows were run again after the joint-speed "
+            "barriers took the conformal multiplier, adapted only where a miss could decide "
+            "the constraint (below), and the brake's give-way learned to lock joints at their "
+            "range margin. The oracle, the nominal-only filter and no filter learn nothing, so "
+            "the first change leaves their rows as they were; the second acts only when the "
+            "brake gives way, so their rows are those of the brake before it (the filter-free "
+            "row uses no brake).")
+    rerun = [r for r in recs if str(r.get("code_version")) in BRAKE_RERUN_CODES]
+    if rerun:
+        codes = " / ".join(f"`{c}`" for c in sorted({str(r["code_version"]) for r in rerun}))
+        text += (f" The {len(rerun)} AFVSGP episodes at {codes} are those that had reached the "
+                 "brake (a step on which no action met the chance constraints), and a sample "
+                 "of the others, run again when the filter stopped relaxing to the mean-only "
+                 "program and the brake began to keep its hold point: an episode that never "
+                 "reaches the brake runs identically at both codes, and the sample's records "
+                 "are identical. The nominal-only rows keep the brake before the hold point "
+                 "was kept.")
+    return [text, ""]
+
+
 def build() -> dict:
     recs = read_jsonl(SOURCE)
     out = [provenance("benchmarks/page_adversarial.py",
@@ -278,14 +306,7 @@ def build() -> dict:
            table(("filter", "episodes", "with cost", "95 % bound", "min h [m]", "code"),
                  headline(recs)),
            "",
-           *(["Rows of two codes: the AFVSGP rows were run again after the joint-speed "
-              "barriers took the conformal multiplier, adapted only where a miss could decide "
-              "the constraint (below), and the brake's give-way learned to lock joints at "
-              "their range margin. The oracle, the nominal-only filter and no filter learn "
-              "nothing, so the first change leaves their rows as they were; the second acts "
-              "only when the brake gives way, so their rows are those of the brake before it "
-              "(the filter-free row uses no brake).", ""]
-             if len({r.get("code_version") for r in recs}) > 1 else []),
+           *codes_paragraph(recs),
            "By policy (episodes with cost / episodes, the three scenarios):",
            "",
            table(("policy", "oracle", "AFVSGP zero", "AFVSGP kinematic", "AFVSGP perturbed",

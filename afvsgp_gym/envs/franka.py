@@ -305,7 +305,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
     | reset_noise | 0.01 | rad |
     | normalize_action | True | action in [-1, 1] (tau = u tau_max); False: action = tau in Nm |
     | brake_frequency | 50.0 | 1/s, ``backup_action``'s stop-and-hold bandwidth |
-    | brake_hold_memory | 0.1 | s, the brake keeps its hold point across feasible gaps this short |
+    | brake_hold_memory | 0.1 | s, the brake's hold point outlives feasible gaps this short |
     | limit_barriers | True | joint range and speed barriers after the obstacle ones |
     | self_collision | False | barriers between the arm's own links, after the obstacle ones |
     | range_margin, speed_margin | 0.1, 0.4 | rad, rad/s: the limit barriers' margins |
@@ -379,6 +379,9 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
     #: ``EVADE_FACTOR`` times the approach speed, with joint speeds up to ``EVADE_SPEED_SHARE``
     #: of the datasheet's.
     EVADE_DISTANCE, EVADE_FACTOR, EVADE_SPEED_SHARE = 0.1, 1.5, 0.5
+    #: m: an obstacle that moved more than this (as sensed) since the brake's last period
+    #: voids its hold point (``backup_action``; ``brake_hold_memory``).
+    HOLD_WORLD_TOLERANCE = 1e-4
     #: Warm-up exploration suggested to the filter: around the brake (the policy does not act
     #: until the learners are fitted, so nothing it proposes can break the limits then), with
     #: a noise of 0.2 of the torque range (white torque noise of 0.3, the method's, drives the
@@ -534,6 +537,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         self._brake_model: tuple[mujoco.MjModel, mujoco.MjData] | None = None
         self._hold: np.ndarray | None = None
         self._backup_step = -2
+        self._hold_world: np.ndarray | None = None
         self.joint_limits = JointLimits(
             m.jnt_range[:7, 0], m.jnt_range[:7, 1], FRANKA_MAX_SPEED, range_margin,
             speed_margin, FRANKA_MAX_ACCELERATION if check_acceleration else None,
@@ -1439,15 +1443,23 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         ``residual torque / (M w^2)``, a few mrad). Far from rest it saturates: the torque
         limits brake, at the largest deceleration of that direction.
 
-        The hold point outlives short runs of feasible steps (``brake_hold_memory``): where
-        the chance program flips between feasible and infeasible every few periods, a hold
-        point taken anew at each engagement starts from the sagged pose each time, and the
-        sag ratchets (on the tabletop a hand sank 3 cm into the table in 1000 such periods).
+        The hold point outlives short runs of feasible steps (``brake_hold_memory``) while
+        the obstacles stand still: where the chance program flips between feasible and
+        infeasible every few periods, a hold point taken anew at each engagement starts from
+        the sagged pose each time, and the sag ratchets (on the tabletop a hand sank 3 cm
+        into the table in 1000 such periods). The arm was at the old hold point, so it is
+        clear of obstacles that have not moved since; an obstacle that moved (more than
+        ``HOLD_WORLD_TOLERANCE`` as the robot senses it) may now be where the arm left, and
+        the brake then holds where the arm is (a spring back to a stale hold point drove a
+        hand into a moving sphere).
         """
         d = self._sensed_view.data  # the robot's own sensors
-        if self._hold is None or self._steps - self._backup_step - 1 > self._hold_memory_steps:
+        world = np.array([st[0] for st in self._sensed_view.obstacle_states])
+        gap = self._steps - self._backup_step - 1
+        if self._hold is None or (gap > 0 and (gap > self._hold_memory_steps
+                                              or self._world_moved(world))):
             self._hold = d.qpos[:7].copy()
-        self._backup_step = self._steps
+        self._backup_step, self._hold_world = self._steps, world
         w = self.brake_frequency
         inertia = self._catalogue_inertia(d)
         give_way = self._give_way_velocity()
@@ -1466,6 +1478,13 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
             share = admissible_share(coriolis, brake, 1.0)
             u = np.clip(coriolis + share * brake, -1.0, 1.0)
         return u * (1.0 if self.normalize_action else self._gear)
+
+    def _world_moved(self, world: np.ndarray) -> bool:
+        """Whether an obstacle centre ``world`` (O, 3) moved more than
+        ``HOLD_WORLD_TOLERANCE`` since the brake's last period."""
+        last = self._hold_world
+        return (last is None or last.shape != world.shape
+                or bool(np.abs(world - last).max(initial=0.0) > self.HOLD_WORLD_TOLERANCE))
 
     def _give_way_velocity(self) -> np.ndarray | None:
         """Joint velocity (7,) with which the brake gives way to moving obstacles, or None
@@ -1567,7 +1586,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         self.data.warning.number[:] = 0
         self._step_rates = (None, None)
         self._last_torque = np.zeros(7)
-        self._hold, self._backup_step = None, -2
+        self._hold, self._backup_step, self._hold_world = None, -2, None
         if not self.perception.exact:
             self._reseed_sensing()
         self._after_state_change()

@@ -37,8 +37,8 @@ by reference counting).
 
 **The brake** (:class:`Brake`) is the simulation's backup with the robot's own model:
 ``tau = c + M (-2 w q' - w^2 (q - q_hold))``, ``q_hold`` where it engaged (kept across up to
-0.1 s of feasible ticks); beyond the torque limits only the largest share of the damping the
-limits admit.
+0.1 s of feasible ticks while the obstacles stand still); beyond the torque limits only the
+largest share of the damping the limits admit.
 """
 
 from __future__ import annotations
@@ -97,12 +97,17 @@ class Brake:
         infeasible starts from the sagged pose each time, and the sag ratchets.
     """
 
+    #: m: see :meth:`see`.
+    HOLD_WORLD_TOLERANCE = 1e-4
+
     def __init__(self, tau_max=TAU_MAX, frequency: float = 50.0, memory: int = 100) -> None:
         self.tau_max = np.asarray(tau_max, dtype=np.float64)
         self.frequency = check_real(frequency, "frequency", low=0.0, low_open=True)
         self.memory = int(check_real(memory, "memory", low=0.0))
         self.hold: np.ndarray | None = None
         self._idle = 0
+        self._world: np.ndarray | None = None  # the obstacle centres of this tick
+        self._world_at_use: np.ndarray | None = None  # ... of the brake's last tick
 
     def release(self) -> None:
         """A tick without the brake: after more than ``memory`` in a row the next call engages
@@ -113,11 +118,26 @@ class Brake:
 
     def reset(self) -> None:
         """Forget the hold point: the next call engages anew."""
-        self.hold, self._idle = None, 0
+        self.hold, self._idle, self._world_at_use = None, 0, None
+
+    def see(self, positions: np.ndarray) -> None:
+        """The obstacle centres (O, 3) of this tick. An obstacle that moved more than
+        ``HOLD_WORLD_TOLERANCE`` between the brake's last tick and its next engagement voids
+        the kept hold point (the arm left it; the obstacle may be there now)."""
+        self._world = np.asarray(positions, dtype=np.float64)
+
+    def _world_moved(self) -> bool:
+        a, b = self._world, self._world_at_use
+        if a is None or b is None:
+            return a is not b
+        return a.shape != b.shape or bool(np.abs(a - b).max(initial=0.0)
+                                          > self.HOLD_WORLD_TOLERANCE)
 
     def __call__(self, q: np.ndarray, dq: np.ndarray, mass: np.ndarray,
                  coriolis: np.ndarray) -> np.ndarray:
-        self._idle = 0
+        if self.hold is not None and self._idle and self._world_moved():
+            self.hold = None
+        self._idle, self._world_at_use = 0, self._world
         w = self.frequency
         if self.hold is None:
             self.hold = q.copy()
@@ -282,6 +302,7 @@ class Bridge:
         if not _finite(est.position, est.velocity, est.acceleration,
                        _ZERO if est.covariance is None else est.covariance):
             raise _Stop("non_finite: obstacles")
+        self.brake.see(est.position)
         p, v, jac, acc = self._kinematics(q, dq)
         try:
             terms = self.barriers.terms(q, dq, mass, coriolis, est,

@@ -660,6 +660,27 @@ def test_brake_gives_way_to_an_obstacle_moving_into_the_arm(payload):
     assert min(h_held) < 0.0
 
 
+@pytest.mark.parametrize("moving", [False, True])
+def test_brake_keeps_its_hold_point_only_while_the_obstacles_stand_still(moving):
+    """After a feasible period the brake keeps its old hold point if no obstacle moved (the
+    arm was there, clear of them), else it holds where the arm is: a spring back to a stale
+    hold point drove a hand into a moving sphere (greedy, dynamic scene, seed 3002)."""
+    env = _moving_into_the_arm() if moving else FrankaObstacleEnv("static")
+    env.reset(seed=0)
+    if moving:
+        env.set_time_step(400)  # the sphere under way
+    env.set_state(fm.Q_HOME, np.full(7, 0.2))
+    env.step(env.backup_action().astype(np.float32))
+    hold = env._hold.copy()
+    env.step(np.zeros(7, np.float32))  # a feasible period: the arm moves on
+    env.backup_action()
+    if moving:
+        np.testing.assert_array_equal(env._hold, env.data.qpos[:7])
+    else:
+        np.testing.assert_array_equal(env._hold, hold)
+        assert np.abs(env.data.qpos[:7] - hold).max() > 1e-4
+
+
 def test_brake_gives_way_only_to_approaching_moving_obstacles():
     """Static obstacles, or a moving one that is far or receding: the brake only holds
     (no give-way velocity)."""

@@ -306,3 +306,23 @@ def test_the_brake_keeps_its_hold_point_across_short_feasible_gaps():
     np.testing.assert_array_equal(brake(q0, dq, mass, coriolis), np.zeros(7))
     with pytest.raises(ValueError, match="memory"):
         Brake(memory=-1)
+
+
+def test_the_brake_forgets_its_hold_point_when_an_obstacle_moved():
+    """An obstacle that moved between the brake's last tick and its next engagement voids
+    the kept hold point: the arm left it, the obstacle may be there now."""
+    mass, coriolis, dq = np.eye(7), np.zeros(7), np.zeros(7)
+    q0, q1 = np.zeros(7), np.full(7, 0.001)
+    still, moving = np.zeros((1, 3)), np.array([[0.0, 0.0, 0.01]])
+    brake = Brake(memory=3)
+    brake.see(still)
+    brake(q0, dq, mass, coriolis)
+    brake.release()
+    brake.see(still)  # the world stood still: the hold point is kept
+    assert np.abs(brake(q1, dq, mass, coriolis)).max() > 0.0
+    brake.release()
+    brake.see(moving)  # it moved: the brake holds where the arm is
+    np.testing.assert_array_equal(brake(q1, dq, mass, coriolis), np.zeros(7))
+    brake.see(moving + 0.05)  # while engaged, a moving world keeps the hold point
+    np.testing.assert_array_equal(brake(q0, dq, mass, coriolis),
+                                  -brake.frequency ** 2 * (q0 - q1))
