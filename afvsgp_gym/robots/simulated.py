@@ -16,9 +16,10 @@ whose gravity the plant compensates, as :class:`~afvsgp_gym.envs.franka.FrankaOb
 planes (:class:`~afvsgp_gym.envs.scenario.ObstacleSpec`, or the envs' ``obstacles=`` dicts),
 MuJoCo geoms of their type named ``obstacle{i}`` that follow their motion;
 :meth:`SimulatedFranka.obstacle_estimate` is the perception callback (their reference points'
-true state: a centre, a plane's point). :meth:`SimulatedFranka.cost` checks the true state as
-the simulation does: a safety sphere inside an obstacle (exact signed distance), an arm
-collision geom touching one (``mj_geomDistance``), a joint at its limits.
+true state, a centre or a plane's point, or a camera's estimate of the centres).
+:meth:`SimulatedFranka.cost` checks the true state as the simulation does: a safety sphere
+inside an obstacle (exact signed distance), an arm collision geom touching one
+(``mj_geomDistance``), a joint at its limits.
 
 Timing (``realtime=True``): ``readOnce`` blocks until the next 1 ms tick of the wall clock,
 as the robot sends a state every millisecond. The command written since the last read drives
@@ -286,10 +287,11 @@ class SimulatedFranka:
         Abort on the joint range and speed limits, as the robot does.
     obstacle_noise : float
         0 (default): :meth:`obstacle_estimate` is the obstacles' true state. > 0 (m): a camera
-        samples each centre at ``obstacle_rate`` Hz with this noise per axis (seeded by
-        ``seed``) and :meth:`obstacle_estimate` is the
+        samples each centre (a box's, a capsule's) at ``obstacle_rate`` Hz with this noise per
+        axis (seeded by ``seed``) and :meth:`obstacle_estimate` is the
         :class:`~afvsgp_gym.cbf.estimation.ObstacleEstimator`'s (constant velocity, process
-        noise 1 m s^-1.5) at the control time, with its covariance.
+        noise 1 m s^-1.5) at the control time, with its covariance. Planes (a table, a wall:
+        the cell's, measured once) are given exactly, with covariance 0.
     obstacle_rate : float
         Hz, the camera's sample rate.
     seed : int
@@ -363,10 +365,12 @@ class SimulatedFranka:
         self._t0: float | None = None
         self.lost_commands = 0
         self._estimator = None
-        if self.obstacle_noise > 0:
+        #: The obstacles the camera senses (not the planes).
+        self._sensed = [i for i, o in enumerate(self.obstacles) if not isinstance(o.shape, Plane)]
+        if self.obstacle_noise > 0 and self._sensed:
             from afvsgp_gym.cbf.estimation import ObstacleEstimator
 
-            self._estimator = ObstacleEstimator(len(self.obstacles), self.obstacle_noise)
+            self._estimator = ObstacleEstimator(len(self._sensed), self.obstacle_noise)
             self._camera_rng = np.random.default_rng(int(seed))
             self._next_sample = 0
 
@@ -417,13 +421,21 @@ class SimulatedFranka:
         t = self.time if t is None else float(t)
         if self._estimator is None:
             return self.true_obstacles(t)
-        est = self._estimator
+        est, sensed = self._estimator, self._sensed
+        every = len(sensed) == len(self.obstacles)
         while self._next_sample / self.obstacle_rate <= t + 1e-12:  # the samples taken by t
             ts = self._next_sample / self.obstacle_rate
             true = self.true_obstacles(ts).position
+            true = true if every else true[sensed]
             est.update(true + self._camera_rng.normal(0.0, self.obstacle_noise, true.shape), ts)
             self._next_sample += 1
-        return ObstacleEstimate(*est.predict(t))
+        if every:
+            return ObstacleEstimate(*est.predict(t))
+        exact = self.true_obstacles(t)  # the planes': exact, covariance 0
+        pos, vel, acc = exact.position, exact.velocity, exact.acceleration
+        cov = np.zeros((len(self.obstacles), 3, 3))
+        pos[sensed], vel[sensed], acc[sensed], cov[sensed] = est.predict(t)
+        return ObstacleEstimate(pos, vel, acc, cov)
 
     def true_obstacles(self, t: float | None = None) -> ObstacleEstimate:
         """The obstacles' true state at ``t`` (s; default: now)."""

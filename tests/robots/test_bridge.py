@@ -266,9 +266,10 @@ def test_a_noisy_camera_gives_estimates_with_covariance_to_the_filter():
     assert 0 < np.abs(est.position - true.position).max() < 0.05
 
 
-def test_a_noisy_camera_on_a_table_and_a_box_gives_every_pair_a_covariance():
-    """The camera senses each obstacle's reference point (a plane's too); the terms carry
-    the first-order covariance of every pair (shape_pair_covariance), none of the limits'."""
+def test_a_noisy_camera_on_a_box_gives_its_pairs_a_covariance_and_the_table_none():
+    """The camera senses the box's centre (the Kalman estimate and its covariance, through
+    shape_pair_covariance to every pair of the box); the table, a plane, is given exactly
+    (covariance 0), as are the joint limits."""
     robot = SimulatedFranka([TABLE, {**BOX, "position": [0.45, 0.3, 0.3]}], realtime=False,
                             obstacle_noise=0.01, seed=3)
     bridge, _, _ = _bridge(robot, agent="nominal")
@@ -277,8 +278,12 @@ def test_a_noisy_camera_on_a_table_and_a_box_gives_every_pair_a_covariance():
     bridge.controller.filter = lambda u, terms, **k: seen.append(terms) or inner(u, terms, **k)
     report = bridge.run(0.1)
     assert report.stop_reason == "completed" and report.cost_steps == 0
-    cov, k = seen[-1].covariance, bridge.barriers.n_pairs
-    assert cov is not None and np.all(cov[:k, 0, 0] > 0) and not cov[k:].any()
+    cov, s = seen[-1].covariance, len(robot.spheres)
+    assert cov is not None and not cov[:s].any() and not cov[2 * s:].any()
+    assert np.all(cov[s:2 * s, 0, 0] > 0)
+    est, true = robot.obstacle_estimate(), robot.true_obstacles()
+    np.testing.assert_array_equal(est.position[0], true.position[0])
+    assert not est.covariance[0].any() and 0 < np.abs(est.position[1] - true.position[1]).max()
 
 
 def test_bad_arguments_name_the_argument():
