@@ -437,6 +437,30 @@ def _floats(parser: argparse.ArgumentParser, text: str, opt: str, n: int) -> lis
     return values
 
 
+def _robot_obstacles(parser: argparse.ArgumentParser, args: argparse.Namespace) -> list:
+    """The ``--obstacles`` (the envs' dicts) and ``--obstacle`` (fixed spheres) of ``robot`` as
+    ObstacleSpecs, in that order, or ``parser.error`` naming the option and the entry."""
+    from afvsgp_gym.robots.run import obstacle_specs
+
+    typed = []
+    if args.obstacles:
+        try:
+            typed = json.loads(args.obstacles)
+        except json.JSONDecodeError as exc:
+            parser.error(f"--obstacles must be a JSON list of objects: {exc}")
+        if not isinstance(typed, list) or not all(isinstance(o, dict) for o in typed):
+            parser.error("--obstacles must be a JSON list of objects (the envs' obstacles=), "
+                         f"got {args.obstacles!r}")
+    spheres = [_floats(parser, o, "--obstacle", 4) for o in args.obstacle or []]
+    if any(o[3] <= 0 for o in spheres):
+        parser.error("--obstacle radius must be > 0")
+    try:
+        specs = obstacle_specs(typed)
+    except ValueError as exc:
+        parser.error(f"--obstacles: {exc}")
+    return specs + obstacle_specs(spheres)
+
+
 def _cmd_robot(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
     from afvsgp_gym.robots.policies import ROBOT_AGENTS
 
@@ -460,11 +484,7 @@ def _cmd_robot(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int
     torque_error = _floats(parser, args.torque_error, "--torque-error", 7)
     if any(v < 0 for v in torque_error):
         parser.error(f"--torque-error must be >= 0, got {args.torque_error!r}")
-    obstacles = [_floats(parser, o, "--obstacle", 4) for o in args.obstacle or []]
-    if any(o[3] <= 0 for o in obstacles):
-        parser.error("--obstacle radius must be > 0")
-    if args.simulate and obstacles:
-        parser.error("--obstacle is for --host (the stand-in has its own moving sphere)")
+    obstacles = _robot_obstacles(parser, args)
     if args.payload < 0:
         parser.error(f"--payload must be >= 0, got {args.payload}")
     if not args.obstacle_noise >= 0:
@@ -491,7 +511,8 @@ def _cmd_robot(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int
                 report = run_simulated(args.seconds, agent=agent, learner=args.learner,
                                        budget=budget, torque_error=torque_error,
                                        robot_kwargs={"payload_mass": args.payload,
-                                                     "obstacle_noise": args.obstacle_noise},
+                                                     "obstacle_noise": args.obstacle_noise,
+                                                     "obstacles": obstacles or None},
                                        filter_kwargs=filter_kwargs)
             else:
                 report = run_robot(args.host, args.seconds, obstacles=obstacles, agent=agent,
@@ -674,8 +695,16 @@ def build_parser() -> argparse.ArgumentParser:
     rb.add_argument("--torque-error", default="3,3,3,3,1,1,1", metavar="NM",
                     help="bound on the torque the model misses, per joint or one for all "
                          "(default 3,3,3,3,1,1,1 Nm)")
+    rb.add_argument("--obstacles", default=None, metavar="JSON",
+                    help="obstacles as the envs take them: a JSON list of objects with a "
+                         "\"type\" (sphere, box, capsule, plane; docs/environments.md), e.g. "
+                         "'[{\"type\": \"plane\", \"position\": [0, 0, 0], \"normal\": "
+                         "[0, 0, 1]}]' (a table at the mount), base frame, m; with --simulate "
+                         "they replace the stand-in's moving sphere")
     rb.add_argument("--obstacle", action="append", metavar="X,Y,Z,R",
-                    help="a fixed sphere in the base frame (m), repeatable (--host)")
+                    help="a fixed sphere in the base frame (m), repeatable; added after "
+                         "--obstacles' entries (with --simulate they replace the stand-in's "
+                         "moving sphere too)")
     rb.add_argument("--payload", type=float, default=1.0, metavar="KG",
                     help="the stand-in's payload its model does not know (default 1.0)")
     rb.add_argument("--obstacle-noise", type=float, default=0.0, metavar="M",

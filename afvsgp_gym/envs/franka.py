@@ -39,7 +39,7 @@ from afvsgp_gym.envs.perception import (
     Pushes,
     pair_covariance,
 )
-from afvsgp_gym.envs.primitives import Box, Capsule, Plane, pair_barriers, stack_shapes
+from afvsgp_gym.envs.primitives import Plane, pair_barriers, stack_shapes
 from afvsgp_gym.envs.safety_spheres import (
     PANDA_ARM_SPHERES,
     PANDA_BASE_SPHERES,
@@ -491,7 +491,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         radii = (0.05,) * n_obs if layout is None else tuple(o.radius for o in layout)
         if self.scenario == "random" and layout is None:
             radii = (0.07,)  # drawn radii <= 0.07: the visual sphere is rescaled per reset
-        geoms = () if layout is None else tuple(_obstacle_geom(o) for o in layout)
+        geoms = () if layout is None else tuple(fm.obstacle_geom(o) for o in layout)
         self._scene = fm.SceneOptions(radii, self.ee_radius, physics_dt, geoms)
         if render_mode is not None:
             check_choice("render_mode", render_mode, self.metadata["render_modes"])
@@ -920,7 +920,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         orientations in their bodies and bounding radii."""
         m = self.model
         for g, ob in zip(self._obstacle_geoms, self.obstacles, strict=True):
-            geom = _obstacle_geom(ob)
+            geom = fm.obstacle_geom(ob)
             if geom is None:
                 m.geom_size[g, 0] = ob.radius
                 m.geom_rbound[g] = ob.radius
@@ -1673,26 +1673,5 @@ class _GeomPairs(NamedTuple):
         return [(self.first[i], self.second[i]) for i in rows]
 
 
-#: Half extent (m) of the rectangle drawn for a plane obstacle (its barrier and contact check
-#: use the infinite plane).
-PLANE_DRAW_HALF_EXTENT = 1.0
-
-
-def _obstacle_geom(ob: ObstacleSpec) -> fm.ObstacleGeom | None:
-    """The MuJoCo geom of a non-sphere obstacle (None for a sphere): a box's half sizes and
-    rotation, a capsule's radius and half length along its local z turned onto its axis, a
-    plane's drawn rectangle with its z along the normal."""
-    shape = ob.shape
-    if shape is None:
-        return None
-    quat = np.empty(4)
-    if isinstance(shape, Box):
-        mujoco.mju_mat2Quat(quat, np.ascontiguousarray(shape.rotation, dtype=np.float64).ravel())
-        return fm.ObstacleGeom("box", tuple(shape.half_sizes.tolist()), tuple(quat.tolist()))
-    axis = shape.axis if isinstance(shape, Capsule) else shape.normal
-    mujoco.mju_quatZ2Vec(quat, np.array(axis, dtype=np.float64))
-    if isinstance(shape, Capsule):
-        return fm.ObstacleGeom("capsule", (shape.radius, shape.half_length, 0.0),
-                               tuple(quat.tolist()))
-    half = PLANE_DRAW_HALF_EXTENT
-    return fm.ObstacleGeom("plane", (half, half, 0.05), tuple(quat.tolist()))
+#: Half extent (m) of the rectangle drawn for a plane obstacle (:mod:`franka_model`'s).
+PLANE_DRAW_HALF_EXTENT = fm.PLANE_DRAW_HALF_EXTENT

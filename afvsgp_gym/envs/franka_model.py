@@ -34,6 +34,8 @@ import mujoco
 import numpy as np
 
 from afvsgp_gym.envs.mjspec_compat import set_linear_coefficient
+from afvsgp_gym.envs.primitives import Box, Capsule
+from afvsgp_gym.envs.scenario import ObstacleSpec
 
 ARM_BODIES = tuple(f"panda0_link{i}" for i in range(1, 8))
 HAND_BODIES = ("panda0_leftfinger", "panda0_rightfinger")
@@ -130,6 +132,32 @@ class ObstacleGeom:
     kind: str
     size: tuple[float, float, float]
     quat: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
+
+
+#: Half extent (m) of the rectangle drawn for a plane obstacle (its barrier and contact check
+#: use the infinite plane).
+PLANE_DRAW_HALF_EXTENT = 1.0
+
+
+def obstacle_geom(ob: ObstacleSpec) -> ObstacleGeom | None:
+    """The MuJoCo geom of a non-sphere obstacle (None for a sphere): a box's half sizes and
+    rotation, a capsule's radius and half length along its local z turned onto its axis, a
+    plane's drawn rectangle with its z along the normal (the simulation's and the robot
+    stand-in's)."""
+    shape = ob.shape
+    if shape is None:
+        return None
+    quat = np.empty(4)
+    if isinstance(shape, Box):
+        mujoco.mju_mat2Quat(quat, np.ascontiguousarray(shape.rotation, dtype=np.float64).ravel())
+        return ObstacleGeom("box", tuple(shape.half_sizes.tolist()), tuple(quat.tolist()))
+    axis = shape.axis if isinstance(shape, Capsule) else shape.normal
+    mujoco.mju_quatZ2Vec(quat, np.array(axis, dtype=np.float64))
+    if isinstance(shape, Capsule):
+        return ObstacleGeom("capsule", (shape.radius, shape.half_length, 0.0),
+                            tuple(quat.tolist()))
+    half = PLANE_DRAW_HALF_EXTENT
+    return ObstacleGeom("plane", (half, half, 0.05), tuple(quat.tolist()))
 
 
 _GEOM_TYPES = {"box": mujoco.mjtGeom.mjGEOM_BOX, "capsule": mujoco.mjtGeom.mjGEOM_CAPSULE,

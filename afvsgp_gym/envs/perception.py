@@ -18,7 +18,8 @@ The true state stays the simulator's; the filter sees it through sensors:
 
 :func:`pair_covariance` propagates an obstacle estimate's covariance to the covariance of a
 (sphere, obstacle) barrier's ``[h, h', lf]`` (first order), the quantities the HOCBF
-constraint is built from (eq. 45).
+constraint is built from (eq. 45); :func:`shape_pair_covariance` does the same for a box,
+capsule or plane obstacle (or a sphere) from the Hessian of its signed distance.
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ import numpy as np
 from afvsgp_gym.validation import check_real
 
 __all__ = ["PUSH_KEYS", "JointEncoders", "ObstacleCamera", "Perception", "Pushes",
-           "pair_covariance"]
+           "pair_covariance", "shape_pair_covariance", "shape_pair_gradient"]
 
 #: Keys of the ``push`` option.
 PUSH_KEYS = ("force", "duration", "rate")
@@ -263,3 +264,58 @@ def pair_covariance(n: np.ndarray, distance: np.ndarray, v_rel: np.ndarray,
         grad[:, 2, 1] = -2.0 * pv * inv[:, None]
         grad[:, 2, 2] = -n
     return np.einsum("kab,kiax,kjbx->kij", state_cov, grad, grad)
+
+
+def shape_pair_gradient(n: np.ndarray, hessian: np.ndarray, v_rel: np.ndarray,
+                        relative_acc: np.ndarray | None = None) -> np.ndarray:
+    """``d [h, h', lf] / d [c, c', c'']`` (K, 3, 3, 3: pair, ``[h, h', lf]``, ``[p, v, a]``,
+    xyz) of K (sphere, obstacle) barriers with respect to the obstacle's reference point
+    ``c`` and its motion, for any primitive of :mod:`~afvsgp_gym.envs.primitives` from the
+    closest feature's normal ``n`` and the Hessian ``H`` (K, 3, 3) of the signed distance
+    (:func:`~afvsgp_gym.envs.primitives.pair_hessians`).
+
+    With ``p = p_s - c``, ``v = v_s - c'`` and ``w = a_s - c''`` (``relative_acc``, None: a
+    model whose ``lf`` is 0, its row 0): ``h = d(p) - r``, ``h' = n'v``, ``lf = n'w + v'H v``.
+    In every region of every primitive ``d`` is, up to a constant, the distance ``rho`` to an
+    affine feature (a point, a line, a plane: a sphere's or a cap's centre, the capsule's
+    axis, a box's corner, edge or face, a plane), so ``grad d = n``, ``grad n = H = (Q - n n')
+    / rho`` with ``Q`` the projector onto the feature's normal space, and ``grad (v'H v) =
+    -(2 (n'v) H v + (v'H v) n) / rho``; ``H``'s nonzero eigenvalues are all ``1 / rho``, so
+    ``1 / rho = |H|_F^2 / tr H`` (where ``H = 0``, faces and planes, the term is 0). Then
+    ``dh/dc = -n``; ``dh'/dc = -H v``, ``dh'/dc' = -n``; ``dlf/dc = (2 (n'v) H v + (v'H v)
+    n) / rho - H w``, ``dlf/dc' = -2 H v``, ``dlf/dc'' = -n``: for a sphere (``H = P /
+    |d|``) :func:`pair_covariance`'s gradient. Within a region; where regions meet ``H``
+    jumps and the first order holds on either side."""
+    k = len(n)
+    hv = np.einsum("kij,kj->ki", hessian, v_rel)
+    grad = np.zeros((k, 3, 3, 3))
+    grad[:, 0, 0] = -n
+    grad[:, 1, 0] = -hv
+    grad[:, 1, 1] = -n
+    if relative_acc is not None:
+        nv = np.einsum("ki,ki->k", n, v_rel)
+        vhv = np.einsum("ki,ki->k", v_rel, hv)
+        trace = np.einsum("kii->k", hessian)
+        frob = np.einsum("kij,kij->k", hessian, hessian)
+        inv_rho = np.divide(frob, trace, out=np.zeros(k), where=trace > 0.0)
+        hw = np.einsum("kij,kj->ki", hessian, relative_acc)
+        grad[:, 2, 0] = (2.0 * nv[:, None] * hv + vhv[:, None] * n) * inv_rho[:, None] - hw
+        grad[:, 2, 1] = -2.0 * hv
+        grad[:, 2, 2] = -n
+    return grad
+
+
+def shape_pair_covariance(n: np.ndarray, hessian: np.ndarray, v_rel: np.ndarray,
+                          state_cov: np.ndarray,
+                          relative_acc: np.ndarray | None = None) -> np.ndarray:
+    """:func:`pair_covariance` for an obstacle of any primitive: the covariance (K, 3, 3) of
+    ``[h, h', lf]`` from the per-axis covariance ``state_cov`` (K, 3, 3) of the obstacle's
+    ``[c, c', c'']`` (its reference point: a centre, a plane's point), to first order through
+    :func:`shape_pair_gradient`. The mean of ``lf``'s error to second order is ``tr(H) sigma_v^2``
+    (the curvature ``v'H v`` is convex in the obstacle's velocity: ``2 sigma_v^2 / |d|`` for a
+    sphere, ``sigma_v^2 / rho`` beside a capsule or at a box's edge, 0 on a face or plane)."""
+    grad = shape_pair_gradient(n, hessian, v_rel, relative_acc)
+    # sum over the axes x of G_x Sigma G_x', G_x = grad[k, :, :, x]: batched 3 x 3 products
+    per_axis = grad.transpose(0, 3, 1, 2)  # (pair, xyz, [h, h', lf], [p, v, a])
+    left = np.matmul(per_axis, state_cov[:, None])
+    return np.matmul(left, per_axis.transpose(0, 1, 3, 2)).sum(axis=1)

@@ -82,7 +82,8 @@ from afvsgp_gym.validation import check_finite_array
 
 __all__ = [
     "Box", "Capsule", "Plane", "ShapeStack", "Sphere", "box_distance", "capsule_distance",
-    "pair_barriers", "plane_distance", "point_distance", "sphere_distance", "stack_shapes",
+    "hessian_stack", "pair_barriers", "pair_barriers_and_hessians", "pair_hessians",
+    "plane_distance", "point_distance", "sphere_distance", "stack_shapes",
 ]
 
 #: Largest ``|R' R - I|`` entry a rotation may have (m of distance error per m of offset).
@@ -376,3 +377,66 @@ def _group_barriers(kind: type, p: np.ndarray, v: np.ndarray, rad: np.ndarray,
         return sphere_barriers(p, v, rad + geom[0])
     d, n, curv = _KERNELS[kind](p, v, *geom)
     return d - rad, _dot(n, v), n, curv
+
+
+# --- Hessians: H of every pair, from the kernels' curvature -------------------------------
+
+#: The directions whose curvatures ``u' H u`` give the six entries of a symmetric ``H``:
+#: ``H_ii = c(e_i)`` and ``H_ij = (c(e_i + e_j) - c(e_i) - c(e_j)) / 2``.
+_POLARISATION = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0],
+                          [1.0, 1.0, 0.0], [1.0, 0.0, 1.0], [0.0, 1.0, 1.0]])
+#: Rows per pair in a :func:`hessian_stack`: the pair's own, then one per direction.
+_HESSIAN_ROWS = 1 + len(_POLARISATION)
+
+
+def hessian_stack(shapes: Sequence[Primitive], n_spheres: int) -> ShapeStack:
+    """The stack :func:`pair_barriers_and_hessians` and :func:`pair_hessians` take for
+    ``shapes`` with ``n_spheres`` spheres each (the pair's own row and one per direction of
+    the polarisation; build it once)."""
+    if isinstance(n_spheres, bool) or not isinstance(n_spheres, int | np.integer) or n_spheres < 1:
+        raise ValueError(f"n_spheres must be a positive integer, got {n_spheres!r}")
+    return stack_shapes(shapes, _HESSIAN_ROWS * int(n_spheres))
+
+
+def pair_barriers_and_hessians(
+    stack: ShapeStack, p_rel, v_rel, radius
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`pair_barriers`' ``(h, h', n, curvature)`` of the K = O S pairs and ``H``
+    (K, 3, 3), the Hessian of the signed distance at every ``p_rel``, in one pass of the
+    kernels (``stack``: :func:`hessian_stack` of the O shapes and S spheres).
+
+    ``H`` comes from the kernels' own curvature by polarisation: at a fixed point ``v' H v``
+    is a quadratic form in ``v`` (the module's formulas; the region, and so ``H``, depends on
+    the point only), so its values at six directions give ``H`` to rounding. 0 where ``H``
+    is (faces, planes, inside a box)."""
+    n_dir = len(_POLARISATION)
+    if not isinstance(stack, ShapeStack) or stack.n_spheres % _HESSIAN_ROWS:
+        raise ValueError("stack must be hessian_stack(shapes, n_spheres)")
+    o, s = len(stack.centers), stack.n_spheres // _HESSIAN_ROWS
+    p, v = _points(p_rel, v_rel)
+    if len(p) != o * s:
+        raise ValueError(f"p_rel must have {o * s} rows (shapes x spheres), got {len(p)}")
+    rows = np.empty((o, _HESSIAN_ROWS, s, 3))
+    rows[:] = p.reshape(o, 1, s, 3)
+    dirs = np.empty((o, _HESSIAN_ROWS, s, 3))
+    dirs[:, 0] = v.reshape(o, s, 3)
+    dirs[:, 1:] = _POLARISATION[None, :, None, :]
+    rad = np.ones((o, _HESSIAN_ROWS, s))  # (the directions' rows: any radius, H has none)
+    rad[:, 0] = np.broadcast_to(radius, (o * s,)).reshape(o, s)
+    h, hd, n, curv = pair_barriers(stack, rows.reshape(-1, 3), dirs.reshape(-1, 3),
+                                   rad.reshape(-1))
+    own = np.zeros((o, _HESSIAN_ROWS, s), dtype=bool)
+    own[:, 0] = True
+    own = own.ravel()
+    c = curv.reshape(o, _HESSIAN_ROWS, s)[:, 1:].transpose(0, 2, 1).reshape(o * s, n_dir)
+    hess = np.empty((o * s, 3, 3))
+    hess[:, [0, 1, 2], [0, 1, 2]] = c[:, :3]
+    for col, (i, j) in enumerate(((0, 1), (0, 2), (1, 2)), start=3):
+        hess[:, i, j] = hess[:, j, i] = 0.5 * (c[:, col] - c[:, i] - c[:, j])
+    return h[own], hd[own], n[own], curv[own], hess
+
+
+def pair_hessians(stack: ShapeStack, p_rel) -> np.ndarray:
+    """``H`` (K, 3, 3) of :func:`pair_barriers_and_hessians` alone."""
+    p = np.asarray(p_rel, dtype=np.float64)
+    return pair_barriers_and_hessians(stack, p, np.zeros(np.shape(p)), 1.0)[4]

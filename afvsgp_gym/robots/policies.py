@@ -33,9 +33,12 @@ __all__ = ["ROBOT_AGENTS", "make_robot_policy"]
 
 #: Agents of ``afvsgp-gym robot --agent``.
 ROBOT_AGENTS = ("nominal", "hold", "zero")
+#: s of the ``"nominal"`` tracker's warm-up (the small motion before the ramp); a moving
+#: obstacle given without ``start_time`` starts then, as in the simulation.
+WARMUP_SECONDS = 2.0
 
 
-def cyclic_reference(center: np.ndarray, warmup: float = 2.0) -> CyclicReference:
+def cyclic_reference(center: np.ndarray, warmup: float = WARMUP_SECONDS) -> CyclicReference:
     """The simulation's reference (``FrankaObstacleEnv``'s, no switch) around ``center``."""
     ex, ey, ez = np.eye(3)
     return CyclicReference(center=np.asarray(center, dtype=np.float64).copy(), axis1=ey,

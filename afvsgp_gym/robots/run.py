@@ -5,21 +5,22 @@ from __future__ import annotations
 
 import contextlib
 import os
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from typing import Any
 
 import numpy as np
 
 from afvsgp_gym.envs.joint_limits import JointLimits
 from afvsgp_gym.envs.safety_spheres import PANDA_ARM_SPHERES, SafetySphere, sphere_arrays
+from afvsgp_gym.envs.scenario import OBSTACLE_TYPES, ObstacleSpec, parse_obstacles
 from afvsgp_gym.robots.bridge import Bridge, BridgeReport
 from afvsgp_gym.robots.kinematics import FRANKA_PANDA, DHChain, SphereKinematics
 from afvsgp_gym.robots.libfranka import TAU_MAX, check_kinematics, connect, panda_limits
-from afvsgp_gym.robots.policies import make_robot_policy
+from afvsgp_gym.robots.policies import WARMUP_SECONDS, make_robot_policy
 from afvsgp_gym.robots.terms import BarrierModel, ObstacleEstimate
 
-__all__ = ["build_bridge", "make_controller", "realtime_priority", "run_robot", "run_simulated",
-           "static_obstacles"]
+__all__ = ["build_bridge", "make_controller", "obstacle_specs", "realtime_priority", "run_robot",
+           "run_simulated", "scripted_obstacles", "static_obstacles"]
 
 
 @contextlib.contextmanager
@@ -69,18 +70,21 @@ def build_bridge(robot: Any, model: Any, torques: Callable, *, chain: DHChain,
                  limits: JointLimits, agent: str = "nominal", learner: str = "none",
                  spheres: Sequence[SafetySphere] = PANDA_ARM_SPHERES, budget: float = 0.9e-3,
                  cost: Callable[[], bool] | None = None, torque_error=0.0,
-                 filter_kwargs: dict | None = None) -> Bridge:
+                 filter_kwargs: dict | None = None,
+                 obstacle_shapes: Sequence | None = None) -> Bridge:
     """The :class:`~afvsgp_gym.robots.bridge.Bridge` of one robot: its kinematics ``chain``,
-    safety ``spheres``, joint ``limits``, the obstacles' radii and perception callback, the
-    policy ``agent`` (:data:`~afvsgp_gym.robots.policies.ROBOT_AGENTS`) from the robot's
-    current pose and a filter with ``learner``. ``chain`` is first checked against the
-    robot's own flange pose and Jacobian (:func:`~afvsgp_gym.robots.libfranka.
-    check_kinematics`; ``RuntimeError`` when they disagree)."""
+    safety ``spheres``, joint ``limits``, the obstacles' radii (and ``obstacle_shapes``:
+    :class:`~afvsgp_gym.robots.terms.BarrierModel`'s ``shapes``, None: spheres) and
+    perception callback, the policy ``agent``
+    (:data:`~afvsgp_gym.robots.policies.ROBOT_AGENTS`) from the robot's current pose and a
+    filter with ``learner``. ``chain`` is first checked against the robot's own flange pose
+    and Jacobian (:func:`~afvsgp_gym.robots.libfranka.check_kinematics`; ``RuntimeError``
+    when they disagree)."""
     state = robot.read_once()
     checked = check_kinematics(state, model, chain)  # RuntimeError: not the robot's
     kin = SphereKinematics.from_spheres(chain, spheres)
     barriers = BarrierModel(kin, sphere_arrays(spheres)[2], obstacle_radii, limits,
-                            torque_error=torque_error)
+                            torque_error=torque_error, shapes=obstacle_shapes)
     controller = make_controller(barriers, learner, **(filter_kwargs or {}))
     q0 = np.asarray(state.q, dtype=np.float64)
     policy = make_robot_policy(agent, chain, q0)
@@ -97,7 +101,8 @@ def run_simulated(seconds: float, *, agent: str = "nominal", learner: str = "non
     """Run the bridge for ``seconds`` against a
     :class:`~afvsgp_gym.robots.simulated.SimulatedFranka` (``robot_kwargs``: its arguments;
     by default a 1 kg payload the served model does not know and the simulation's moving
-    sphere); cost from the stand-in's true state."""
+    sphere; ``obstacles``: specs or the envs' dicts of any type); cost from the stand-in's
+    true state."""
     from afvsgp_gym.robots.simulated import SimulatedFranka, Torques
 
     robot = SimulatedFranka(realtime=realtime, **(robot_kwargs or {}))
@@ -106,7 +111,8 @@ def run_simulated(seconds: float, *, agent: str = "nominal", learner: str = "non
                           obstacles=robot.obstacle_estimate, limits=robot.joint_limits,
                           agent=agent, learner=learner, spheres=robot.spheres, budget=budget,
                           cost=robot.cost, torque_error=torque_error,
-                          filter_kwargs=filter_kwargs)
+                          filter_kwargs=filter_kwargs,
+                          obstacle_shapes=[o.shape for o in robot.obstacles])
     report = bridge.run(seconds)
     report.lost_commands = robot.lost_commands
     return report
@@ -122,15 +128,62 @@ def static_obstacles(spheres: Sequence[Sequence[float]]) -> tuple[list[float], C
     return arr[:, 3].tolist(), lambda t: est
 
 
-def run_robot(host: str, seconds: float, *, obstacles: Sequence[Sequence[float]] = (),
+def obstacle_specs(obstacles: Sequence) -> list[ObstacleSpec]:
+    """Virtual obstacles as specs: each entry an :class:`~afvsgp_gym.envs.scenario.ObstacleSpec`,
+    one of the envs' ``obstacles=`` dicts (``"type"`` ``"sphere"``, ``"box"``, ``"capsule"``
+    or ``"plane"``; a moving one starts after the tracker's warm-up, 2 s, by default) or a
+    fixed sphere ``(x, y, z, r)``; ValueError naming ``obstacles[i]`` (and its key)."""
+    entries = []
+    for i, ob in enumerate(obstacles):
+        if isinstance(ob, ObstacleSpec | Mapping):
+            entries.append(ob)
+            continue
+        arr = np.asarray(ob, dtype=np.float64) if _is_numeric(ob) else None
+        if arr is None or arr.shape != (4,):
+            raise ValueError(f"obstacles[{i}] must be an ObstacleSpec, a dict with a 'type' "
+                             f"or (x, y, z, r). Got: {ob!r}")
+        entries.append({"type": "sphere", "position": arr[:3].tolist(), "radius": arr[3]})
+    return parse_obstacles(entries, 3, WARMUP_SECONDS, OBSTACLE_TYPES) if entries else []
+
+
+def _is_numeric(value) -> bool:
+    """``value`` converts to a float array (not ragged, no strings)."""
+    try:
+        np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        return False
+    return True
+
+
+def scripted_obstacles(specs: Sequence[ObstacleSpec]) -> Callable[[float], ObstacleEstimate]:
+    """The perception callback of virtual obstacles: their reference points' state at ``t``
+    (s since the run's first state), exact; one estimate for all ticks when all are static."""
+    if not specs:
+        return static_obstacles([])[1]
+    if all(ob.duration == 0.0 for ob in specs):
+        fixed = ObstacleEstimate(*(np.array(x) for x in zip(*(ob.state(0.0) for ob in specs),
+                                                           strict=True)))
+        return lambda t: fixed
+
+    def callback(t: float) -> ObstacleEstimate:
+        return ObstacleEstimate(*(np.array(x) for x in zip(*(ob.state(t) for ob in specs),
+                                                           strict=True)))
+
+    return callback
+
+
+def run_robot(host: str, seconds: float, *, obstacles: Sequence = (),
               agent: str = "hold", learner: str = "none", budget: float = 0.9e-3,
               torque_error=0.0, filter_kwargs: dict | None = None) -> BridgeReport:
     """Run the bridge for ``seconds`` on the robot at ``host`` (pylibfranka, Franka's DH
-    table and the Panda's datasheet limits) with fixed spherical ``obstacles``."""
+    table and the Panda's datasheet limits) with virtual ``obstacles`` (:func:`obstacle_specs`:
+    specs, the envs' dicts of any type or fixed spheres ``(x, y, z, r)``)."""
+    specs = obstacle_specs(obstacles)  # (ValueError before connecting)
     robot, model, torques = connect(host)
-    radii, callback = static_obstacles(obstacles)
-    bridge = build_bridge(robot, model, torques, chain=FRANKA_PANDA, obstacle_radii=radii,
-                          obstacles=callback, limits=panda_limits(), agent=agent,
-                          learner=learner, budget=budget, torque_error=torque_error,
-                          filter_kwargs=filter_kwargs)
+    bridge = build_bridge(robot, model, torques, chain=FRANKA_PANDA,
+                          obstacle_radii=[ob.radius for ob in specs],
+                          obstacles=scripted_obstacles(specs), limits=panda_limits(),
+                          agent=agent, learner=learner, budget=budget,
+                          torque_error=torque_error, filter_kwargs=filter_kwargs,
+                          obstacle_shapes=[ob.shape for ob in specs])
     return bridge.run(seconds)

@@ -12,9 +12,14 @@ as a real robot's does: the plant carries ``payload_mass`` at the flange (uncomp
 link masses scaled by ``mass_scale``, joint ``damping`` and ``friction``; the served
 ``Model`` is the catalogue (unscaled links, no payload; the plant's rotor ``armature``),
 whose gravity the plant compensates, as :class:`~afvsgp_gym.envs.franka.FrankaObstacleEnv`'s
-``"perturbed"`` model. Spherical obstacles move in the workspace
-(:class:`~afvsgp_gym.envs.scenario.ObstacleSpec`); :meth:`SimulatedFranka.obstacle_estimate`
-is the perception callback (their true state).
+``"perturbed"`` model. Obstacles rest or move in the workspace: spheres, boxes, capsules and
+planes (:class:`~afvsgp_gym.envs.scenario.ObstacleSpec`, or the envs' ``obstacles=`` dicts),
+MuJoCo geoms of their type named ``obstacle{i}`` that follow their motion;
+:meth:`SimulatedFranka.obstacle_estimate` is the perception callback (their reference points'
+true state, a centre or a plane's point, or a camera's estimate of the centres).
+:meth:`SimulatedFranka.cost` checks the true state as the simulation does: a safety sphere
+inside an obstacle (exact signed distance), an arm collision geom touching one
+(``mj_geomDistance``), a joint at its limits.
 
 Timing (``realtime=True``): ``readOnce`` blocks until the next 1 ms tick of the wall clock,
 as the robot sends a state every millisecond. The command written since the last read drives
@@ -45,8 +50,9 @@ import numpy as np
 
 from afvsgp_gym.envs import franka_model as fm
 from afvsgp_gym.envs.joint_limits import FRANKA_MAX_SPEED, FRANKA_MAX_TORQUE_RATE, JointLimits
+from afvsgp_gym.envs.primitives import Plane, pair_barriers, stack_shapes
 from afvsgp_gym.envs.safety_spheres import PANDA_ARM_SPHERES, SafetySphere, sphere_arrays
-from afvsgp_gym.envs.scenario import ObstacleSpec
+from afvsgp_gym.envs.scenario import OBSTACLE_TYPES, ObstacleSpec, parse_obstacles
 from afvsgp_gym.robots.kinematics import (
     END_EFFECTOR_OFFSET,
     FLANGE_OFFSET,
@@ -55,6 +61,7 @@ from afvsgp_gym.robots.kinematics import (
     SphereKinematics,
 )
 from afvsgp_gym.robots.libfranka import CONTROL_PERIOD, TAU_MAX
+from afvsgp_gym.robots.policies import WARMUP_SECONDS
 from afvsgp_gym.robots.terms import ObstacleEstimate
 from afvsgp_gym.validation import check_real
 
@@ -263,9 +270,12 @@ class SimulatedFranka:
 
     Parameters
     ----------
-    obstacles : sequence of ObstacleSpec or None
-        The spheres moving in the workspace; None: :func:`dynamic_obstacle` for the reference
-        centre (the end-effector at ``q0``).
+    obstacles : sequence of ObstacleSpec or dict, or None
+        The obstacles in the workspace: specs of any type (:meth:`ObstacleSpec.of_shape
+        <afvsgp_gym.envs.scenario.ObstacleSpec.of_shape>`) or the envs' ``obstacles=``
+        dicts (``"type"`` ``"sphere"``, ``"box"``, ``"capsule"``, ``"plane"``; a moving one's
+        ``start_time`` defaults to the tracker's warm-up, 2 s); None: :func:`dynamic_obstacle`
+        for the reference centre (the end-effector at ``q0``).
     payload_mass, mass_scale, damping, friction, armature
         The true plant (as :class:`~afvsgp_gym.envs.franka.FrankaObstacleEnv`'s; one
         ``mass_scale`` for every link).
@@ -277,10 +287,11 @@ class SimulatedFranka:
         Abort on the joint range and speed limits, as the robot does.
     obstacle_noise : float
         0 (default): :meth:`obstacle_estimate` is the obstacles' true state. > 0 (m): a camera
-        samples each centre at ``obstacle_rate`` Hz with this noise per axis (seeded by
-        ``seed``) and :meth:`obstacle_estimate` is the
+        samples each centre (a box's, a capsule's) at ``obstacle_rate`` Hz with this noise per
+        axis (seeded by ``seed``) and :meth:`obstacle_estimate` is the
         :class:`~afvsgp_gym.cbf.estimation.ObstacleEstimator`'s (constant velocity, process
-        noise 1 m s^-1.5) at the control time, with its covariance.
+        noise 1 m s^-1.5) at the control time, with its covariance. Planes (a table, a wall:
+        the cell's, measured once) are given exactly, with covariance 0.
     obstacle_rate : float
         Hz, the camera's sample rate.
     seed : int
@@ -314,15 +325,10 @@ class SimulatedFranka:
                                                  ).positions(q0)[0]
         if obstacles is None:
             obstacles = [dynamic_obstacle(self.reference_center)]
-        self.obstacles = tuple(obstacles)
-        if not self.obstacles or not all(isinstance(o, ObstacleSpec) for o in self.obstacles):
-            raise ValueError(f"obstacles must be a non-empty sequence of ObstacleSpec. "
-                             f"Got: {obstacles!r}")
-        shaped = [i for i, o in enumerate(self.obstacles) if o.shape is not None]
-        if shaped:  # the bridge's barrier model (robots/terms.py) knows spheres only
-            raise ValueError(f"obstacles[{shaped[0]}] is a {self.obstacles[shaped[0]].kind!r}: "
-                             f"the robot bridge supports sphere obstacles only")
-        scene = fm.SceneOptions(tuple(o.radius for o in self.obstacles), 0.05, CONTROL_PERIOD)
+        #: The obstacles (ObstacleSpec), in the order of the barrier pairs.
+        self.obstacles = tuple(parse_obstacles(obstacles, 3, WARMUP_SECONDS, OBSTACLE_TYPES))
+        scene = fm.SceneOptions(tuple(o.radius for o in self.obstacles), 0.05, CONTROL_PERIOD,
+                                tuple(fm.obstacle_geom(o) for o in self.obstacles))
         plant = fm.PlantParameters(mass_scale=np.full(9, mass_scale), payload_mass=payload_mass,
                                    damping=np.full(7, damping), frictionloss=np.full(7, friction),
                                    armature=np.full(7, armature))
@@ -337,6 +343,7 @@ class SimulatedFranka:
         bodies, self._offsets, self.sphere_radii = sphere_arrays(self.spheres)
         self._sphere_bodies = np.array([m.body(b).id for b in bodies])
         self._obstacle_radii = np.array([o.radius for o in self.obstacles])
+        self._setup_obstacle_checks()
         self._site = m.site(fm.EE_SITE).id
         f_t_ee = np.eye(4)  # the site in the flange frame (link 7 moved 0.107 m along z)
         quat = m.site_quat[self._site]
@@ -345,10 +352,11 @@ class SimulatedFranka:
         f_t_ee[:3, :3] = mat.reshape(3, 3)
         f_t_ee[:3, 3] = m.site_pos[self._site] - np.array([0.0, 0.0, FLANGE_OFFSET])
         self._f_t_ee = f_t_ee.ravel(order="F").tolist()
+        self.ticks = 0
         self.data.qpos[:] = q0
         self.data.qvel[:] = 0.0
+        self._place_obstacles()
         mujoco.mj_forward(m, self.data)
-        self.ticks = 0
         self.mode = "Idle"
         self._errors: tuple[str, ...] = ()
         self._pending_error: str | None = None
@@ -357,10 +365,12 @@ class SimulatedFranka:
         self._t0: float | None = None
         self.lost_commands = 0
         self._estimator = None
-        if self.obstacle_noise > 0:
+        #: The obstacles the camera senses (not the planes).
+        self._sensed = [i for i, o in enumerate(self.obstacles) if not isinstance(o.shape, Plane)]
+        if self.obstacle_noise > 0 and self._sensed:
             from afvsgp_gym.cbf.estimation import ObstacleEstimator
 
-            self._estimator = ObstacleEstimator(len(self.obstacles), self.obstacle_noise)
+            self._estimator = ObstacleEstimator(len(self._sensed), self.obstacle_noise)
             self._camera_rng = np.random.default_rng(int(seed))
             self._next_sample = 0
 
@@ -411,13 +421,21 @@ class SimulatedFranka:
         t = self.time if t is None else float(t)
         if self._estimator is None:
             return self.true_obstacles(t)
-        est = self._estimator
+        est, sensed = self._estimator, self._sensed
+        every = len(sensed) == len(self.obstacles)
         while self._next_sample / self.obstacle_rate <= t + 1e-12:  # the samples taken by t
             ts = self._next_sample / self.obstacle_rate
             true = self.true_obstacles(ts).position
+            true = true if every else true[sensed]
             est.update(true + self._camera_rng.normal(0.0, self.obstacle_noise, true.shape), ts)
             self._next_sample += 1
-        return ObstacleEstimate(*est.predict(t))
+        if every:
+            return ObstacleEstimate(*est.predict(t))
+        exact = self.true_obstacles(t)  # the planes': exact, covariance 0
+        pos, vel, acc = exact.position, exact.velocity, exact.acceleration
+        cov = np.zeros((len(self.obstacles), 3, 3))
+        pos[sensed], vel[sensed], acc[sensed], cov[sensed] = est.predict(t)
+        return ObstacleEstimate(pos, vel, acc, cov)
 
     def true_obstacles(self, t: float | None = None) -> ObstacleEstimate:
         """The obstacles' true state at ``t`` (s; default: now)."""
@@ -431,24 +449,75 @@ class SimulatedFranka:
         """Put the plant at ``q``, ``dq`` (tests)."""
         self.data.qpos[:] = q
         self.data.qvel[:] = dq
+        self._place_obstacles()
         mujoco.mj_forward(self.model, self.data)
 
     def clearance(self) -> np.ndarray:
         """``h`` (O S,) of every (sphere, obstacle) pair at the true state, from MuJoCo's
-        body frames."""
+        body frames: the exact signed distance of each obstacle's primitive
+        (:func:`~afvsgp_gym.envs.primitives.pair_barriers`) less the sphere's radius."""
         d = self.data  # (its frames are the state's: _advance and set_state refresh them)
         b = self._sphere_bodies
         p = np.einsum("sij,sj->si", d.xmat[b].reshape(-1, 3, 3), self._offsets) + d.xpos[b]
         pos = self.true_obstacles().position
-        dist = np.linalg.norm(p[None, :, :] - pos[:, None, :], axis=2)
-        return (dist - self._obstacle_radii[:, None] - self.sphere_radii[None, :]).ravel()
+        if self._shapes is None:  # spheres only: the sphere formula, as before
+            dist = np.linalg.norm(p[None, :, :] - pos[:, None, :], axis=2)
+            return (dist - self._obstacle_radii[:, None] - self.sphere_radii[None, :]).ravel()
+        rel = (p[None, :, :] - pos[:, None, :]).reshape(-1, 3)
+        return pair_barriers(self._shapes, rel, np.zeros_like(rel), self._pair_sphere_radii)[0]
+
+    def contact(self) -> bool:
+        """True when an arm collision geom (links 1-7, hand, fingers) touches an obstacle
+        geom at the true state (``mj_geomDistance`` < 0), as the simulation's contact check:
+        only the geoms whose bounding sphere reaches the obstacle's (a plane's half-space)
+        are asked."""
+        m, d = self.model, self.data
+        pos = d.geom_xpos[self._arm_geoms]
+        for k, g_obs in enumerate(self._obstacle_geoms):
+            ob = self.obstacles[k]
+            diff = pos - ob.state(self.time)[0]
+            if isinstance(ob.shape, Plane):  # the geoms' bounding spheres reaching the plane
+                near = diff @ ob.shape.normal < self._arm_rbound
+            else:
+                near = np.einsum("ij,ij->i", diff, diff) < self._reach2[k]
+            for g in self._arm_geoms[near]:
+                if mujoco.mj_geomDistance(m, d, int(g), int(g_obs), 0.01, None) < 0:
+                    return True
+        return False
 
     def cost(self) -> bool:
-        """True when the true state has a sphere inside an obstacle or a joint at its range
-        stop or above its datasheet speed."""
+        """True when the true state has a sphere inside an obstacle, an arm geom touching
+        one (:meth:`contact`) or a joint at its range stop or above its datasheet speed."""
         d = self.data
         return bool(self.clearance().min() < 0.0
-                    or self.joint_limits.violation(d.qpos[:7], d.qvel[:7]))
+                    or self.joint_limits.violation(d.qpos[:7], d.qvel[:7])
+                    or self.contact())
+
+    def _setup_obstacle_checks(self) -> None:
+        """The obstacle geoms and mocap bodies, the arm's collision geoms and their reach
+        (the contact check), and the primitives' stack for a scene that is not spheres only
+        (:meth:`clearance`)."""
+        m = self.model
+        n_o = len(self.obstacles)
+        self._obstacle_geoms = np.array([m.geom(f"obstacle{i}").id for i in range(n_o)])
+        self._obstacle_mocap = np.array([m.body_mocapid[m.body(f"obstacle{i}").id]
+                                         for i in range(n_o)])
+        self._arm_geoms = fm.arm_collision_geoms(m)
+        self._arm_rbound = m.geom_rbound[self._arm_geoms].copy()
+        reach = self._arm_rbound[None, :] + self._obstacle_radii[:, None]
+        self._reach2 = reach * reach
+        self._shapes = None
+        if any(o.shape is not None for o in self.obstacles):
+            self._shapes = stack_shapes([o.primitive for o in self.obstacles],
+                                        len(self.sphere_radii))
+            self._pair_sphere_radii = np.tile(self.sphere_radii, n_o)
+
+    def _place_obstacles(self) -> None:
+        """The obstacle bodies (mocap) at the obstacles' places now (their geoms follow at
+        the next kinematics; they do not enter the arm's dynamics: contacts are off)."""
+        t = self.time
+        for k, ob in zip(self._obstacle_mocap, self.obstacles, strict=True):
+            self.data.mocap_pos[k] = ob.state(t)[0]
 
     def _raise_pending(self) -> None:
         if self._pending_error is not None:
@@ -488,8 +557,9 @@ class SimulatedFranka:
         d.ctrl[:] = np.clip(command / TAU_MAX, -1.0, 1.0)
         warnings = int(d.warning.number[_BAD_WARNINGS].sum())
         mujoco.mj_step(m, d)  # (MuJoCo resets a state that goes non-finite, and warns)
-        mujoco.mj_kinematics(m, d)  # the frames of the new state (mj_step leaves the old)
         self.ticks += 1
+        self._place_obstacles()
+        mujoco.mj_kinematics(m, d)  # the frames of the new state (mj_step leaves the old)
         q, dq = d.qpos[:7], d.qvel[:7]
         if int(d.warning.number[_BAD_WARNINGS].sum()) > warnings or not (
                 math.isfinite(float(q.sum())) and math.isfinite(float(dq.sum()))):

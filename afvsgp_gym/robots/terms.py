@@ -18,11 +18,27 @@ The barriers and their conventions are :class:`~afvsgp_gym.envs.franka.FrankaObs
   :class:`~afvsgp_gym.envs.joint_limits.JointLimits` with ``lf, lg = +-(q''_0, M^-1
   diag(action_scale))`` of their joint and features ``[q, q', 0 (6)]``.
 
+**Boxes, capsules and planes** (``shapes``): an obstacle may be any primitive of
+:mod:`~afvsgp_gym.envs.primitives` (``Box``, ``Capsule``, ``Plane``; a ``Sphere`` is the
+sphere above), translated with the estimate's position, velocity and acceleration (its
+orientation fixed; ``p_o`` is its reference point: a centre, a plane's point). Its pairs'
+``h = d(p_s - p_o) - r_s`` with ``d`` the exact signed distance, ``n`` the closest feature's
+normal and the curvature ``v_rel' H v_rel`` come from
+:func:`~afvsgp_gym.envs.primitives.pair_barriers`, and ``xi`` holds ``n (h + r_s)`` (the
+sphere centre's offset from the closest surface point) in place of ``d``: the simulation's
+terms for the same obstacles. A scene of spheres only takes the sphere formulas above, bit
+for bit as before.
+
 An obstacle estimate with a covariance (:class:`ObstacleEstimate`, the perception issue's
-per-axis covariance of ``[p, v, a]``) gives each pair's covariance of ``[h, h', lf]``
-(:func:`~afvsgp_gym.envs.perception.pair_covariance`) and lowers ``lf`` by the mean of its
-error, ``2 sigma_v^2 / |d|`` (the curvature is convex in the obstacle's velocity), as the
-simulation does; the joint-limit rows' covariance is 0 (the encoders are taken as exact).
+per-axis covariance of ``[p, v, a]``) gives each pair's covariance of ``[h, h', lf]`` and
+lowers ``lf`` by the mean of its error (the curvature is convex in the obstacle's velocity),
+as the simulation does for spheres: for spheres only
+:func:`~afvsgp_gym.envs.perception.pair_covariance` and ``2 sigma_v^2 / |d|``; with a box,
+capsule or plane in the scene :func:`~afvsgp_gym.envs.perception.shape_pair_covariance` for
+every pair (first order through the signed distance's gradient ``n`` and Hessian ``H``,
+:func:`~afvsgp_gym.envs.primitives.pair_barriers_and_hessians`) and ``tr(H) sigma_v^2`` (0
+on a face or a plane). The joint-limit rows' covariance is 0 (the encoders are taken as
+exact).
 """
 
 from __future__ import annotations
@@ -38,8 +54,18 @@ from afvsgp_gym.envs.joint_limits import (
     joint_projection,
     limit_calibration,
 )
-from afvsgp_gym.envs.perception import pair_covariance
-from afvsgp_gym.envs.scenario import sphere_barriers
+from afvsgp_gym.envs.perception import pair_covariance, shape_pair_covariance
+from afvsgp_gym.envs.primitives import (
+    Box,
+    Capsule,
+    Plane,
+    Sphere,
+    hessian_stack,
+    pair_barriers,
+    pair_barriers_and_hessians,
+    stack_shapes,
+)
+from afvsgp_gym.envs.scenario import bounding_radius, sphere_barriers
 from afvsgp_gym.robots.kinematics import SphereKinematics
 from afvsgp_gym.types import BarrierLayout, BarrierSet
 
@@ -58,12 +84,13 @@ def _rows(value, shape: tuple[int, ...], name: str) -> np.ndarray:
 
 @dataclass(frozen=True)
 class ObstacleEstimate:
-    """What perception says about ``O`` spherical obstacles at the control time.
+    """What perception says about ``O`` obstacles at the control time.
 
     Attributes
     ----------
     position, velocity, acceleration : ndarray of shape (O, 3)
-        Centres (m), velocities (m/s), accelerations (m/s^2) in the robot's base frame.
+        Reference points (m: a sphere's, box's or capsule's centre, a plane's point),
+        velocities (m/s), accelerations (m/s^2) in the robot's base frame.
     covariance : ndarray of shape (O, 3, 3) or None
         Per-axis covariance of ``[p, v, a]`` (the same for x, y and z, as
         :class:`~afvsgp_gym.cbf.estimation.ObstacleEstimator` gives it); None: exact.
@@ -98,7 +125,8 @@ class BarrierModel:
     sphere_radii : array_like of shape (S,)
         m, > 0.
     obstacle_radii : array_like of shape (O,)
-        m, > 0.
+        m, > 0: a sphere's radius; a shaped obstacle's bounding radius
+        (:attr:`~afvsgp_gym.envs.scenario.ObstacleSpec.radius`, ``inf`` for a plane).
     limits : JointLimits or None
         The joint range and speed barriers (and their margins); None: obstacle pairs only.
     action_scale : float or array_like of shape (7,)
@@ -110,6 +138,12 @@ class BarrierModel:
         action_scale_j``, so the filter holds for every such residual (the simulation's
         ``"true_robust"`` terms do the same for friction). 0 (default): the model is taken
         as exact.
+    shapes : sequence of O (Box, Capsule, Plane, Sphere or None) or None
+        Each obstacle's primitive (:mod:`~afvsgp_gym.envs.primitives`; its size and
+        orientation: the estimate's position places it, the primitive's own centre or point
+        is not used), None for a sphere of its ``obstacle_radii`` entry
+        (:attr:`~afvsgp_gym.envs.scenario.ObstacleSpec.shape`). None (default): every
+        obstacle a sphere.
     """
 
     #: The filter settings :class:`~afvsgp_gym.envs.franka.FrankaObstacleEnv` suggests
@@ -119,7 +153,8 @@ class BarrierModel:
     SPEED_GAIN = 25.0
 
     def __init__(self, kinematics: SphereKinematics, sphere_radii, obstacle_radii,
-                 limits: JointLimits | None, action_scale=1.0, torque_error=0.0) -> None:
+                 limits: JointLimits | None, action_scale=1.0, torque_error=0.0, *,
+                 shapes=None) -> None:
         if not isinstance(kinematics, SphereKinematics):
             raise ValueError(f"kinematics must be a SphereKinematics. Got: {kinematics!r}")
         n_s = len(kinematics.links)
@@ -146,6 +181,14 @@ class BarrierModel:
         self.n_spheres, self.n_obstacles = n_s, len(ro)
         self.n_pairs = n_s * len(ro)
         self._radius = (ro[:, None] + rs[None, :]).ravel()
+        self.shapes = _check_shapes(shapes, ro)
+        self._shape_const = None
+        if any(shape is not None for shape in self.shapes):  # pair_barriers' stacks
+            prims = [Sphere(np.zeros(3), r) if shape is None else shape
+                     for shape, r in zip(self.shapes, ro, strict=True)]
+            self._shape_const = (stack_shapes(prims, n_s), hessian_stack(prims, n_s),
+                                 np.tile(rs, len(ro)),
+                                 np.repeat([shape is None for shape in self.shapes], n_s))
         self.n_barriers = self.n_pairs + (0 if limits is None else limits.n_barriers)
         if limits is not None:  # h = sign * [q, q'][source] + offset for every limit row
             n = limits.n_joints
@@ -215,7 +258,8 @@ class BarrierModel:
         qacc0 = -(minv @ coriolis)
         d = (p[None, :, :] - obstacles.position[:, None, :]).reshape(k, 3)
         vr = (v[None, :, :] - obstacles.velocity[:, None, :]).reshape(k, 3)
-        h, hd, n, curv = sphere_barriers(d, vr, self._radius)
+        h, hd, n, curv, offset, hess = self._pair_geometry(d, vr,
+                                                          obstacles.covariance is not None)
         acc = jac @ qacc0 + bias  # (S, 3) sphere accelerations at zero action
         a_obs = np.repeat(obstacles.acceleration, n_s, axis=0)
         ns = n.reshape(n_o, n_s, 3)
@@ -231,15 +275,14 @@ class BarrierModel:
         lg[:k] = np.einsum("osi,sij->osj", ns, gain).reshape(k, 7)
         derivs[:k, 0], derivs[:k, 1] = h, hd
         xi[:, :7], xi[:, 7:14] = q, qd
-        xi[:k, 14:17], xi[:k, 17:] = d, vr
+        xi[:k, 14:17], xi[:k, 17:] = offset, vr
         cov = None
         if obstacles.covariance is not None:
             per_pair = np.repeat(obstacles.covariance, n_s, axis=0)
-            dist = np.linalg.norm(d, axis=1)
             w = np.tile(acc, (n_o, 1)) - a_obs
             cov = np.zeros((nb, 3, 3))
-            cov[:k] = pair_covariance(n, dist, vr, per_pair, w)
-            lf[:k] -= 2.0 * per_pair[:, 1, 1] / dist
+            cov[:k], bias = self._pair_covariance(d, n, vr, per_pair, w, hess)
+            lf[:k] -= bias
         lim, projection = self.limits, None
         if lim is not None:  # JointLimits.terms, .derivatives and .features, in place
             joint, sign = lim.joint, lim.sign
@@ -256,10 +299,71 @@ class BarrierModel:
             lf -= np.abs(lg) @ self._error_per_action
         return BarrierSet(derivs, lf, lg, xi, cov, projection=projection)
 
+    def _pair_geometry(self, d: np.ndarray, vr: np.ndarray,
+                       hessians: bool = False) -> tuple[np.ndarray | None, ...]:
+        """``(h, h', n, curvature, offset, H)`` of the pairs at ``d = p_s - p_o`` and
+        ``v_rel``: the sphere formulas for a scene of spheres, else ``pair_barriers`` (the
+        simulation's ``FrankaObstacleEnv._pair_geometry``), with the signed distances'
+        Hessians (K, 3, 3) when ``hessians`` (else None); ``offset`` the features' (``d`` for a
+        sphere obstacle, else the sphere centre's offset from the closest surface point)."""
+        if self._shape_const is None:
+            h, hd, n, curv = sphere_barriers(d, vr, self._radius)
+            return h, hd, n, curv, d, None
+        stack, with_hessians, sphere_rad, sphere_rows = self._shape_const
+        hess = None
+        if hessians:  # one pass of the kernels for both
+            h, hd, n, curv, hess = pair_barriers_and_hessians(with_hessians, d, vr, sphere_rad)
+        else:
+            h, hd, n, curv = pair_barriers(stack, d, vr, sphere_rad)
+        offset = np.where(sphere_rows[:, None], d, n * (h + sphere_rad)[:, None])
+        return h, hd, n, curv, offset, hess
+
+    def _pair_covariance(self, d: np.ndarray, n: np.ndarray, vr: np.ndarray,
+                         per_pair: np.ndarray, w: np.ndarray,
+                         hess: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """The pairs' covariance of ``[h, h', lf]`` (K, 3, 3) and the mean of ``lf``'s error
+        (K,) from the per-axis covariance ``per_pair`` of each pair's obstacle and, in a scene
+        that is not spheres only, the signed distances' Hessians ``hess`` (module
+        docstring)."""
+        if hess is None:
+            dist = np.linalg.norm(d, axis=1)
+            return pair_covariance(n, dist, vr, per_pair, w), 2.0 * per_pair[:, 1, 1] / dist
+        bias = per_pair[:, 1, 1] * np.einsum("kii->k", hess)
+        return shape_pair_covariance(n, hess, vr, per_pair, w), bias
+
     def sphere_clearance(self, q, obstacle_positions) -> np.ndarray:
-        """``h`` (O S,) of every pair at joint angles ``q`` and obstacle centres (O, 3): the
-        geometry alone (for checks of a true state)."""
+        """``h`` (O S,) of every pair at joint angles ``q`` and obstacle reference points
+        (O, 3): the geometry alone (for checks of a true state)."""
         p = self.kinematics.positions(_rows(q, (7,), "q"))
         pos = _rows(obstacle_positions, (self.n_obstacles, 3), "obstacle_positions")
         d = (p[None, :, :] - pos[:, None, :]).reshape(-1, 3)
-        return np.linalg.norm(d, axis=1) - self._radius
+        if self._shape_const is None:
+            return np.linalg.norm(d, axis=1) - self._radius
+        return self._pair_geometry(d, np.zeros_like(d))[0]
+
+
+def _check_shapes(shapes, obstacle_radii: np.ndarray) -> tuple:
+    """``shapes`` as a tuple of O primitives or None (a ``Sphere`` becomes None); ValueError
+    naming ``shapes[i]`` or ``obstacle_radii[i]`` unless each entry is None or a primitive
+    whose bounding radius is that obstacle's radius."""
+    o = len(obstacle_radii)
+    if shapes is None:
+        shapes = (None,) * o
+    if isinstance(shapes, (str, bytes, Sphere, Box, Capsule, Plane)) or not hasattr(
+            shapes, "__len__") or len(shapes) != o:
+        raise ValueError(f"shapes must be None or a sequence of {o} entries (one per "
+                         f"obstacle: a Box, Capsule, Plane, Sphere or None). Got: {shapes!r}")
+    out = []
+    for i, shape in enumerate(shapes):
+        if shape is not None and not isinstance(shape, (Sphere, Box, Capsule, Plane)):
+            raise ValueError(f"shapes[{i}] must be a Box, Capsule, Plane, Sphere "
+                             f"(afvsgp_gym.envs.primitives) or None. Got: {shape!r}")
+        if shape is not None and obstacle_radii[i] != bounding_radius(shape):
+            raise ValueError(f"obstacle_radii[{i}] must be shapes[{i}]'s bounding radius "
+                             f"{bounding_radius(shape)} (ObstacleSpec.radius). Got: "
+                             f"{obstacle_radii[i]}")
+        if shape is None and not np.isfinite(obstacle_radii[i]):
+            raise ValueError(f"obstacle_radii[{i}] of a sphere must be finite. Got: "
+                             f"{obstacle_radii[i]}")
+        out.append(None if shape is None or isinstance(shape, Sphere) else shape)
+    return tuple(out)

@@ -2,20 +2,23 @@
 injected slow step gets the last safe action, a second one the brake) and the stop paths (a
 NaN state, a limit violation, the robot's reflex, a NaN policy)."""
 
+import mujoco
 import numpy as np
 import pytest
 
-from afvsgp_gym.envs.primitives import Box
 from afvsgp_gym.envs.safety_spheres import sphere_arrays
 from afvsgp_gym.envs.scenario import ObstacleSpec
-from afvsgp_gym.robots.bridge import Brake
+from afvsgp_gym.robots.bridge import Brake, Observation
 from afvsgp_gym.robots.kinematics import GYMNASIUM_PANDA, SphereKinematics
 from afvsgp_gym.robots.libfranka import as_matrix, limit_rate
+from afvsgp_gym.robots.policies import make_robot_policy
 from afvsgp_gym.robots.run import build_bridge, make_controller
 from afvsgp_gym.robots.simulated import SimulatedFranka, Torques
 from afvsgp_gym.robots.terms import BarrierModel
 
 DT = 1e-3
+#: A table at the mount (z = 0), the envs' obstacles= dict.
+TABLE = {"type": "plane", "position": [0.0, 0.0, 0.0], "normal": [0.0, 0.0, 1.0]}
 
 
 class Recording:
@@ -71,7 +74,8 @@ def _bridge(robot=None, agent="hold", budget=0.9e-3, on_read=None, on_state=None
                           obstacle_radii=[o.radius for o in robot.obstacles],
                           obstacles=robot.obstacle_estimate, limits=robot.joint_limits,
                           agent=agent, spheres=robot.spheres, budget=budget, cost=robot.cost,
-                          torque_error=torque_error, learner=learner)
+                          torque_error=torque_error, learner=learner,
+                          obstacle_shapes=[o.shape for o in robot.obstacles])
     bridge.clock = FakeClock()
     return bridge, rec, robot
 
@@ -262,6 +266,26 @@ def test_a_noisy_camera_gives_estimates_with_covariance_to_the_filter():
     assert 0 < np.abs(est.position - true.position).max() < 0.05
 
 
+def test_a_noisy_camera_on_a_box_gives_its_pairs_a_covariance_and_the_table_none():
+    """The camera senses the box's centre (the Kalman estimate and its covariance, through
+    shape_pair_covariance to every pair of the box); the table, a plane, is given exactly
+    (covariance 0), as are the joint limits."""
+    robot = SimulatedFranka([TABLE, {**BOX, "position": [0.45, 0.3, 0.3]}], realtime=False,
+                            obstacle_noise=0.01, seed=3)
+    bridge, _, _ = _bridge(robot, agent="nominal")
+    seen = []
+    inner = bridge.controller.filter
+    bridge.controller.filter = lambda u, terms, **k: seen.append(terms) or inner(u, terms, **k)
+    report = bridge.run(0.1)
+    assert report.stop_reason == "completed" and report.cost_steps == 0
+    cov, s = seen[-1].covariance, len(robot.spheres)
+    assert cov is not None and not cov[:s].any() and not cov[2 * s:].any()
+    assert np.all(cov[s:2 * s, 0, 0] > 0)
+    est, true = robot.obstacle_estimate(), robot.true_obstacles()
+    np.testing.assert_array_equal(est.position[0], true.position[0])
+    assert not est.covariance[0].any() and 0 < np.abs(est.position[1] - true.position[1]).max()
+
+
 def test_bad_arguments_name_the_argument():
     robot = SimulatedFranka(realtime=False)
     with pytest.raises(ValueError, match="learner 'oracle'"):
@@ -270,9 +294,18 @@ def test_bad_arguments_name_the_argument():
         SimulatedFranka(payload_mass=-1.0)
     with pytest.raises(ValueError, match="budget"):
         _bridge(robot, budget=0.0)
-    box = ObstacleSpec.of_shape(Box(np.array([0.5, 0.0, 0.4]), np.eye(3), [0.05] * 3))
-    with pytest.raises(ValueError, match=r"obstacles\[0\] is a 'box'"):
-        SimulatedFranka(obstacles=[box], realtime=False)
+    for entry, message in (
+            ({"type": "cone", "position": [0.5, 0, 0.4]}, r"obstacles\[1\]\['type'\]"),
+            ({"type": "box", "position": [0.5, 0, 0.4], "half_sizes": [0.05, 0.0, 0.05]},
+             r"obstacles\[1\]\['half_sizes'\] must be > 0"),
+            ({"type": "capsule", "position": [0.5, 0, 0.4], "radius": -0.02,
+              "half_length": 0.1}, r"obstacles\[1\]\['radius'\] must be > 0"),
+            ({"type": "plane", "position": [0, 0, np.nan], "normal": [0, 0, 1]},
+             r"obstacles\[1\]\['position'\] must be finite"),
+            ({"type": "plane", "position": [0, 0, 0], "normal": [0, 0, 1],
+              "start": [0, 0, 1]}, r"obstacles\[1\]\['start'\]: a plane is static")):
+        with pytest.raises(ValueError, match=message):
+            SimulatedFranka(obstacles=[TABLE, entry], realtime=False)
 
 
 @pytest.mark.parametrize("bound, safe", [([3, 3, 3, 3, 1, 1, 1], True), (0.0, False)])
@@ -326,3 +359,94 @@ def test_the_brake_forgets_its_hold_point_when_an_obstacle_moved():
     brake.see(moving + 0.05)  # while engaged, a moving world keeps the hold point
     np.testing.assert_array_equal(brake(q0, dq, mass, coriolis),
                                   -brake.frequency ** 2 * (q0 - q1))
+
+
+#: A low start: the end-effector 6 cm above a table at the mount and the hand's lowest
+#: safety sphere 1 cm above it; the tracker's reference sweeps +-0.28 m along y there.
+LOW_Q0 = (0.0, 0.4023, 0.0, -2.2773, 0.0, 0.5457, 0.785)
+#: A box standing on the table across the sweep's -y half (reached about 2.7 s in).
+BOX = {"type": "box", "position": [0.41, -0.2, 0.05], "half_sizes": [0.04, 0.03, 0.05],
+       "quat": [np.cos(0.15), 0.0, 0.0, np.sin(0.15)]}
+
+
+def _hits_without_the_filter(robot, seconds):
+    """The obstacles (indices) the nominal policy's torque, rate limited but unfiltered,
+    takes a safety sphere into, and the steps with cost, over ``seconds`` of the stand-in."""
+    model = robot.load_model()
+    policy = make_robot_policy("nominal", robot.kinematics, robot.read_once().q)
+    control = robot.start_torque_control()
+    state, _ = control.readOnce()
+    last, hit, cost = np.zeros(7), set(), 0
+    n_s = len(robot.spheres)
+    for k in range(int(round(seconds / DT))):
+        q, dq = np.asarray(state.q), np.asarray(state.dq)
+        tau = policy(Observation(k * DT, q, dq, as_matrix(model.mass(state), 7, 7),
+                                 np.asarray(model.coriolis(state)), None))
+        last = limit_rate(tau, last)
+        control.writeOnce(Torques(last))
+        state, _ = control.readOnce()
+        h = robot.clearance().reshape(-1, n_s).min(axis=1)
+        hit |= set(np.flatnonzero(h < 0.0).tolist())
+        cost += robot.cost()
+    return hit, cost
+
+
+@pytest.mark.parametrize("model", ["oracle", "own"])
+def test_a_table_and_a_box_in_the_trackers_way_stay_clear(model):
+    """The tracker, blind to obstacles, starting 1 cm above a table at the mount with a box
+    on the table in its way: unfiltered it takes the hand into the box and (with the 1 kg
+    payload its model does not know, sagging) into the table; through the bridge no step
+    has cost (a sphere inside either, an arm geom touching either: the stand-in's true
+    state), with the exact model (``"oracle"``: no payload, no joint damping, so the robot's
+    model is the plant; the hand stops short of the box) and with the robot's own model and
+    the default torque-error bound (``"own"``: the bound's worst-case residual lifts the hand
+    off the table, and it passes above the box). Stepped on the fake clock: no step falls
+    back, the run is deterministic."""
+    oracle = model == "oracle"
+    plant = {"payload_mass": 0.0, "damping": 0.0} if oracle else {}
+    hit, cost = _hits_without_the_filter(
+        SimulatedFranka([TABLE, BOX], q0=LOW_Q0, realtime=False, **plant), 4.0)
+    assert cost > 0 and hit == ({1} if oracle else {0, 1})
+    robot = SimulatedFranka([TABLE, BOX], q0=LOW_Q0, realtime=False, **plant)
+    assert [o.kind for o in robot.obstacles] == ["plane", "box"]
+    assert robot.clearance().min() > 0.0 and not robot.cost()
+    bridge, _, _ = _bridge(robot, agent="nominal",
+                           torque_error=0.0 if oracle else (3, 3, 3, 3, 1, 1, 1))
+    closest = []  # the true clearance of each obstacle after every tick
+    true_cost = bridge.cost
+    bridge.cost = lambda: closest.append(robot.clearance().reshape(2, -1).min(1)) or true_cost()
+    report = bridge.run(4.0)
+    assert report.stop_reason == "completed" and report.steps == 4000
+    assert report.cost_steps == 0 and report.filter_active_steps > 1000
+    table, box = np.min(closest, axis=0)
+    assert table > 0.0 and box > 0.0
+    if oracle:
+        assert box < 0.03  # the hand went as far as the box let it
+
+
+def test_the_stand_ins_obstacles_are_mujoco_geoms_of_their_type_that_follow_them():
+    moving = {**BOX, "start": [0.8, -0.2, 0.05], "start_time": 0.0, "speed": 0.3}
+    robot = SimulatedFranka([TABLE, moving, {"type": "capsule", "position": [0.5, 0.3, 0.3],
+                                             "radius": 0.03, "half_length": 0.1}],
+                            realtime=False)
+    m = robot.model
+    kinds = [int(m.geom(f"obstacle{i}").type[0]) for i in range(3)]
+    assert kinds == [mujoco.mjtGeom.mjGEOM_PLANE, mujoco.mjtGeom.mjGEOM_BOX,
+                     mujoco.mjtGeom.mjGEOM_CAPSULE]
+    control = robot.start_torque_control()
+    for _ in range(500):
+        control.readOnce()
+        control.writeOnce(Torques(np.zeros(7)))
+    box = robot.data.geom_xpos[m.geom("obstacle1").id]
+    np.testing.assert_allclose(box, robot.obstacles[1].state(robot.time)[0], atol=1e-15)
+    assert box[0] < 0.8  # on its way
+    np.testing.assert_allclose(robot.data.geom_xmat[m.geom("obstacle1").id].reshape(3, 3),
+                               robot.obstacles[1].shape.rotation, atol=1e-9)
+    assert not robot.contact()
+    # the contact check sees the arm's meshes: a box about the end-effector, a table through
+    # the hand (its plane by the geoms' bounding spheres)
+    tip = robot.reference_center
+    for obstacle in ({"type": "box", "position": tip.tolist(), "half_sizes": [0.02] * 3},
+                     {**TABLE, "position": [0.0, 0.0, tip[2]]}):
+        touching = SimulatedFranka([obstacle], realtime=False)
+        assert touching.contact() and touching.cost()

@@ -43,6 +43,17 @@ def test_host_without_pylibfranka_says_how_to_install_it(monkeypatch, capsys):
     (["robot", "--simulate", "--torque-error", "1,2"], "--torque-error"),
     (["robot", "--simulate", "--budget", "2"], "--budget"),
     (["robot", "--host", "1.2.3.4", "--obstacle", "0.5,0,0.4"], "--obstacle"),
+    (["robot", "--simulate", "--obstacles", '{"type": "plane"}'],
+     "--obstacles must be a JSON list of objects"),
+    (["robot", "--simulate", "--obstacles", "[{"], "--obstacles must be a JSON list"),
+    (["robot", "--host", "1.2.3.4", "--obstacles", '[{"type": "cone", "position": [0, 0, 0]}]'],
+     "--obstacles: obstacles[0]['type'] must be one of"),
+    (["robot", "--simulate", "--obstacles",
+      '[{"type": "box", "position": [0.5, 0, 0.2], "half_sizes": [0.1, 0, 0.1]}]'],
+     "--obstacles: obstacles[0]['half_sizes'] must be > 0"),
+    (["robot", "--simulate", "--obstacles",
+      '[{"type": "capsule", "position": [0.5, NaN, 0.2], "radius": 0.02, "half_length": 0.1}]'],
+     "--obstacles: obstacles[0]['position'] must be finite"),
     (["robot", "--simulate", "--rt-priority", "0"], "--rt-priority"),
 ])
 def test_bad_arguments_exit_2_naming_the_option(argv, message, capsys):
@@ -50,3 +61,21 @@ def test_bad_arguments_exit_2_naming_the_option(argv, message, capsys):
         main(argv)
     assert exc.value.code == 2
     assert message in capsys.readouterr().err
+
+
+def test_simulate_takes_typed_obstacles_as_the_envs_do(tmp_path):
+    """A table at the mount, a box and a sphere beside the path replace the stand-in's
+    moving sphere: the closest barrier is link 1's lowest sphere over the table (its centre
+    turns about the vertical axis only: its lowest point 0.1128 m above the mount), nearer
+    than the others and than the moving sphere would have been."""
+    path = tmp_path / "robot.json"
+    table = {"type": "plane", "position": [0, 0, 0], "normal": [0, 0, 1]}
+    box = {"type": "box", "position": [0.45, 0.3, 0.3], "half_sizes": [0.05, 0.05, 0.05],
+           "quat": [0.98, 0.0, 0.0, 0.2]}
+    status = main(["robot", "--simulate", "--seconds", "1", "--obstacles",
+                   json.dumps([table, box]), "--obstacle", "0.3,-0.35,0.5,0.04",
+                   "--json", str(path)])
+    out = json.loads(path.read_text())
+    assert out["mode"] == "simulate" and out["steps"] > 0
+    assert status == (0 if out["stop_reason"] == "completed" else 1)
+    assert out["min_h"] == pytest.approx(0.1128, abs=1e-6)
