@@ -41,7 +41,7 @@ BRAKE = RESULTS / "brake.jsonl.gz"
 #: Code versions of the AFVSGP episodes run again after the brake change (the filter brakes at
 #: once instead of relaxing to the mean, and the brake keeps its hold point): the episodes
 #: that had reached the brake and a sample of the others.
-BRAKE_RERUN_CODES = ("49e78fd",)
+BRAKE_RERUN_CODES = ("49e78fd", "2ac8a9b")
 #: the suite's AFVSGP grid with the conformal additive margin on every joint-limit band (the
 #: Franka envs' suggestion at that code version)
 MARGIN = RESULTS / "adversarial_limit_margin.jsonl.gz"
@@ -270,10 +270,12 @@ def codes_paragraph(recs: list[dict]) -> list[str]:
         text += (f" The {len(rerun)} AFVSGP episodes at {codes} are those that had reached the "
                  "brake (a step on which no action met the chance constraints), and a sample "
                  "of the others, run again when the filter stopped relaxing to the mean-only "
-                 "program and the brake began to keep its hold point: an episode that never "
-                 "reaches the brake runs identically at both codes, and the sample's records "
-                 "are identical. The nominal-only rows keep the brake before the hold point "
-                 "was kept.")
+                 "program and the brake began to keep its hold point while the obstacles stand "
+                 "still (the dynamic scenario's at the later code, where that condition acts; "
+                 "where the obstacles never move the two codes run alike): an episode that "
+                 "never reaches the brake runs identically at every code, and the samples' "
+                 "records are identical. The nominal-only rows keep the brake before the hold "
+                 "point was kept.")
     return [text, ""]
 
 

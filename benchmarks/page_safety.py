@@ -36,7 +36,7 @@ SOURCE = RESULTS / "acceptance.jsonl.gz"
 #: Code versions of the episodes run again after the brake change (the filter brakes at once
 #: instead of relaxing to the mean, and the brake keeps its hold point): only the episodes
 #: that had reached the brake, the others being identical at that code.
-BRAKE_RERUN_CODES = ("104f9db",)
+BRAKE_RERUN_CODES = ("104f9db", "2ac8a9b")
 #: optional: the priors grid at the code versions whose Franka envs suggested the conformal
 #: margin on all 28 joint-limit barriers, and the margin on the ranges with the multiplier on
 #: the speeds adapted on every step (before ``calibration_gate``)
@@ -365,8 +365,10 @@ def build() -> dict:
                      "the brake (a step on which no action met the chance constraints) at their "
                      "earlier code, and a sample of the others, run again when the filter "
                      "stopped relaxing to the mean-only program and the brake began to keep its "
-                     "hold point: an episode that never reaches the brake runs identically at "
-                     "both codes, and the sample's records are identical.")
+                     "hold point while the obstacles stand still (the dynamic scenario's at "
+                     "the later code, where that condition acts; where the obstacles never move "
+                     "the two codes run alike): an episode that never reaches the brake runs "
+                     "identically at every code, and the samples' records are identical.")
         if band:
             text += (f" The other learning episodes ran at `{' / '.join(band)}`, after the band "
                      "on the joint limits changed (\"The band on the joint limits and "

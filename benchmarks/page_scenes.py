@@ -76,24 +76,40 @@ def rows_by_agent(recs: list[dict]) -> list[tuple]:
     return rows
 
 
+#: The code the page's figures stand for: its brake keeps the hold point only while the
+#: obstacles stand still (earlier codes kept it regardless, or took a new one at every
+#: engagement and relaxed to the mean first).
+CURRENT_CODE = "2ac8a9b"
+
+
 def versions(recs: list[dict]) -> list[str]:
-    """A paragraph when the records come from several code versions: the versions whose
-    episodes never reached the brake (the only code path changed between them) beside the
-    ones whose episodes did."""
+    """Which episodes ran at which code, and why together they are what
+    :data:`CURRENT_CODE` runs (a paragraph; none with one code)."""
     codes = sorted({r["code_version"] for r in recs})
     if len(codes) < 2:
         return []
-    braked = {c for c in codes if any(r["infeasible_steps"] > 0 for r in recs
-                                      if r["code_version"] == c)}
-    unbraked = [c for c in codes if c not in braked]
-    if not braked or not unbraked:
-        return []
-    n = sum(r["code_version"] in unbraked for r in recs)
-    return [f"{n} episodes ran at {' / '.join(f'`{c}`' for c in unbraked)}; none of them "
-            "reached the brake, the only code path that changed before "
-            f"{' / '.join(f'`{c}`' for c in sorted(braked))} (the filter brakes at once "
-            "instead of relaxing to the mean, and the brake keeps its hold point), so they "
-            "are what the later code runs.", ""]
+    parts, moving_braked = [], 0
+    for code in codes:
+        group = [r for r in recs if r["code_version"] == code]
+        braked = [r for r in group if r["infeasible_steps"] > 0]
+        on_table = sum(scene(r) == "tabletop" for r in braked)
+        if code != CURRENT_CODE:
+            moving_braked += on_table
+        parts.append(f"`{code}` {len(group)} (reached the brake: {len(braked)}, on the "
+                     f"tabletop {on_table})")
+    text = ("Episodes by code: " + "; ".join(parts) + ". Between these codes only the path "
+            "of a step with no action meeting the chance constraints changed (the filter "
+            "brakes at once instead of relaxing to the mean-only program, and the brake keeps "
+            f"its hold point, at `{CURRENT_CODE}` only while the obstacles stand still); an "
+            "episode that never reaches the brake runs alike at all of them, and so does one "
+            "on the shelf, whose obstacles never move")
+    if moving_braked == 0:
+        text += (f", while every tabletop episode that reached the brake ran at "
+                 f"`{CURRENT_CODE}`: all of them are what `{CURRENT_CODE}` runs.")
+    else:
+        text += (f"; {moving_braked} tabletop episodes that reached the brake ran at an "
+                 "earlier code.")
+    return [text, ""]
 
 
 def build() -> dict:
