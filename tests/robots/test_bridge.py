@@ -391,6 +391,7 @@ def _hits_without_the_filter(robot, seconds):
     return hit, cost
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("model", ["oracle", "own"])
 def test_a_table_and_a_box_in_the_trackers_way_stay_clear(model):
     """The tracker, blind to obstacles, starting 1 cm above a table at the mount with a box
