@@ -271,8 +271,8 @@ def codes_paragraph(recs: list[dict]) -> list[str]:
                  "brake (a step on which no action met the chance constraints), and a sample "
                  "of the others, run again when the filter stopped relaxing to the mean-only "
                  "program and the brake began to keep its hold point while the obstacles stand "
-                 "still (the dynamic scenario's at the later code, where that condition acts; "
-                 "where the obstacles never move the two codes run alike): an episode that "
+                 "still (where obstacles move, the dynamic scenario and some random ones, at the "
+                 "later code; where they never move the two codes run alike): an episode that "
                  "never reaches the brake runs identically at every code, and the samples' "
                  "records are identical. The nominal-only rows keep the brake before the hold "
                  "point was kept.")

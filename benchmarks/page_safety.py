@@ -365,9 +365,9 @@ def build() -> dict:
                      "the brake (a step on which no action met the chance constraints) at their "
                      "earlier code, and a sample of the others, run again when the filter "
                      "stopped relaxing to the mean-only program and the brake began to keep its "
-                     "hold point while the obstacles stand still (the dynamic scenario's at "
-                     "the later code, where that condition acts; where the obstacles never move "
-                     "the two codes run alike): an episode that never reaches the brake runs "
+                     "hold point while the obstacles stand still (where obstacles move, the "
+                     "dynamic scenario and some random ones, at the later code; where they never "
+                     "move the two codes run alike): an episode that never reaches the brake runs "
                      "identically at every code, and the samples' records are identical.")
         if band:
             text += (f" The other learning episodes ran at `{' / '.join(band)}`, after the band "
