@@ -32,7 +32,17 @@ import sys
 import time
 
 from acceptance_tables import PRIORS, learner, prior, scenario, summary
-from docgen import DOCS, RESULTS, main, measured, provenance, read_json, read_jsonl, table
+from docgen import (
+    DOCS,
+    RESULTS,
+    hold_memory_caveat,
+    main,
+    measured,
+    provenance,
+    read_json,
+    read_jsonl,
+    table,
+)
 
 SOURCE = RESULTS / "adversarial.jsonl.gz"
 ROUTES = RESULTS / "routes.jsonl.gz"
@@ -276,7 +286,7 @@ def codes_paragraph(recs: list[dict]) -> list[str]:
                  "never reaches the brake runs identically at every code, and the samples' "
                  "records are identical. The nominal-only rows keep the brake before the hold "
                  "point was kept.")
-    return [text, ""]
+    return [text, ""] + hold_memory_caveat(recs)
 
 
 def build() -> dict:

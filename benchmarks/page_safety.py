@@ -30,7 +30,18 @@ from acceptance_tables import (
     summary,
     whole_arm,
 )
-from docgen import DOCS, RESULTS, ROOT, main, measured, provenance, read_jsonl, replace_block, table
+from docgen import (
+    DOCS,
+    RESULTS,
+    ROOT,
+    hold_memory_caveat,
+    main,
+    measured,
+    provenance,
+    read_jsonl,
+    replace_block,
+    table,
+)
 
 SOURCE = RESULTS / "acceptance.jsonl.gz"
 #: Code versions of the episodes run again after the brake change (the filter brakes at once
@@ -375,7 +386,7 @@ def build() -> dict:
                      "tracking\" below); the oracle and the nominal-only filter learn nothing "
                      "and the point mass has no joint limits, so that change does not touch "
                      "their blocks.")
-        out += [text, ""]
+        out += [text, ""] + hold_memory_caveat(recs)
 
     out += ["## Tracking against the oracle", "",
             "Mean tracking error where the reference is at least 5 cm clear of the obstacle "

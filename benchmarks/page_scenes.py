@@ -11,7 +11,7 @@ benchmarks/configs/scenes.toml`` (the command in ``REPRODUCE``), each with its
 from __future__ import annotations
 
 from acceptance_tables import learner, prior, summary
-from docgen import DOCS, RESULTS, main, measured, provenance, read_jsonl, table
+from docgen import DOCS, RESULTS, hold_memory_caveat, main, measured, provenance, read_jsonl, table
 from page_adversarial import cost_cell, meta
 
 SOURCE = RESULTS / "scenes.jsonl.gz"
@@ -136,7 +136,7 @@ def build() -> dict:
             " `min h` is the closest approach of any safety sphere to any obstacle (cm); "
             "tracking the mean distance of the hand to the reference (m, s.e. over episodes); "
             "`backup` the steps per episode with no action meeting the chance constraints "
-            "(the brake).", "", *versions(recs),
+            "(the brake).", "", *versions(recs), *hold_memory_caveat(recs),
             table(("scene", "policy", "filter", "episodes", "with cost", "95 % bound",
                    "min h [cm]", "tracking [m] (s.e.)", "backup", "code"),
                   rows_by_filter(recs)), "",

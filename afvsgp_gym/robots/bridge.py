@@ -36,8 +36,8 @@ collector is off during the loop (its pauses reach milliseconds; the loop's garb
 by reference counting).
 
 **The brake** (:class:`Brake`) is the simulation's backup with the robot's own model:
-``tau = c + M (-2 w q' - w^2 (q - q_hold))``, ``q_hold`` where it engaged (kept across up to
-0.1 s of feasible ticks while the obstacles stand still); beyond the torque limits only the
+``tau = c + M (-2 w q' - w^2 (q - q_hold))``, ``q_hold`` where it engaged (optionally kept across
+short runs of feasible ticks while the obstacles stand still); beyond the torque limits only the
 largest share of the damping the limits admit.
 """
 
@@ -92,15 +92,16 @@ class Brake:
         ``w`` (1/s), critically damped.
     memory : int
         Ticks without the brake (:meth:`release`) after which it engages anew; up to this
-        many in a row it keeps its hold point (100: 0.1 s at 1 kHz, as the simulation's
-        ``brake_hold_memory``). A hold point taken anew whenever the filter flips back to
+        many in a row it keeps its hold point while the obstacles stand still (default 0:
+        a fresh hold point at every engagement, as the simulation's ``brake_hold_memory``;
+        100 is 0.1 s at 1 kHz). A hold point taken anew whenever the filter flips back to
         infeasible starts from the sagged pose each time, and the sag ratchets.
     """
 
     #: m: see :meth:`see`.
     HOLD_WORLD_TOLERANCE = 1e-4
 
-    def __init__(self, tau_max=TAU_MAX, frequency: float = 50.0, memory: int = 100) -> None:
+    def __init__(self, tau_max=TAU_MAX, frequency: float = 50.0, memory: int = 0) -> None:
         self.tau_max = np.asarray(tau_max, dtype=np.float64)
         self.frequency = check_real(frequency, "frequency", low=0.0, low_open=True)
         self.memory = int(check_real(memory, "memory", low=0.0))
