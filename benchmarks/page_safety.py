@@ -47,7 +47,9 @@ SOURCE = RESULTS / "acceptance.jsonl.gz"
 #: Code versions of the episodes run again after the brake change (the filter brakes at once
 #: instead of relaxing to the mean, and the brake keeps its hold point): only the episodes
 #: that had reached the brake, the others being identical at that code.
-BRAKE_RERUN_CODES = ("104f9db", "2ac8a9b")
+BRAKE_RERUN_CODES = ("104f9db", "2ac8a9b", "b492550")
+#: The code of the last runs of the episodes that reached the brake.
+FINAL_BRAKE_CODE = "b492550"
 #: optional: the priors grid at the code versions whose Franka envs suggested the conformal
 #: margin on all 28 joint-limit barriers, and the margin on the ranges with the multiplier on
 #: the speeds adapted on every step (before ``calibration_gate``)
@@ -372,14 +374,12 @@ def build() -> dict:
         text = "Blocks of several codes."
         if rerun:
             n = sum(str(r["code_version"]) in rerun for r in recs)
-            text += (f" The {n} episodes at `{' / '.join(rerun)}` are those that had reached "
-                     "the brake (a step on which no action met the chance constraints) at their "
-                     "earlier code, and a sample of the others, run again when the filter "
-                     "stopped relaxing to the mean-only program and the brake began to keep its "
-                     "hold point while the obstacles stand still (where obstacles move, the "
-                     "dynamic scenario and some random ones, at the later code; where they never "
-                     "move the two codes run alike): an episode that never reaches the brake runs "
-                     "identically at every code, and the samples' records are identical.")
+            text += (f" The {n} episodes at `{' / '.join(rerun)}` were run again after the "
+                     "grid: those that had reached the brake (a step on which no action met the "
+                     "chance constraints) when the filter stopped relaxing to the mean-only "
+                     f"program (their last runs at `{FINAL_BRAKE_CODE}`, the brake as before), "
+                     "and samples of the others, whose records came out identical: an episode "
+                     "that never reaches the brake runs identically at every code.")
         if band:
             text += (f" The other learning episodes ran at `{' / '.join(band)}`, after the band "
                      "on the joint limits changed (\"The band on the joint limits and "
