@@ -271,7 +271,9 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
       volume under the tracker, :data:`~afvsgp_gym.envs.scenes.ARM_SWEEP`, so near the path
       but off it and clear of the warm-up) and a forearm: a capsule (r = 0.04 m, half length
       0.15 m) along x that comes in 0.5 m from +x, 0-1 s after the warm-up at 0.15-0.25 m/s,
-      to rest across the path's end, c + (0, +-[0.17, 0.24], [-0.09, -0.06]). 12 obstacles.
+      to rest across the path's end, c + (0, +-[0.17, 0.24], [-0.09, -0.06]), and stops
+      earlier once a safety sphere is 5 cm from it (it yields, ``ObstacleSpec.yield_distance``).
+      12 obstacles.
     - ``"shelf"``: a table and a shelf of five boxes open towards the robot (lower and upper
       boards 0.14 m under and 0.33 m over c, side walls at y = +-0.2 m, the opening 0.2 m and
       the back wall 0.33 m in front of c, 3 cm thick); the reference moves along x about
@@ -903,6 +905,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
             switch_time=switch,
         )
         self._obstacle_radii = np.array([ob.radius for ob in self.obstacles])
+        self._yielding = any(ob.yield_distance is not None for ob in self.obstacles)
 
     def _scene_layout(self) -> list[ObstacleSpec] | None:
         """The obstacles the tabletop's and the shelf's geoms are built from (None for the
@@ -958,6 +961,8 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         self_pairs = self._self_geometry(self._spheres)
         self._geometry = self._state_geometry(d, self._spheres, self._obstacle_states,
                                               self_pairs)
+        if self._yielding:
+            self._yield_obstacles(self._geometry[0])
         self._true_view = StateView(d, self._spheres, self._ee, self._geometry,
                                     self._obstacle_states, self_pairs)
         self._sensed_view = self._true_view if self.perception.exact else self._sense()
@@ -1000,6 +1005,19 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         xi = np.concatenate([xi, lim.features(q, qd, self.feature_dim)])
         derivs.flags.writeable = xi.flags.writeable = False
         return derivs, n, curv, xi, a_obs
+
+    def _yield_obstacles(self, derivs: np.ndarray) -> None:
+        """Stop every yielding obstacle (``ObstacleSpec.yield_distance``) that a safety
+        sphere has come within its distance of, from now on (its motion up to now, and so
+        this step's obstacle states, unchanged; a new ``obstacles`` tuple)."""
+        t, n_s = self.time, len(self._sphere_radii)
+        out = list(self.obstacles)
+        for o, ob in enumerate(out):
+            near = ob.yields_at(t) and derivs[o * n_s:(o + 1) * n_s, 0].min() < ob.yield_distance
+            if near:
+                out[o] = ob.stopped_at(t)
+        if any(a is not b for a, b in zip(out, self.obstacles, strict=True)):
+            self.obstacles = tuple(out)
 
     def _place_markers(self) -> None:
         t = self.time

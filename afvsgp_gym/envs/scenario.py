@@ -7,6 +7,7 @@ reference feed-forward (paper section VI, Fig. 3).
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from collections.abc import Mapping, Sequence
@@ -39,6 +40,9 @@ def quintic(tau: float) -> tuple[float, float, float]:
 
 #: Peak of dS/dtau for the quintic blend (at tau = 1/2).
 QUINTIC_PEAK_SLOPE = 1.875
+#: Time (s) a yielding obstacle takes to come to rest once it stops (see
+#: :meth:`ObstacleSpec.stopped_at`): it travels half its speed times this meanwhile.
+STOP_DURATION = 0.25
 
 
 @dataclass(frozen=True)
@@ -56,6 +60,13 @@ class ObstacleSpec:
     smallest ball about ``position`` that holds it (``inf`` for a plane), so code that treats
     every obstacle as a sphere stays conservative; build such a spec with :meth:`of_shape`.
     A plane does not move.
+
+    ``yield_distance`` (m, None for never) makes a moving obstacle yield like a person who
+    sees the arm: the env stops it (:meth:`stopped_at`) at the first step where a safety
+    sphere comes within this distance of its surface while it moves. ``stop_time`` (s) is
+    when it stopped (``inf``: it has not): from there it follows the same path with a
+    speed blended to zero over :data:`STOP_DURATION`, so position, velocity and
+    acceleration stay continuous.
     """
 
     position: np.ndarray
@@ -64,8 +75,14 @@ class ObstacleSpec:
     start_time: float = 0.0
     speed: float = 0.2
     shape: Primitive | None = None
+    yield_distance: float | None = None
+    stop_time: float = math.inf
 
     def __post_init__(self) -> None:
+        if self.yield_distance is not None and not (
+                math.isfinite(self.yield_distance) and self.yield_distance > 0):
+            raise ValueError(f"yield_distance must be a positive number of metres or None, "
+                             f"got {self.yield_distance!r}")
         if self.shape is None:
             return
         from afvsgp_gym.envs import primitives as pr
@@ -86,18 +103,30 @@ class ObstacleSpec:
 
     @classmethod
     def of_shape(cls, shape: Primitive, start=None, start_time: float = 0.0,
-                 speed: float = 0.2) -> ObstacleSpec:
+                 speed: float = 0.2, yield_distance: float | None = None) -> ObstacleSpec:
         """The spec of ``shape`` (a primitive at its final place; a ``Sphere`` gives today's
         sphere spec with ``shape=None``) moving from ``start`` like every obstacle."""
         from afvsgp_gym.envs import primitives as pr
 
         start = None if start is None else np.asarray(start, dtype=np.float64)
         if isinstance(shape, pr.Sphere):
-            return cls(np.array(shape.center), shape.radius, start, start_time, speed)
+            return cls(np.array(shape.center), shape.radius, start, start_time, speed,
+                       yield_distance=yield_distance)
         anchor = shape.point if isinstance(shape, pr.Plane) else getattr(shape, "center", None)
         if anchor is None:
             raise ValueError(f"shape must be a Sphere, Box, Capsule or Plane, got {shape!r}")
-        return cls(np.array(anchor), bounding_radius(shape), start, start_time, speed, shape)
+        return cls(np.array(anchor), bounding_radius(shape), start, start_time, speed, shape,
+                   yield_distance)
+
+    def yields_at(self, t: float) -> bool:
+        """Whether the obstacle can still yield at time ``t``: it has a ``yield_distance``,
+        has not stopped, and is moving (between the start and the end of its move)."""
+        return (self.yield_distance is not None and self.stop_time == math.inf
+                and self.start_time < t < self.start_time + self.duration)
+
+    def stopped_at(self, t: float) -> ObstacleSpec:
+        """This obstacle stopping from time ``t`` on (the same motion up to ``t``)."""
+        return dataclasses.replace(self, stop_time=float(t))
 
     @property
     def kind(self) -> str:
@@ -142,6 +171,21 @@ class ObstacleSpec:
         T = self.duration
         if T == 0.0:
             return self._rest
+        if t <= self.stop_time:
+            return self._moving(t)
+        # stopping: the path at the warped time sigma, whose rate w = 1 - S(y) falls from
+        # 1 to 0 (w' = 0 at the stop: the acceleration is continuous); sigma = ts + T_s
+        # (y - int_0^y S), with int_0^y S = y^4 (2.5 - 3 y + y^2)
+        ts, span = self.stop_time, STOP_DURATION
+        y = min((t - ts) / span, 1.0)
+        sigma = ts + span * (y - y ** 4 * (2.5 - 3.0 * y + y * y))
+        s, ds, _ = quintic(y)
+        w, dw = 1.0 - s, -ds / span
+        p, v, a = self._moving(sigma)
+        return p, w * v, (w * w) * a + dw * v
+
+    def _moving(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        T = self.duration
         s, ds, dds = quintic((t - self.start_time) / T)
         delta = self.position - self.start
         return self.start + s * delta, (ds / T) * delta, (dds / (T * T)) * delta

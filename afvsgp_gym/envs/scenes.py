@@ -52,9 +52,14 @@ _CLUTTER_REGION = (np.array([0.2, -0.5, 0.15]), np.array([0.7, 0.5, 0.55]))
 _CLEARANCE = 0.02  # m between clutter items and from the forearm's sweep
 #: The moving forearm: a capsule along x (radius, half length, m) that comes in from
 #: ``travel`` m in front of the path (+x) to rest across the path's far end at
-#: ``c + (0, +-along, dz)``, like the dynamic scenario's sphere.
+#: ``c + (0, +-along, dz)``, like the dynamic scenario's sphere, and yields: it stops (within
+#: ``speed * STOP_DURATION / 2``) once a safety sphere is ``yield_distance`` m from it, as a
+#: person would. Without it the scene is not solvable: an unyielding forearm can pin an arm
+#: that a policy has put against a joint limit and a box (no action, of any torque, meets
+#: every barrier's constraint).
 FOREARM = {"radius": 0.04, "half_length": 0.15, "travel": 0.5, "along": (0.17, 0.24),
-           "dz": (-0.09, -0.06), "speed": (0.15, 0.25), "delay": (0.0, 1.0)}
+           "dz": (-0.09, -0.06), "speed": (0.15, 0.25), "delay": (0.0, 1.0),
+           "yield_distance": 0.05}
 #: The shelf scene's reference: the cyclic motion along x about ``c + offset``, amplitude
 #: (m), into the shelf's opening and back.
 SHELF_REFERENCE = {"offset": np.array([0.1, 0.0, 0.0]), "amplitude": 0.2}
@@ -80,7 +85,7 @@ def _forearm(c: np.ndarray, side: float, along: float, dz: float, start_time: fl
     centre = c + np.array([0.0, side * along, dz])
     shape = pr.Capsule(centre, np.array([1.0, 0.0, 0.0]), f["half_length"], f["radius"])
     return ObstacleSpec.of_shape(shape, centre + np.array([f["travel"], 0.0, 0.0]),
-                                 start_time, speed)
+                                 start_time, speed, f["yield_distance"])
 
 
 def tabletop_template(c: np.ndarray, warmup_time: float) -> list[ObstacleSpec]:

@@ -144,3 +144,27 @@ def test_bad_scene_kwargs_are_refused_by_name(kwargs, match):
         FrankaObstacleEnv(**kwargs)
     with pytest.raises(UnknownArgumentError, match="clutter"):
         gym.make(TABLETOP, clutter=5)
+
+
+def test_forearm_yields_to_the_arm_and_the_pinning_ram_is_safe():
+    """The ram of seed 5006 pinned the arm between the moving forearm, a box and joint 2's
+    limit (the oracle's program had no action of any torque meeting every constraint): the
+    forearm now stops once a safety sphere is ``yield_distance`` from it, and the oracle has
+    no cost where the unyielding forearm gave 545 cost steps (4 s of the episode)."""
+    from afvsgp_gym.evaluation import EpisodeSpec
+    from afvsgp_gym.evaluation.runner import make_env, make_policy, run_episode
+
+    spec = EpisodeSpec(TABLETOP, 5006, "oracle", "ram", {"nominal_model": "exact"})
+    env = make_env(spec)
+    base = env.unwrapped
+    stopped = []
+
+    def watch(info):
+        forearm = base.obstacles[1]
+        if forearm.stop_time < math.inf and not stopped:
+            stopped.append(forearm.stop_time)
+    counts, _ = run_episode(env, make_policy("ram", env, seed=5006), 5006, max_steps=1500,
+                            on_step=watch)
+    env.close()
+    assert stopped, "the ram brings the arm to the forearm: it must have stopped"
+    assert counts["cost_steps"] == 0 and counts["min_h"] >= 0.0

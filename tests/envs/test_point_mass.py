@@ -255,3 +255,40 @@ def test_backup_action_brakes_the_point():
 def test_bad_brake_gain_names_the_argument(env_id, gain):
     with pytest.raises(ValueError, match="brake_gain"):
         gym.make(env_id, brake_gain=gain)
+
+
+def test_a_stopped_obstacle_comes_to_rest_smoothly_along_its_path():
+    """ObstacleSpec.stopped_at: the same motion up to the stop, then the speed blended to
+    zero over STOP_DURATION (half the speed times it travelled): position, velocity and
+    acceleration continuous, velocity and acceleration the derivatives of position and
+    velocity (central differences), and at rest on the original path afterwards."""
+    from afvsgp_gym.envs.scenario import STOP_DURATION
+
+    ob = ObstacleSpec(np.array([0.5, 0.0, 0.4]), 0.05, np.array([1.0, 0.0, 0.4]), 1.0, 0.2,
+                      yield_distance=0.05)
+    ts = ob.start_time + 0.4 * ob.duration
+    assert ob.yields_at(ts) and not ob.yields_at(0.5) and not ob.yields_at(99.0)
+    st = ob.stopped_at(ts)
+    assert not st.yields_at(ts + 0.1)
+    for t in (0.5, ts - 0.1, ts):
+        for a, b in zip(st.state(t), ob.state(t), strict=True):
+            np.testing.assert_array_equal(a, b)
+    eps = 1e-7  # both sides of the stop and inside the blend: derivatives continuous
+    for a, b in zip(st.state(ts + eps), st.state(ts), strict=True):
+        np.testing.assert_allclose(a, b, atol=1e-5)
+    h = 1e-5
+    for t in (ts + 0.3 * STOP_DURATION, ts + 0.7 * STOP_DURATION):
+        p0, v0, a0 = st.state(t)
+        (pm, vm, _), (pp, vp, _) = st.state(t - h), st.state(t + h)
+        np.testing.assert_allclose((pp - pm) / (2 * h), v0, atol=1e-8)
+        np.testing.assert_allclose((vp - vm) / (2 * h), a0, atol=1e-6)
+    p_end, v_end, a_end = st.state(ts + STOP_DURATION + 1.0)
+    assert np.all(v_end == 0.0) and np.all(a_end == 0.0)
+    travelled = np.linalg.norm(p_end - ob.state(ts)[0])
+    speed = np.linalg.norm(ob.state(ts)[1])
+    assert speed * STOP_DURATION / 2 * 0.9 < travelled < speed * STOP_DURATION / 2 * 1.1
+    on_path = ob.state(ts + STOP_DURATION / 2)[0]  # sigma = ts + T/2 at rest
+    np.testing.assert_allclose(p_end, on_path, atol=1e-12)
+    for bad in (0.0, -1.0, float("nan")):
+        with pytest.raises(ValueError, match="yield_distance"):
+            ObstacleSpec(np.zeros(3), 0.1, np.ones(3), yield_distance=bad)
