@@ -540,6 +540,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         self._hold: np.ndarray | None = None
         self._backup_step = -2
         self._hold_world: np.ndarray | None = None
+        self._yielding = False  # some obstacle may yield (set with the obstacles)
         self.joint_limits = JointLimits(
             m.jnt_range[:7, 0], m.jnt_range[:7, 1], FRANKA_MAX_SPEED, range_margin,
             speed_margin, FRANKA_MAX_ACCELERATION if check_acceleration else None,

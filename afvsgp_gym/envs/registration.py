@@ -19,10 +19,12 @@ def register_envs() -> None:
             entry_point=franka, max_episode_steps=4000, kwargs={"scenario": "random"}
         ),
         "afvsgp_gym/FrankaTabletop-v0": dict(
-            entry_point=franka, max_episode_steps=4000, kwargs={"scenario": "tabletop"}
+            entry_point=franka, max_episode_steps=4000,
+            kwargs={"scenario": "tabletop", "self_collision": True},
         ),
         "afvsgp_gym/FrankaShelf-v0": dict(
-            entry_point=franka, max_episode_steps=4000, kwargs={"scenario": "shelf"}
+            entry_point=franka, max_episode_steps=4000,
+            kwargs={"scenario": "shelf", "self_collision": True},
         ),
         "afvsgp_gym/FrankaObstacleReach-v0": dict(
             entry_point="afvsgp_gym.envs.reach:FrankaObstacleReachEnv", max_episode_steps=1250
