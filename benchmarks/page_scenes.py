@@ -11,10 +11,21 @@ benchmarks/configs/scenes.toml`` (the command in ``REPRODUCE``), each with its
 from __future__ import annotations
 
 from acceptance_tables import learner, prior, summary
-from docgen import DOCS, RESULTS, hold_memory_caveat, main, measured, provenance, read_jsonl, table
+from docgen import (
+    DOCS,
+    RESULTS,
+    hold_memory_caveat,
+    main,
+    measured,
+    provenance,
+    read_json,
+    read_jsonl,
+    table,
+)
 from page_adversarial import cost_cell, meta
 
 SOURCE = RESULTS / "scenes.jsonl.gz"
+SPEED = RESULTS / "primitives.json"
 PAGE = DOCS / "scenes.md"
 SCENES = {"afvsgp_gym/FrankaTabletop-v0": "tabletop", "afvsgp_gym/FrankaShelf-v0": "shelf"}
 FILTERS = (("oracle", None, "oracle (true model)"),
@@ -53,8 +64,8 @@ def rows_by_filter(recs: list[dict]) -> list[tuple]:
                          else "-")
                 codes = " / ".join(sorted({str(r["code_version"]) for r in group}))
                 rows.append((sc, pol, text, s["n"], cost_cell(s), f"{100 * s['bound']:.3g} %",
-                             f"{100 * s['min_h']:+.2f}", track, f"{s['backup']:.0f}",
-                             f"`{codes}`"))
+                             self_contact(group), f"{100 * s['min_h']:+.2f}", track,
+                             f"{s['backup']:.0f}", f"`{codes}`"))
     return rows
 
 
@@ -76,57 +87,67 @@ def rows_by_agent(recs: list[dict]) -> list[tuple]:
     return rows
 
 
-#: The code the page's figures stand for: its brake keeps the hold point only while the
-#: obstacles stand still (earlier codes kept it regardless, or took a new one at every
-#: engagement and relaxed to the mean first).
-CURRENT_CODE = "2ac8a9b"
-
-
 def versions(recs: list[dict]) -> list[str]:
-    """Which episodes ran at which code, and why together they are what
-    :data:`CURRENT_CODE` runs (a paragraph; none with one code)."""
+    """Which episodes ran at which code (a sentence; none with one code)."""
     codes = sorted({r["code_version"] for r in recs})
     if len(codes) < 2:
         return []
-    parts, moving_braked = [], 0
-    for code in codes:
-        group = [r for r in recs if r["code_version"] == code]
-        braked = [r for r in group if r["infeasible_steps"] > 0]
-        on_table = sum(scene(r) == "tabletop" for r in braked)
-        if code != CURRENT_CODE:
-            moving_braked += on_table
-        parts.append(f"`{code}` {len(group)} (reached the brake: {len(braked)}, on the "
-                     f"tabletop {on_table})")
-    text = ("Episodes by code: " + "; ".join(parts) + ". Between these codes only the path "
-            "of a step with no action meeting the chance constraints changed (the filter "
-            "brakes at once instead of relaxing to the mean-only program, and the brake keeps "
-            f"its hold point, at `{CURRENT_CODE}` only while the obstacles stand still); an "
-            "episode that never reaches the brake runs alike at all of them, and so does one "
-            "on the shelf, whose obstacles never move")
-    if moving_braked == 0:
-        text += (f", while every tabletop episode that reached the brake ran at "
-                 f"`{CURRENT_CODE}`: all of them are what `{CURRENT_CODE}` runs.")
-    else:
-        text += (f"; {moving_braked} tabletop episodes that reached the brake ran at an "
-                 "earlier code.")
-    return [text, ""]
+    parts = [f"`{code}` {sum(r['code_version'] == code for r in recs)}" for code in codes]
+    return ["Episodes by code: " + "; ".join(parts) + ".", ""]
+
+
+def self_contact(group: list[dict]) -> str:
+    """Episodes with self-contact (of those that record it)."""
+    known = [r for r in group if "self_contact_steps" in r]
+    if not known:
+        return "-"
+    return f"{sum(r['self_contact_steps'] > 0 for r in known)} / {len(known)}"
+
+
+def speed_section() -> list[str]:
+    """The step time against the number of primitives (``results/primitives.json``)."""
+    if not SPEED.exists():
+        return []
+    res = read_json(SPEED)
+    rows = [(r["primitives"], r["filter"], r["barriers"], f"{r['in_program']:.1f}",
+             f"{1e6 * r['step_median_s']:.0f} / {1e6 * r['step_p99_s']:.0f}",
+             f"{1e6 * r['env_step_median_s']:.0f} / {1e6 * r['env_step_p99_s']:.0f}")
+             for r in res["rows"]]
+    return ["## Step time against the number of primitives", "",
+            f"**Machine:** {res['machine']}; **date:** {res['date']}; {res['calibration']}. "
+            "The nominal tracker on the static scenario with its obstacle replaced by a table "
+            "(a plane at the mount) and boxes, capsules and spheres in turn on three rings "
+            "around the base (`afvsgp_gym.benchmarks.primitives.ring_primitives`), 21 arm "
+            "spheres per primitive and 28 joint-limit barriers; the oracle and AFVSGP with the "
+            "robot's own model (per-pair learners) advance in lockstep, "
+            f"{res['steps']} timed steps each after the warm-up. `filter + learning` is "
+            "`SafetyController.filter` + `observe`, `env.step` the wrapped step with the "
+            "physics (us, median / p99).", "",
+            table(("primitives", "filter", "barriers", "in the program (mean)",
+                   "filter + learning [us]", "env.step [us]"), rows), "",
+            "```bash", "taskset -c 0 python -m afvsgp_gym.benchmarks.primitives "
+            "--json benchmarks/results/primitives.json", "python benchmarks/page_scenes.py",
+            "```", ""]
 
 
 def build() -> dict:
-    out = [provenance("benchmarks/page_scenes.py", ["benchmarks/results/scenes.jsonl.gz"]),
+    out = [provenance("benchmarks/page_scenes.py", ["benchmarks/results/scenes.jsonl.gz",
+                                                  "benchmarks/results/primitives.json"]),
            "", "# Scenes", "",
            "The workspace scenes ([Environments](environments.md)): "
            "`afvsgp_gym/FrankaTabletop-v0` (a table plane at the mount, ten boxes, capsules "
            "and spheres drawn per reset around the reference's path, and a forearm capsule "
-           "that moves in after the warm-up: 12 obstacles, 252 sphere-obstacle barriers and "
-           "28 joint-limit barriers) and `afvsgp_gym/FrankaShelf-v0` (a reach into a shelf "
-           "of five boxes). Full episodes (16 s, 4000 steps) behind the nominal tracker and "
+           "that moves in after the warm-up and yields, stopping once a safety sphere is 5 cm "
+           "from it: 12 obstacles, 252 sphere-obstacle barriers, 93 self-collision barriers "
+           "and 28 joint-limit barriers) and `afvsgp_gym/FrankaShelf-v0` (a reach into a "
+           "shelf of five boxes). Full episodes (16 s, 4000 steps) behind the nominal tracker and "
            "behind the adversarial policies of [Any policy](adversarial.md), with the oracle "
            "(the true model), AFVSGP with nothing known about the dynamics (prior \"zero\") "
            "and with the robot's own model (\"perturbed\"), and without a filter. An episode "
            "has cost when some step has an obstacle barrier below zero, an arm-obstacle "
            "contact (MuJoCo's geoms) or a joint past its range or datasheet speed; contact "
-           "between the arm's own links is not counted yet.", ""]
+           "between the arm's own links is counted beside it (the scenes' ids turn the "
+           "self-collision barriers on).", ""]
     if not SOURCE.exists():
         out += ["No results yet: run", "", "```bash", REPRODUCE, "```"]
         return {PAGE: "\n".join(out) + "\n"}
@@ -136,15 +157,17 @@ def build() -> dict:
             " `min h` is the closest approach of any safety sphere to any obstacle (cm); "
             "tracking the mean distance of the hand to the reference (m, s.e. over episodes); "
             "`backup` the steps per episode with no action meeting the chance constraints "
-            "(the brake).", "", *versions(recs), *hold_memory_caveat(recs),
+            "(the brake); `w/ self-contact` the episodes where two non-adjacent links touched "
+            "(MuJoCo's geoms; not part of the cost).", "", *versions(recs),
+            *hold_memory_caveat(recs),
             table(("scene", "policy", "filter", "episodes", "with cost", "95 % bound",
-                   "min h [cm]", "tracking [m] (s.e.)", "backup", "code"),
+                   "w/ self-contact", "min h [cm]", "tracking [m] (s.e.)", "backup", "code"),
                   rows_by_filter(recs)), "",
             "## By adversarial policy", "",
             "Episodes with cost per policy (seeds of `scenes.toml`).", "",
             table(("scene", "policy", "oracle", "AFVSGP zero", "AFVSGP perturbed"),
                   rows_by_agent(recs)), "",
-            "To regenerate:", "", "```bash", REPRODUCE, "```"]
+            "To regenerate:", "", "```bash", REPRODUCE, "```", "", *speed_section()]
     return {PAGE: "\n".join(out).rstrip("\n") + "\n"}
 
 

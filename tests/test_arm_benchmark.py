@@ -31,3 +31,21 @@ def test_env_kwargs_keep_a_list_of_obstacles():
 
     assert _env_kwargs({"obstacles": CLUTTER})["obstacles"] == CLUTTER and len(CLUTTER) == 25
     assert len(_env_kwargs({"obstacles": "two"})["obstacles"]) == 2
+
+
+def test_primitives_benchmark_builds_the_typed_scenes_it_names():
+    """Each count's list has that many primitives, the table first, every type, and the env
+    builds one barrier per (arm sphere, primitive) and the 28 limit barriers from it."""
+    from afvsgp_gym.benchmarks.primitives import COUNTS, configs, ring_primitives
+    from afvsgp_gym.envs.franka import FrankaObstacleEnv
+
+    for n in COUNTS:
+        obs = ring_primitives(n)
+        assert len(obs) == n and obs[0]["type"] == "plane"
+    assert {o["type"] for o in ring_primitives(4)} == {"plane", "box", "capsule", "sphere"}
+    env = FrankaObstacleEnv("static", obstacles=ring_primitives(12))
+    assert env.n_barriers == 21 * 12 + 28
+    env.reset(seed=0)
+    assert min(env.barrier_terms("true").h[: 21 * 12]) > 0.0  # clear of the ready pose
+    env.close()
+    assert len(configs()) == 2 * len(COUNTS)

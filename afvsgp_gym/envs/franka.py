@@ -1476,7 +1476,8 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         relaxation no ratchet was seen with the fresh hold point.
         """
         d = self._sensed_view.data  # the robot's own sensors
-        world = np.array([st[0] for st in self._sensed_view.obstacle_states])
+        world = (np.array([st[0] for st in self._sensed_view.obstacle_states])
+                 if self._hold_memory_steps else None)  # compared only with a memory
         gap = self._steps - self._backup_step - 1
         if self._hold is None or (gap > 0 and (gap > self._hold_memory_steps
                                               or self._world_moved(world))):
