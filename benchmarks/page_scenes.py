@@ -104,6 +104,21 @@ def self_contact(group: list[dict]) -> str:
     return f"{sum(r['self_contact_steps'] > 0 for r in known)} / {len(known)}"
 
 
+def failures(recs: list[dict]) -> list[str]:
+    """One line per filtered episode with cost (none: a sentence saying so)."""
+    bad = [r for r in recs if learner(r) is not None and r["cost_steps"] > 0]
+    if not bad:
+        return ["No filtered episode has cost.", ""]
+    out = ["Filtered episodes with cost:", ""]
+    for r in sorted(bad, key=lambda r: (scene(r), r["config"]["agent"], r["seed"])):
+        pr = prior(r) if learner(r) == "afvsgp" else None
+        name = learner(r) + (f" ({pr})" if pr else "")
+        out.append(f"- {scene(r)}, `{r['config']['agent']}` seed {r['seed']}, {name}: "
+                   f"{r['cost_steps']} cost steps ({r['contact_steps']} with contact), min h "
+                   f"{100 * r['min_h']:+.2f} cm, {r['infeasible_steps']} steps braking")
+    return [*out, ""]
+
+
 def speed_section() -> list[str]:
     """The step time against the number of primitives (``results/primitives.json``)."""
     if not SPEED.exists():
@@ -162,7 +177,7 @@ def build() -> dict:
             *hold_memory_caveat(recs),
             table(("scene", "policy", "filter", "episodes", "with cost", "95 % bound",
                    "w/ self-contact", "min h [cm]", "tracking [m] (s.e.)", "backup", "code"),
-                  rows_by_filter(recs)), "",
+                  rows_by_filter(recs)), "", *failures(recs),
             "## By adversarial policy", "",
             "Episodes with cost per policy (seeds of `scenes.toml`).", "",
             table(("scene", "policy", "oracle", "AFVSGP zero", "AFVSGP perturbed"),
