@@ -194,9 +194,12 @@ def build() -> dict:
     recs = list(runs.values())
     loads = [r["load_average"][0] for r in recs]
     kernels = " / ".join(sorted({r.get("kernel") or "kernel not recorded" for r in recs}))
+    # the run itself holds about one core: a load above 1.5 means other work shared them
+    busy = ("other work shared the cores" if max(loads) > 1.5
+            else "nothing else ran on the cores")
     block = [measured(meta(recs)) + f" {kernels}. Load average (1 min) at the end of the "
-             f"runs {min(loads):.2f}-{max(loads):.2f}: another user's parameter sweep held "
-             "the cores (the wall-clock table gives each run's).",
+             f"runs {min(loads):.2f}-{max(loads):.2f}: {busy} (the wall-clock table gives "
+             "each run's).",
              "",
              "**Wall clock** (`afvsgp-gym robot --simulate`, paced at 1 kHz): the default "
              "agent (`nominal`), learner (`none`), torque-error bound (3, 3, 3, 3, 1, 1, 1 Nm) "
