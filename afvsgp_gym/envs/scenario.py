@@ -62,8 +62,9 @@ class ObstacleSpec:
     A plane does not move.
 
     ``yield_distance`` (m, None for never) makes a moving obstacle yield like a person who
-    sees the arm: the env stops it (:meth:`stopped_at`) at the first step where a safety
-    sphere comes within this distance of its surface while it moves. ``stop_time`` (s) is
+    sees the arm: the Franka env stops it (:meth:`stopped_at`) at the first step where a
+    safety sphere comes within this distance of its surface while it moves (the point-mass
+    env and the robot bridge's stand-in ignore it). ``stop_time`` (s) is
     when it stopped (``inf``: it has not): from there it follows the same path with a
     speed blended to zero over :data:`STOP_DURATION`, so position, velocity and
     acceleration stay continuous.
