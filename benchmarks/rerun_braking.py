@@ -2,18 +2,25 @@
 
     python benchmarks/rerun_braking.py SOURCE OUT --env-kwargs '{"brake_hold_memory": 0.1}'
     python benchmarks/rerun_braking.py SOURCE OUT --compare   # OUT against SOURCE
+    python benchmarks/rerun_braking.py SOURCE OUT --merge     # OUT's runs into SOURCE
 
 Only the brake's behaviour differs between such variants, so an episode whose filter never
 fell back to the brake (``infeasible_steps == 0``) runs alike under them and is not run
-again. Reads the AFVSGP episodes of ``SOURCE`` (a sweep's records, ``.jsonl`` or
-``.jsonl.gz``) that reached the brake, runs each with ``--env-kwargs`` merged into its env
-options on ``--workers`` processes, and appends the records to ``OUT``. ``--compare``
-prints, per file pair, the episodes with cost under either and the brake steps per episode.
+again. Reads the episodes of ``SOURCE`` (a sweep's records, ``.jsonl`` or ``.jsonl.gz``)
+whose filter's learner is one of ``--learners`` (AFVSGP by default) and that reached the
+brake, runs each with ``--env-kwargs`` merged into its env options on ``--workers``
+processes, and appends the records to ``OUT``. ``--compare`` prints, per file pair, the
+episodes with cost under either and the brake steps per episode. ``--merge`` rewrites
+``SOURCE`` with each of its episodes that ``OUT`` ran again replaced by that run, once the
+options it ran with are the defaults: the record keeps ``SOURCE``'s ``key``, ``config`` and
+``block`` (the same episode at today's defaults, so a resumed sweep finds it), its own counts
+and ``code_version``, and names the options it was given in ``ran_with``.
 
 ``benchmarks/results/hold_memory.jsonl.gz`` holds such runs at ``brake_hold_memory=0.1``
 (the brake keeps its hold point across feasible gaps while the obstacles stand still) of
 ``results/scenes.jsonl.gz``, ``results/adversarial.jsonl.gz`` and
-``results/acceptance.jsonl.gz``.
+``results/acceptance.jsonl.gz``; they were merged into those files when 0.1 became the
+default.
 """
 
 from __future__ import annotations
@@ -33,12 +40,14 @@ def read(path: Path) -> list[dict]:
         return [json.loads(line) for line in f if line.strip()]
 
 
-def braking_specs(recs: list[dict], env_kwargs: dict) -> list[EpisodeSpec]:
-    """The AFVSGP episodes of ``recs`` that reached the brake, with ``env_kwargs`` merged."""
+def braking_specs(recs: list[dict], env_kwargs: dict,
+                  learners: tuple[str, ...] = ("afvsgp",)) -> list[EpisodeSpec]:
+    """The episodes of ``recs`` with a filter of ``learners`` that reached the brake, with
+    ``env_kwargs`` merged."""
     out = []
     for r in recs:
         c = r["config"]
-        if c["learner"] == "afvsgp" and r["infeasible_steps"] > 0:
+        if c["learner"] in learners and r["infeasible_steps"] > 0:
             out.append(EpisodeSpec(c["env_id"], r["seed"], c["learner"], c["agent"],
                                    {**c["env_kwargs"], **env_kwargs}, c["filter_kwargs"],
                                    c["max_steps"]))
@@ -71,6 +80,32 @@ def compare(source: list[dict], out: list[dict]) -> None:
           f"{sum(a['infeasible_steps'] for _, a in pairs) / max(n, 1):.1f}")
 
 
+def merge(source: list[dict], out: list[dict]) -> tuple[list[dict], int]:
+    """``source`` with its episodes that ``out`` ran again replaced (see the module
+    docstring), and how many were replaced."""
+    added = {k for r in out for k in r["config"]["env_kwargs"]} - {
+        k for r in source for k in r["config"]["env_kwargs"]}
+    reruns = {_key(r["config"], r["seed"], added): r for r in out}
+    merged, n = [], 0
+    for r in source:
+        new = reruns.get(_key(r["config"], r["seed"], set()))
+        if new is None:
+            merged.append(r)
+            continue
+        ran_with = {k: new["config"]["env_kwargs"][k] for k in sorted(added)
+                    if k in new["config"]["env_kwargs"]}
+        merged.append({**new, "key": r["key"], "config": r["config"], "ran_with": ran_with,
+                       **({"block": r["block"]} if "block" in r else {})})
+        n += 1
+    return merged, n
+
+
+def write(path: Path, recs: list[dict]) -> None:
+    opener = gzip.open if path.suffix == ".gz" else open
+    with opener(path, "wt") as f:
+        f.writelines(json.dumps(r) + "\n" for r in recs)
+
+
 def _run(spec: EpisodeSpec) -> dict:
     return run_spec(spec)[0]
 
@@ -81,13 +116,23 @@ def main() -> None:
     p.add_argument("out", type=Path)
     p.add_argument("--env-kwargs", default="{}", help="JSON merged into each env's options")
     p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--learners", default="afvsgp",
+                   help="comma-separated filter learners whose episodes run again")
     p.add_argument("--compare", action="store_true", help="compare OUT with SOURCE only")
+    p.add_argument("--merge", action="store_true",
+                   help="replace SOURCE's episodes that OUT ran again by those runs")
     args = p.parse_args()
     source = read(args.source)
     if args.compare:
         compare(source, read(args.out))
         return
-    specs = braking_specs(source, json.loads(args.env_kwargs))
+    if args.merge:
+        merged, n = merge(source, read(args.out))
+        write(args.source, merged)
+        print(f"{args.source}: {n} of {len(merged)} episodes replaced")
+        return
+    specs = braking_specs(source, json.loads(args.env_kwargs),
+                          tuple(args.learners.split(",")))
     print(f"{len(specs)} episodes", flush=True)
     with Pool(args.workers) as pool, open(args.out, "a") as f:
         for rec in pool.imap_unordered(_run, specs):

@@ -662,10 +662,10 @@ def test_brake_gives_way_to_an_obstacle_moving_into_the_arm(payload):
 
 @pytest.mark.parametrize("moving", [False, True])
 def test_brake_keeps_its_hold_point_only_while_the_obstacles_stand_still(moving):
-    """With ``brake_hold_memory`` (opt-in), after a feasible period the brake keeps its old
-    hold point if no obstacle moved (the arm was there, clear of them), else it holds where
-    the arm is: a spring back to a stale
-    hold point drove a hand into a moving sphere (greedy, dynamic scene, seed 3002)."""
+    """With ``brake_hold_memory`` (0.1 s by default), after a feasible period the brake keeps
+    its old hold point if no obstacle moved (the arm was there, clear of them), else it holds
+    where the arm is: a spring back to a stale hold point drove a hand into a moving sphere
+    (greedy, dynamic scene, seed 3002)."""
     env = (_moving_into_the_arm(brake_hold_memory=0.1) if moving
            else FrankaObstacleEnv("static", brake_hold_memory=0.1))
     env.reset(seed=0)
