@@ -18,7 +18,16 @@ import math
 import sys
 
 from acceptance_tables import PRIORS, SCENARIOS, learner, prior, scenario, summary
-from docgen import DOCS, RESULTS, main, measured, provenance, read_jsonl, table
+from docgen import (
+    DOCS,
+    RESULTS,
+    hold_memory_caveat,
+    main,
+    measured,
+    provenance,
+    read_jsonl,
+    table,
+)
 
 SOURCE = RESULTS / "calibration.jsonl.gz"
 ANATOMY = RESULTS / "calibration_anatomy.json"
@@ -327,6 +336,7 @@ def build() -> dict:
            measured(meta(recs)) + f" {len(recs)} episodes of 16 s "
            "(`afvsgp-gym sweep benchmarks/configs/calibration.toml`).",
            "",
+           *hold_memory_caveat(recs),
            "## Pooled over the scenes and the nominal models",
            "",
            "AFVSGP behind the nominal tracker, the same seeds for both bands and the oracle; "

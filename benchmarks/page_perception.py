@@ -11,7 +11,17 @@ episodes each row has), each with its ``code_version``, ``machine`` and ``date``
 from __future__ import annotations
 
 from acceptance_tables import SCENARIOS, prior, scenario, summary
-from docgen import DOCS, RESULTS, main, measured, provenance, read_json, read_jsonl, table
+from docgen import (
+    DOCS,
+    RESULTS,
+    hold_memory_caveat,
+    main,
+    measured,
+    provenance,
+    read_json,
+    read_jsonl,
+    table,
+)
 from page_adversarial import cost_cell, meta
 
 SOURCE = RESULTS / "perception.jsonl.gz"
@@ -198,7 +208,7 @@ def build() -> dict:
     out += ["## The grid", "", measured(meta(recs)) + f" {len(recs)} episodes of "
             f"`benchmarks/configs/perception.toml` ({covered}) behind the nominal tracker, "
             "cost counted from the true state.", "",
-            *code_versions(recs),
+            *code_versions(recs), *hold_memory_caveat(recs),
             "## By camera and pushes", "",
             "Episodes with cost and the smallest true `h` (cm) of each filter over the three "
             "scenarios (and for AFVSGP the priors \"zero\" and \"perturbed\"); the last column "

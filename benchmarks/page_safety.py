@@ -47,9 +47,7 @@ SOURCE = RESULTS / "acceptance.jsonl.gz"
 #: Code versions of the episodes run again after the brake change (the filter brakes at once
 #: instead of relaxing to the mean, and the brake keeps its hold point): only the episodes
 #: that had reached the brake, the others being identical at that code.
-BRAKE_RERUN_CODES = ("104f9db", "2ac8a9b", "b492550")
-#: The code of the last runs of the episodes that reached the brake.
-FINAL_BRAKE_CODE = "b492550"
+BRAKE_RERUN_CODES = ("104f9db", "2ac8a9b", "b492550", "f6db547", "da952a6")
 #: optional: the priors grid at the code versions whose Franka envs suggested the conformal
 #: margin on all 28 joint-limit barriers, and the margin on the ranges with the multiplier on
 #: the speeds adapted on every step (before ``calibration_gate``)
@@ -377,7 +375,7 @@ def build() -> dict:
             text += (f" The {n} episodes at `{' / '.join(rerun)}` were run again after the "
                      "grid: those that had reached the brake (a step on which no action met the "
                      "chance constraints) when the filter stopped relaxing to the mean-only "
-                     f"program (their last runs at `{FINAL_BRAKE_CODE}`, the brake as before), "
+                     "program, and again when the brake came to keep its hold point (below), "
                      "and samples of the others, whose records came out identical: an episode "
                      "that never reaches the brake runs identically at every code.")
         if band:

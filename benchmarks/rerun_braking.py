@@ -56,7 +56,7 @@ def braking_specs(recs: list[dict], env_kwargs: dict,
 
 def _key(config: dict, seed: int, drop: set[str]) -> str:
     env_kwargs = {k: v for k, v in config["env_kwargs"].items() if k not in drop}
-    return json.dumps([config["env_id"], config["agent"], env_kwargs,
+    return json.dumps([config["env_id"], config["learner"], config["agent"], env_kwargs,
                        config["filter_kwargs"], seed], sort_keys=True)
 
 
@@ -94,7 +94,11 @@ def merge(source: list[dict], out: list[dict]) -> tuple[list[dict], int]:
             continue
         ran_with = {k: new["config"]["env_kwargs"][k] for k in sorted(added)
                     if k in new["config"]["env_kwargs"]}
-        merged.append({**new, "key": r["key"], "config": r["config"], "ran_with": ran_with,
+        c = r["config"]
+        key = r.get("key") or EpisodeSpec(c["env_id"], r["seed"], c["learner"], c["agent"],
+                                          c["env_kwargs"], c["filter_kwargs"],
+                                          c["max_steps"]).key()
+        merged.append({**new, "key": key, "config": c, "ran_with": ran_with,
                        **({"block": r["block"]} if "block" in r else {})})
         n += 1
     return merged, n

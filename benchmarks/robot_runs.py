@@ -15,8 +15,9 @@ Two kinds of run, with the default agent (``nominal``), learner (``none``) and t
 1 kg payload its model does not know unless the run says otherwise:
 
 - ``wall-clock``: what ``afvsgp-gym robot --simulate`` runs (``run_simulated``), paced at
-  1 kHz by the wall clock with the 0.9 ms budget, at normal priority or ``SCHED_FIFO`` 50
-  (``--rt-priority 50``). Its figures depend on the machine and on what else runs on it.
+  1 kHz by the wall clock with the 0.9 ms budget, at ``SCHED_FIFO`` 50 (the command's
+  default) or normal priority (``--rt-priority 0``). Its figures depend on the machine and on
+  what else runs on it.
 - ``stepped``: the stand-in one tick per call (``realtime=False``) and a budget of 1 s, so
   no step falls back: the safety figures depend only on the code (deterministic; the camera
   noise is seeded), the step times are still the wall clock's. ``min_true_h`` is the smallest
