@@ -21,6 +21,7 @@ work starts) and then calls one library function:
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import sys
@@ -31,6 +32,8 @@ from typing import Any
 __all__ = ["build_parser", "main"]
 
 DEFAULT_ENV = "afvsgp_gym/FrankaObstacleDynamic-v0"
+#: The SCHED_FIFO priority of ``robot``'s loop unless told otherwise (0: normal priority).
+ROBOT_RT_PRIORITY = 50
 TRAIN_ENV = "afvsgp_gym/FrankaObstacleReach-v0"
 
 
@@ -491,8 +494,9 @@ def _cmd_robot(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int
         parser.error(f"--obstacle-noise must be >= 0, got {args.obstacle_noise}")
     if args.host is not None and args.obstacle_noise:
         parser.error("--obstacle-noise is for --simulate (a robot's obstacles are its own)")
-    if args.rt_priority is not None and not 1 <= args.rt_priority <= 99:
-        parser.error(f"--rt-priority must be in 1..99, got {args.rt_priority}")
+    if not 0 <= args.rt_priority <= 99:
+        parser.error(f"--rt-priority must be in 0..99 (0: normal priority), got "
+                     f"{args.rt_priority}")
     filter_kwargs = json_object_arg(parser, args.filter_kwargs, "--filter-kwargs")
     json_path = _check_out(parser, args.json, "--json")
     from afvsgp_gym.robots import libfranka
@@ -505,8 +509,13 @@ def _cmd_robot(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int
             parser.exit(3, f"{parser.prog}: error: --host needs pylibfranka, the optional "
                            f"extra 'robot': {libfranka.INSTALL_HINT}\n")
     budget = args.budget * 1e-3
-    with realtime_priority(args.rt_priority) as scheduler:
-        try:
+    with contextlib.ExitStack() as stack:
+        try:  # a robot's loop refuses to start without it, as libfranka's does
+            scheduler = stack.enter_context(
+                realtime_priority(args.rt_priority, enforce=args.host is not None))
+            if args.rt_priority and not scheduler.startswith("SCHED_FIFO"):
+                print(f"{parser.prog}: note: running at normal priority: {scheduler}",
+                      file=sys.stderr)
             if args.simulate:
                 report = run_simulated(args.seconds, agent=agent, learner=args.learner,
                                        budget=budget, torque_error=torque_error,
@@ -518,8 +527,8 @@ def _cmd_robot(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int
                 report = run_robot(args.host, args.seconds, obstacles=obstacles, agent=agent,
                                    learner=args.learner, budget=budget,
                                    torque_error=torque_error, filter_kwargs=filter_kwargs)
-        except (RuntimeError, OSError) as exc:  # no connection, a state that stops the start
-            print(f"{parser.prog}: error: {exc}", file=sys.stderr)
+        except (RuntimeError, OSError) as exc:  # no priority, no connection, a state that
+            print(f"{parser.prog}: error: {exc}", file=sys.stderr)  # stops the start
             return 1
     out = report.to_dict()
     from afvsgp_gym.benchmarks._machine import machine
@@ -710,8 +719,10 @@ def build_parser() -> argparse.ArgumentParser:
     rb.add_argument("--obstacle-noise", type=float, default=0.0, metavar="M",
                     help="the stand-in's camera noise per axis (m, 30 Hz, Kalman estimate with "
                          "covariance; default 0: exact)")
-    rb.add_argument("--rt-priority", type=int, default=None, metavar="N",
-                    help="run at SCHED_FIFO priority N (as libfranka's kEnforce)")
+    rb.add_argument("--rt-priority", type=int, default=ROBOT_RT_PRIORITY, metavar="N",
+                    help="SCHED_FIFO priority of the loop (default "
+                         f"{ROBOT_RT_PRIORITY}; 0: normal priority). Refused, --host stops "
+                         "(as libfranka's kEnforce) and --simulate runs at normal priority")
     rb.add_argument("--filter-kwargs", default=None, metavar="JSON",
                     help="SafetyController options over the suggested ones")
     rb.add_argument("--json", default=None, metavar="PATH")

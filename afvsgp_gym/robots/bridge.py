@@ -92,16 +92,16 @@ class Brake:
         ``w`` (1/s), critically damped.
     memory : int
         Ticks without the brake (:meth:`release`) after which it engages anew; up to this
-        many in a row it keeps its hold point while the obstacles stand still (default 0:
-        a fresh hold point at every engagement, as the simulation's ``brake_hold_memory``;
-        100 is 0.1 s at 1 kHz). A hold point taken anew whenever the filter flips back to
-        infeasible starts from the sagged pose each time, and the sag ratchets.
+        many in a row it keeps its hold point while the obstacles stand still (default 100:
+        0.1 s at 1 kHz, as the simulation's ``brake_hold_memory``; 0 takes a fresh hold
+        point at every engagement). A hold point taken anew whenever the filter flips back
+        to infeasible starts from the sagged pose each time, and the sag ratchets.
     """
 
     #: m: see :meth:`see`.
     HOLD_WORLD_TOLERANCE = 1e-4
 
-    def __init__(self, tau_max=TAU_MAX, frequency: float = 50.0, memory: int = 0) -> None:
+    def __init__(self, tau_max=TAU_MAX, frequency: float = 50.0, memory: int = 100) -> None:
         self.tau_max = np.asarray(tau_max, dtype=np.float64)
         self.frequency = check_real(frequency, "frequency", low=0.0, low_open=True)
         self.memory = int(check_real(memory, "memory", low=0.0))

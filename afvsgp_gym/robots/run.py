@@ -24,17 +24,24 @@ __all__ = ["build_bridge", "make_controller", "obstacle_specs", "realtime_priori
 
 
 @contextlib.contextmanager
-def realtime_priority(priority: int | None) -> Iterator[str]:
-    """Run the block at SCHED_FIFO ``priority`` (1-99; libfranka's ``RealtimeConfig.kEnforce``
-    asks the same of its control thread), restoring the scheduler after; yields what the
-    process ran at (``"SCHED_OTHER"`` for None, or when the system refuses: the reason)."""
-    if priority is None:
+def realtime_priority(priority: int | None, enforce: bool = False) -> Iterator[str]:
+    """Run the block at SCHED_FIFO ``priority`` (1-99), restoring the scheduler after; yields
+    what the process ran at (``"SCHED_OTHER"`` for None or 0, or when the system refuses: the
+    reason). With ``enforce`` a refusal raises ``RuntimeError`` instead, as libfranka's
+    ``RealtimeConfig.kEnforce`` (its default) refuses to start a control loop without a
+    real-time priority."""
+    if not priority:
         yield "SCHED_OTHER"
         return
     try:
         before = os.sched_getscheduler(0), os.sched_getparam(0)
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(int(priority)))
     except (AttributeError, OSError) as exc:
+        if enforce:
+            raise RuntimeError(
+                f"SCHED_FIFO {priority} refused ({exc}): a real-time priority needs root or "
+                "an rtprio limit (/etc/security/limits.conf, docs/robot.md); --rt-priority 0 "
+                "runs at normal priority, which libfranka's default refuses too") from None
         yield f"SCHED_OTHER (SCHED_FIFO {priority} refused: {exc})"
         return
     try:

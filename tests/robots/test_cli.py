@@ -2,7 +2,9 @@
 says how to install it; bad arguments name their option."""
 
 import json
+import os
 import sys
+import types
 
 import pytest
 
@@ -10,10 +12,18 @@ from afvsgp_gym.cli import main
 from afvsgp_gym.robots.libfranka import INSTALL_HINT
 
 
-def test_simulate_writes_the_counters(tmp_path, capsys):
+@pytest.mark.parametrize("priority", [None, "0"])
+def test_simulate_writes_the_counters(tmp_path, capsys, priority):
+    """By default the loop asks for SCHED_FIFO 50 (normal priority where the system refuses,
+    said in ``scheduler``); ``--rt-priority 0`` runs at normal priority."""
     path = tmp_path / "robot.json"
-    status = main(["robot", "--simulate", "--seconds", "2", "--json", str(path)])
+    extra = [] if priority is None else ["--rt-priority", priority]
+    status = main(["robot", "--simulate", "--seconds", "2", "--json", str(path), *extra])
     out = json.loads(path.read_text())
+    if priority is None:
+        assert out["scheduler"] == "SCHED_FIFO 50" or "SCHED_FIFO 50 refused" in out["scheduler"]
+    else:
+        assert out["scheduler"] == "SCHED_OTHER"
     for key in ("steps", "rate_hz", "deadline_misses", "cost_steps", "step_time_ms",
                 "stop_reason", "machine", "scheduler"):
         assert key in out
@@ -54,7 +64,8 @@ def test_host_without_pylibfranka_says_how_to_install_it(monkeypatch, capsys):
     (["robot", "--simulate", "--obstacles",
       '[{"type": "capsule", "position": [0.5, NaN, 0.2], "radius": 0.02, "half_length": 0.1}]'],
      "--obstacles: obstacles[0]['position'] must be finite"),
-    (["robot", "--simulate", "--rt-priority", "0"], "--rt-priority"),
+    (["robot", "--simulate", "--rt-priority", "100"], "--rt-priority"),
+    (["robot", "--simulate", "--rt-priority", "-1"], "--rt-priority"),
 ])
 def test_bad_arguments_exit_2_naming_the_option(argv, message, capsys):
     with pytest.raises(SystemExit) as exc:
@@ -79,3 +90,28 @@ def test_simulate_takes_typed_obstacles_as_the_envs_do(tmp_path):
     assert out["mode"] == "simulate" and out["steps"] > 0
     assert status == (0 if out["stop_reason"] == "completed" else 1)
     assert out["min_h"] == pytest.approx(0.1128, abs=1e-6)
+
+
+def _refuse_realtime(monkeypatch):
+    def refuse(*args):
+        raise PermissionError(1, "Operation not permitted")
+    monkeypatch.setattr(os, "sched_setscheduler", refuse)
+
+
+def test_a_refused_priority_stops_the_robot_and_not_the_dry_run(monkeypatch, capsys):
+    """As libfranka's default (kEnforce), ``--host`` does not start a loop the system refuses
+    a real-time priority, and says how to run anyway; ``realtime_priority`` without
+    ``enforce`` (the stand-in's dry run) runs on at normal priority and says why."""
+    from afvsgp_gym.robots.run import realtime_priority
+
+    _refuse_realtime(monkeypatch)
+    with realtime_priority(50) as scheduler:
+        assert scheduler.startswith("SCHED_OTHER (SCHED_FIFO 50 refused")
+    with pytest.raises(RuntimeError, match="--rt-priority 0"):
+        with realtime_priority(50, enforce=True):
+            pass
+    # the bindings stand in for the robot's (never called: the loop stops before connecting)
+    monkeypatch.setitem(sys.modules, "pylibfranka", types.ModuleType("pylibfranka"))
+    assert main(["robot", "--host", "172.16.0.2", "--seconds", "1"]) == 1
+    err = capsys.readouterr().err
+    assert "SCHED_FIFO 50 refused" in err and "--rt-priority 0" in err
