@@ -7,14 +7,15 @@
 Only the brake's behaviour differs between such variants, so an episode whose filter never
 fell back to the brake (``infeasible_steps == 0``) runs alike under them and is not run
 again. Reads the episodes of ``SOURCE`` (a sweep's records, ``.jsonl`` or ``.jsonl.gz``)
-whose filter's learner is one of ``--learners`` (AFVSGP by default) and that reached the
-brake, runs each with ``--env-kwargs`` merged into its env options on ``--workers``
-processes, and appends the records to ``OUT``. ``--compare`` prints, per file pair, the
-episodes with cost under either and the brake steps per episode. ``--merge`` rewrites
-``SOURCE`` with each of its episodes that ``OUT`` ran again replaced by that run, once the
-options it ran with are the defaults: the record keeps ``SOURCE``'s ``key``, ``config`` and
-``block`` (the same episode at today's defaults, so a resumed sweep finds it), its own counts
-and ``code_version``, and names the options it was given in ``ran_with``.
+whose filter's learner is one of ``--learners`` (AFVSGP by default), in the envs of
+``--envs`` (all by default), and that reached the brake, runs each with ``--env-kwargs``
+merged into its env options on ``--workers`` processes, and appends the records to
+``OUT``. ``--compare`` prints, per file pair, the episodes with cost under either and the
+brake steps per episode. ``--merge`` rewrites ``SOURCE`` with each of its episodes that
+``OUT`` ran again replaced by that run, once the options it ran with are the defaults: the
+record keeps ``SOURCE``'s ``key``, ``config`` and ``block`` (the same episode at today's
+defaults, so a resumed sweep finds it), its own counts and ``code_version``, and names the
+options it was given in ``ran_with``.
 
 ``benchmarks/results/hold_memory.jsonl.gz`` holds such runs at ``brake_hold_memory=0.1``
 (the brake keeps its hold point across feasible gaps while the obstacles stand still) of
@@ -40,14 +41,15 @@ def read(path: Path) -> list[dict]:
         return [json.loads(line) for line in f if line.strip()]
 
 
-def braking_specs(recs: list[dict], env_kwargs: dict,
-                  learners: tuple[str, ...] = ("afvsgp",)) -> list[EpisodeSpec]:
-    """The episodes of ``recs`` with a filter of ``learners`` that reached the brake, with
-    ``env_kwargs`` merged."""
+def braking_specs(recs: list[dict], env_kwargs: dict, learners: tuple[str, ...] = ("afvsgp",),
+                  envs: tuple[str, ...] = ("",)) -> list[EpisodeSpec]:
+    """The episodes of ``recs`` with a filter of ``learners``, in an env whose id contains
+    one of ``envs``, that reached the brake, with ``env_kwargs`` merged."""
     out = []
     for r in recs:
         c = r["config"]
-        if c["learner"] in learners and r["infeasible_steps"] > 0:
+        if (c["learner"] in learners and r["infeasible_steps"] > 0
+                and any(e in c["env_id"] for e in envs)):
             out.append(EpisodeSpec(c["env_id"], r["seed"], c["learner"], c["agent"],
                                    {**c["env_kwargs"], **env_kwargs}, c["filter_kwargs"],
                                    c["max_steps"]))
@@ -122,6 +124,9 @@ def main() -> None:
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--learners", default="afvsgp",
                    help="comma-separated filter learners whose episodes run again")
+    p.add_argument("--envs", default="",
+                   help="comma-separated parts of the env ids whose episodes run again "
+                        "(default: every env)")
     p.add_argument("--compare", action="store_true", help="compare OUT with SOURCE only")
     p.add_argument("--merge", action="store_true",
                    help="replace SOURCE's episodes that OUT ran again by those runs")
@@ -136,7 +141,7 @@ def main() -> None:
         print(f"{args.source}: {n} of {len(merged)} episodes replaced")
         return
     specs = braking_specs(source, json.loads(args.env_kwargs),
-                          tuple(args.learners.split(",")))
+                          tuple(args.learners.split(",")), tuple(args.envs.split(",")))
     print(f"{len(specs)} episodes", flush=True)
     with Pool(args.workers) as pool, open(args.out, "a") as f:
         for rec in pool.imap_unordered(_run, specs):
