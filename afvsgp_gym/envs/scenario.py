@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from afvsgp_gym.validation import check_finite_array
+from afvsgp_gym.validation import check_finite_array, check_real
 
 if TYPE_CHECKING:  # primitives imports this module (sphere_barriers): import it lazily
     from afvsgp_gym.envs.primitives import Primitive
@@ -127,7 +127,7 @@ class ObstacleSpec:
 
     def stopped_at(self, t: float) -> ObstacleSpec:
         """This obstacle stopping from time ``t`` on (the same motion up to ``t``)."""
-        return dataclasses.replace(self, stop_time=float(t))
+        return dataclasses.replace(self, stop_time=check_real(t, "t"))
 
     @property
     def kind(self) -> str:

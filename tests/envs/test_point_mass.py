@@ -1,6 +1,7 @@
 """PointMassObstacleEnv: barrier ground truth vs finite differences, API and scenarios."""
 
 import copy
+import math
 
 import gymnasium as gym
 import numpy as np
@@ -270,6 +271,8 @@ def test_a_stopped_obstacle_comes_to_rest_smoothly_along_its_path():
     assert ob.yields_at(ts) and not ob.yields_at(0.5) and not ob.yields_at(99.0)
     st = ob.stopped_at(ts)
     assert not st.yields_at(ts + 0.1)
+    with pytest.raises(ValueError, match="t"):
+        ob.stopped_at(math.nan)
     for t in (0.5, ts - 0.1, ts):
         for a, b in zip(st.state(t), ob.state(t), strict=True):
             np.testing.assert_array_equal(a, b)
