@@ -381,9 +381,6 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
     #: ``EVADE_FACTOR`` times the approach speed, with joint speeds up to ``EVADE_SPEED_SHARE``
     #: of the datasheet's.
     EVADE_DISTANCE, EVADE_FACTOR, EVADE_SPEED_SHARE = 0.1, 1.5, 0.5
-    #: m: the recede speed grows from 0 at ``EVADE_DISTANCE`` to its full value this much
-    #: nearer, so that it is continuous in the distance.
-    EVADE_RAMP = 0.05
     #: m: an obstacle that moved more than this (as sensed) since the brake's last period
     #: voids its hold point (``backup_action``; ``brake_hold_memory``).
     HOLD_WORLD_TOLERANCE = 1e-4
@@ -1523,16 +1520,11 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         A held arm is not safe from an obstacle that moves into it (``h' = n.(v_s - v_o)``
         with ``v_s = 0``). For each pair closer than ``EVADE_DISTANCE`` whose obstacle
         approaches the sphere (``n.v_o > 0``, ``n`` from the obstacle to the sphere) the
-        sphere is asked to recede along ``n`` at ``r EVADE_FACTOR n.v_o``, with ``r`` in
-        [0, 1] growing linearly over the ``EVADE_RAMP`` inside ``EVADE_DISTANCE``: the
-        least-norm joint velocity of those rows ``n' J_s`` (damped least squares, each row
-        weighted by ``r``, so that the velocity is continuous as pairs come and go) over the
-        joints not held at their range margin (:meth:`_free_joint_velocity`), scaled into
+        sphere is asked to recede along ``n`` at ``EVADE_FACTOR n.v_o``: the least-norm
+        joint velocity of those rows ``n' J_s`` (damped least squares) over the joints not
+        held at their range margin (:meth:`_free_joint_velocity`), scaled into
         ``EVADE_SPEED_SHARE`` of the joint speed limits. It is the robot's own reflex, with
-        the kinematics and the obstacles' measured motion, not the filter's model. (Switched
-        on in full at the distance, the give-way flipped on and off every few periods there,
-        and the brake, saturated at each flip, no longer held the arm: a hand sank into a
-        table.)"""
+        the kinematics and the obstacles' measured motion, not the filter's model."""
         view = self._sensed_view
         exact_static = (self._obstacle_constants()[1] is not None
                         and view.obstacle_states is self._obstacle_states)
@@ -1546,10 +1538,8 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         rows = np.flatnonzero((h < self.EVADE_DISTANCE) & (approach > 0.0))
         if not len(rows):
             return None
-        ramp = np.minimum((self.EVADE_DISTANCE - h[rows]) / self.EVADE_RAMP, 1.0)
-        root = np.sqrt(ramp)  # rows weighted by the ramp: one entering counts for nothing
-        a = root[:, None] * np.einsum("ki,kij->kj", n[rows], jac[rows % n_s][:, :, :7])
-        qd = self._free_joint_velocity(a, root * ramp * self.EVADE_FACTOR * approach[rows])
+        a = np.einsum("ki,kij->kj", n[rows], jac[rows % n_s][:, :, :7])
+        qd = self._free_joint_velocity(a, self.EVADE_FACTOR * approach[rows])
         if qd is None:
             return None
         top = self.EVADE_SPEED_SHARE * self.joint_limits.max_speed

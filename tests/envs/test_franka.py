@@ -709,55 +709,30 @@ def test_brake_gives_way_only_to_approaching_moving_obstacles():
     assert env._give_way_velocity() is None
 
 
-def test_give_way_speed_grows_from_zero_at_the_evade_distance():
-    """The recede speed is continuous in the distance: 0 at ``EVADE_DISTANCE``, in full
-    ``EVADE_RAMP`` nearer. Switched on in full at the distance, the give-way held a pair on
-    it, flipping on and off every few periods; the brake saturated at each flip, and the arm
-    it no longer held sank into the table (greedy policy, tabletop, seed 5004)."""
-    env = _moving_into_the_arm()
-    env.reset(seed=0)
-    end = int(env.obstacles[0].duration / env.dt)
-    speeds, depth = [], []
-    for step in range(0, end, 5):
-        env.set_time_step(step)
-        qd = env._give_way_velocity()
-        if qd is not None:
-            speeds.append(float(np.abs(qd).max()))
-            depth.append(env.EVADE_DISTANCE - env.barrier_values()[: env.n_obstacle_barriers].min())
-    assert len(speeds) > 10
-    assert depth[0] < 0.1 * env.EVADE_RAMP  # the sphere moves 2 mm per 5 steps
-    assert speeds[0] < 0.1 * max(speeds)  # switched on at a sliver of the full speed
-    assert np.all(np.diff(speeds[:5]) > 0)  # and growing
-
-
 def test_give_way_locks_joints_at_their_range_margin():
     """The give-way velocity moves no joint whose hold point would pass its range barriers'
     margin within a period; the other joints carry the retreat (a hold point clipped at
     joint 4's margin left the arm still while a sphere struck it: random policy, dynamic
-    scene, seed 3005 of the adversarial suite). Locking the two joints that carry most of
-    this retreat, at the margin they move towards, still makes the pairs it weighs in full
-    recede."""
+    scene, seed 3005 of the adversarial suite). Locking joints 1 and 3, which carry most of
+    this retreat, still makes every approaching pair recede."""
     env = _moving_into_the_arm()
     env.reset(seed=0)
     env.set_time_step(800)
     free = env._give_way_velocity()
-    assert free is not None
+    assert free is not None and free[0] < 0 and free[2] < 0
     lim = env.joint_limits
     hold = env.data.qpos[:7].copy()
-    j = np.argsort(-np.abs(free))[:2]
-    low, high = lim.lower + lim.range_margin, lim.upper - lim.range_margin
-    hold[j] = np.where(free[j] < 0, low[j] + 1e-4, high[j] - 1e-4)  # at the margin ahead
+    hold[[0, 2]] = lim.lower[[0, 2]] + lim.range_margin + 1e-4  # at the margin, moving down
     env._hold = hold
     locked = env._give_way_velocity()
-    assert np.all(locked[j] == 0.0)
+    assert locked[0] == 0.0 and locked[2] == 0.0
     assert np.abs(locked).max() > 0.0
     h, n = env.barrier_values(), env._sensed_view.geometry[1]
     jac, n_s = env._sensed_view.spheres[2], len(env._sensed_view.spheres[0])
-    rows = np.flatnonzero(h[: env.n_obstacle_barriers] < env.EVADE_DISTANCE - env.EVADE_RAMP)
-    assert len(rows)
+    rows = np.flatnonzero(h[: env.n_obstacle_barriers] < env.EVADE_DISTANCE)
     recede = np.einsum("ki,kij,j->k", n[rows], jac[rows % n_s][:, :, :7], locked)
     assert np.all(recede > 0.0)
-    hold[j] = np.where(free[j] < 0, high[j], low[j])  # the other end: free that way
+    hold[[0, 2]] = lim.upper[[0, 2]] - lim.range_margin  # the other end: free that way
     env._hold = hold
     np.testing.assert_allclose(env._give_way_velocity(), free, rtol=1e-12, atol=1e-15)
 
