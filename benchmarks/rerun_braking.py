@@ -32,13 +32,9 @@ import json
 from multiprocessing import Pool
 from pathlib import Path
 
+from docgen import read_jsonl
+
 from afvsgp_gym.evaluation import EpisodeSpec, run_spec
-
-
-def read(path: Path) -> list[dict]:
-    opener = gzip.open if path.suffix == ".gz" else open
-    with opener(path, "rt") as f:
-        return [json.loads(line) for line in f if line.strip()]
 
 
 def braking_specs(recs: list[dict], env_kwargs: dict, learners: tuple[str, ...] = ("afvsgp",),
@@ -62,11 +58,16 @@ def _key(config: dict, seed: int, drop: set[str]) -> str:
                        config["filter_kwargs"], seed], sort_keys=True)
 
 
+def _added_options(source: list[dict], out: list[dict]) -> set[str]:
+    """The env options ``out``'s runs were given that ``source``'s never name."""
+    return {k for r in out for k in r["config"]["env_kwargs"]} - {
+        k for r in source for k in r["config"]["env_kwargs"]}
+
+
 def compare(source: list[dict], out: list[dict]) -> None:
     """Print the episodes with cost under either file and the brake steps per episode (the
     records of ``out`` that run an episode of ``source``; others are left out)."""
-    drop = {k for r in out for k in r["config"]["env_kwargs"]} - {
-        k for r in source for k in r["config"]["env_kwargs"]}
+    drop = _added_options(source, out)
     old = {_key(r["config"], r["seed"], set()): r for r in source}
     pairs = [(old[k], r) for r in out if (k := _key(r["config"], r["seed"], drop)) in old]
     for before, after in pairs:
@@ -85,8 +86,7 @@ def compare(source: list[dict], out: list[dict]) -> None:
 def merge(source: list[dict], out: list[dict]) -> tuple[list[dict], int]:
     """``source`` with its episodes that ``out`` ran again replaced (see the module
     docstring), and how many were replaced."""
-    added = {k for r in out for k in r["config"]["env_kwargs"]} - {
-        k for r in source for k in r["config"]["env_kwargs"]}
+    added = _added_options(source, out)
     reruns = {_key(r["config"], r["seed"], added): r for r in out}
     merged, n = [], 0
     for r in source:
@@ -127,20 +127,31 @@ def main() -> None:
     p.add_argument("--envs", default="",
                    help="comma-separated parts of the env ids whose episodes run again "
                         "(default: every env)")
-    p.add_argument("--compare", action="store_true", help="compare OUT with SOURCE only")
-    p.add_argument("--merge", action="store_true",
-                   help="replace SOURCE's episodes that OUT ran again by those runs")
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument("--compare", action="store_true", help="compare OUT with SOURCE only")
+    mode.add_argument("--merge", action="store_true",
+                      help="replace SOURCE's episodes that OUT ran again by those runs")
     args = p.parse_args()
-    source = read(args.source)
+    if args.workers < 1:
+        p.error(f"--workers must be >= 1, got {args.workers}")
+    try:
+        env_kwargs = json.loads(args.env_kwargs)
+    except json.JSONDecodeError as exc:
+        p.error(f"--env-kwargs must be a JSON object: {exc}")
+    if not isinstance(env_kwargs, dict):
+        p.error(f"--env-kwargs must be a JSON object, got {args.env_kwargs!r}")
+    if not (args.compare or args.merge) and args.out.suffix == ".gz":
+        p.error("OUT is appended to line by line: give a plain .jsonl (gzip it after)")
+    source = read_jsonl(args.source)
     if args.compare:
-        compare(source, read(args.out))
+        compare(source, read_jsonl(args.out))
         return
     if args.merge:
-        merged, n = merge(source, read(args.out))
+        merged, n = merge(source, read_jsonl(args.out))
         write(args.source, merged)
         print(f"{args.source}: {n} of {len(merged)} episodes replaced")
         return
-    specs = braking_specs(source, json.loads(args.env_kwargs),
+    specs = braking_specs(source, env_kwargs,
                           tuple(args.learners.split(",")), tuple(args.envs.split(",")))
     print(f"{len(specs)} episodes", flush=True)
     with Pool(args.workers) as pool, open(args.out, "a") as f:
