@@ -308,6 +308,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
     | normalize_action | True | action in [-1, 1] (tau = u tau_max); False: action = tau in Nm |
     | brake_frequency | 50.0 | 1/s, ``backup_action``'s stop-and-hold bandwidth |
     | brake_hold_memory | 0.1 | s, the brake's hold point outlives feasible gaps this short |
+    | brake_hold_slack | 0.0 | rad, a saturated brake keeps its hold point this near |
     | limit_barriers | True | joint range and speed barriers after the obstacle ones |
     | self_collision | False | barriers between the arm's own links, after the obstacle ones |
     | range_margin, speed_margin | 0.1, 0.4 | rad, rad/s: the limit barriers' margins |
@@ -424,6 +425,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         normalize_action: bool = True,
         brake_frequency: float = 50.0,
         brake_hold_memory: float = 0.1,
+        brake_hold_slack: float = 0.0,
         limit_barriers: bool = True,
         self_collision: bool = False,
         range_margin: float = 0.1,
@@ -536,6 +538,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
                                           low_open=True)
         self.brake_hold_memory = check_real(brake_hold_memory, "brake_hold_memory", low=0.0)
         self._hold_memory_steps = int(round(self.brake_hold_memory / self._control_dt))
+        self.brake_hold_slack = check_real(brake_hold_slack, "brake_hold_slack", low=0.0)
         self._brake_model: tuple[mujoco.MjModel, mujoco.MjData] | None = None
         self._hold: np.ndarray | None = None
         self._backup_step = -2
@@ -1500,7 +1503,8 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         coriolis = self._catalogue_coriolis(d) / self._gear
         u = coriolis + brake
         if np.abs(u).max() > 1.0:  # saturated: damping only, and its largest share
-            self._hold = d.qpos[:7].copy()  # (a spring back to where it engaged winds up)
+            if np.abs(d.qpos[:7] - self._hold).max() > self.brake_hold_slack:
+                self._hold = d.qpos[:7].copy()  # (a spring back from afar winds up)
             brake = (inertia @ (-2.0 * w * (d.qvel[:7] - target))) / self._gear
             share = admissible_share(coriolis, brake, 1.0)
             u = np.clip(coriolis + share * brake, -1.0, 1.0)

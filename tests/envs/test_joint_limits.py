@@ -84,7 +84,8 @@ def test_inconsistent_limits_are_refused_naming_the_joint(kwargs, match):
     ("kwargs", "match"),
     [({"range_margin": -0.1}, "range_margin"), ({"speed_margin": np.nan}, "speed_margin"),
      ({"speed_margin": 3.0}, "speed_margin"), ({"brake_frequency": 0.0}, "brake_frequency"),
-     ({"brake_hold_memory": -0.1}, "brake_hold_memory")],
+     ({"brake_hold_memory": -0.1}, "brake_hold_memory"),
+     ({"brake_hold_slack": -0.01}, "brake_hold_slack")],
 )
 def test_franka_refuses_bad_limit_arguments(kwargs, match):
     with pytest.raises(ValueError, match=match):
