@@ -1447,12 +1447,16 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         ``q_hold`` the joint angles when the backup was first asked for in a run of control
         periods none more than ``brake_hold_memory`` apart. Beyond the torque limits it only
         damps, with the largest share ``s`` in [0, 1] of ``M_cat (-2 w q')`` that the limits
-        admit, and holds from
-        where it is: the commanded joint accelerations keep their direction, so every joint
-        keeps decelerating. (Clipping each joint's torque apart bent it through the coupled
+        admit: the commanded joint accelerations keep their direction, so every joint keeps
+        decelerating. (Clipping each joint's torque apart bent it through the coupled
         inertia and drove joint 4 to 7 rad/s while braking, 3x its datasheet speed; a
         saturated spring back to where the brake engaged swung a 3 kg payload's wrist past
-        its speed.)
+        its speed.) A saturated period takes the hold point anew where the arm is, unless
+        every joint is within ``brake_hold_slack`` of it (0 by default): where the brake
+        saturates every few periods, a hold point taken anew ratchets the sag (on the
+        tabletop a hand sank 1.7 cm into the table while joint 1 flipped between holding and
+        giving way to the forearm; 0.02 rad kept it clear there, but not the same scene's
+        seed 5003).
 
         It gives way to moving obstacles (:meth:`_give_way_velocity`): the hold point then
         moves at that joint velocity and the brake tracks it, ``-2 w (q' - q'_give)``.
@@ -1527,8 +1531,13 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         sphere is asked to recede along ``n`` at ``EVADE_FACTOR n.v_o``: the least-norm
         joint velocity of those rows ``n' J_s`` (damped least squares) over the joints not
         held at their range margin (:meth:`_free_joint_velocity`), scaled into
-        ``EVADE_SPEED_SHARE`` of the joint speed limits. It is the robot's own reflex, with
-        the kinematics and the obstacles' measured motion, not the filter's model."""
+        ``EVADE_SPEED_SHARE`` of the joint speed limits. Every other pair closer than
+        ``EVADE_DISTANCE`` must not close in, ``h' = n' J_s q' - n.v_o >= 0``: a pair that
+        would is held at ``h' = 0`` and the rows solved again, until none would (giving way
+        to the forearm alone drove joint 2 at its give-way speed and a hand 30 cm into the
+        table). Where the rows conflict, damped least squares weighs them. It is the
+        robot's own reflex, with the kinematics and the obstacles' measured motion, not the
+        filter's model."""
         view = self._sensed_view
         exact_static = (self._obstacle_constants()[1] is not None
                         and view.obstacle_states is self._obstacle_states)
@@ -1539,13 +1548,24 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         jac, n_s = view.spheres[2], len(view.spheres[0])
         approach = (n * np.repeat(np.array([st[1] for st in view.obstacle_states]), n_s,
                                   axis=0)).sum(1)
-        rows = np.flatnonzero((h < self.EVADE_DISTANCE) & (approach > 0.0))
+        near = h < self.EVADE_DISTANCE
+        rows = np.flatnonzero(near & (approach > 0.0))
         if not len(rows):
             return None
+        others = np.flatnonzero(near & (approach <= 0.0))
         a = np.einsum("ki,kij->kj", n[rows], jac[rows % n_s][:, :, :7])
-        qd = self._free_joint_velocity(a, self.EVADE_FACTOR * approach[rows])
-        if qd is None:
-            return None
+        b = self.EVADE_FACTOR * approach[rows]
+        a_other = np.einsum("ki,kij->kj", n[others], jac[others % n_s][:, :, :7])
+        held = np.zeros(len(others), dtype=bool)
+        while True:
+            qd = self._free_joint_velocity(np.vstack([a, a_other[held]]),
+                                           np.concatenate([b, approach[others][held]]))
+            if qd is None:
+                return None
+            closing = ~held & (a_other @ qd < approach[others] - 1e-9)
+            if not closing.any():
+                break
+            held |= closing
         top = self.EVADE_SPEED_SHARE * self.joint_limits.max_speed
         scale = float(np.max(np.abs(qd) / top))
         return qd / scale if scale > 1.0 else qd

@@ -36,9 +36,10 @@ collector is off during the loop (its pauses reach milliseconds; the loop's garb
 by reference counting).
 
 **The brake** (:class:`Brake`) is the simulation's backup with the robot's own model:
-``tau = c + M (-2 w q' - w^2 (q - q_hold))``, ``q_hold`` where it engaged (optionally kept across
-short runs of feasible ticks while the obstacles stand still); beyond the torque limits only the
-largest share of the damping the limits admit.
+``tau = c + M (-2 w q' - w^2 (q - q_hold))``, ``q_hold`` where it engaged (kept across short
+runs of feasible ticks while the obstacles stand still); beyond the torque limits only the
+largest share of the damping the limits admit (the hold point optionally kept while the arm
+is near it).
 """
 
 from __future__ import annotations
@@ -96,15 +97,22 @@ class Brake:
         0.1 s at 1 kHz, as the simulation's ``brake_hold_memory``; 0 takes a fresh hold
         point at every engagement). A hold point taken anew whenever the filter flips back
         to infeasible starts from the sagged pose each time, and the sag ratchets.
+    slack : float
+        rad (default 0, as the simulation's ``brake_hold_slack``): a saturated tick keeps
+        the hold point while every joint is within this of it, and holds from where it is
+        otherwise (0: at every saturated tick). Dropped at each saturated tick, the hold
+        point can ratchet the sag the same way when the torque limits bind every few ticks.
     """
 
     #: m: see :meth:`see`.
     HOLD_WORLD_TOLERANCE = 1e-4
 
-    def __init__(self, tau_max=TAU_MAX, frequency: float = 50.0, memory: int = 100) -> None:
+    def __init__(self, tau_max=TAU_MAX, frequency: float = 50.0, memory: int = 100,
+                 slack: float = 0.0) -> None:
         self.tau_max = np.asarray(tau_max, dtype=np.float64)
         self.frequency = check_real(frequency, "frequency", low=0.0, low_open=True)
         self.memory = int(check_real(memory, "memory", low=0.0))
+        self.slack = check_real(slack, "slack", low=0.0)
         self.hold: np.ndarray | None = None
         self._idle = 0
         self._world: np.ndarray | None = None  # the obstacle centres of this tick
@@ -145,7 +153,8 @@ class Brake:
         tau = coriolis + mass @ (-2.0 * w * dq - w * w * (q - self.hold))
         if np.all(np.abs(tau) <= self.tau_max):
             return tau
-        self.hold = q.copy()  # saturated: damping only, its largest admissible share
+        if np.abs(q - self.hold).max() > self.slack:  # saturated: damping only, its
+            self.hold = q.copy()  # largest admissible share; the hold point kept if near
         brake = mass @ (-2.0 * w * dq)
         share = admissible_share(coriolis, brake, self.tau_max)
         return np.clip(coriolis + share * brake, -self.tau_max, self.tau_max)

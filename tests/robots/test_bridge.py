@@ -341,6 +341,28 @@ def test_the_brake_keeps_its_hold_point_across_short_feasible_gaps():
         Brake(memory=-1)
 
 
+def test_a_saturated_brake_keeps_its_hold_point_within_its_slack():
+    """A saturated tick keeps the hold point while every joint is within ``slack`` of it
+    (the damping share only, no spring), and holds from where the arm is beyond it."""
+    mass, coriolis, tau_max = np.eye(7), np.zeros(7), np.full(7, 100.0)
+    q0, fast = np.zeros(7), np.full(7, 2.0)  # 2 w |q'| = 200 Nm: saturated
+    brake = Brake(tau_max=tau_max, slack=0.02)
+    brake(q0, np.zeros(7), mass, coriolis)
+    tau = brake(q0 + 0.01, fast, mass, coriolis)
+    np.testing.assert_allclose(tau, -tau_max, rtol=1e-12)  # the largest share of damping
+    np.testing.assert_array_equal(brake.hold, q0)  # kept
+    np.testing.assert_allclose(brake(q0 + 0.01, np.zeros(7), mass, coriolis),
+                               -brake.frequency ** 2 * 0.01 * np.ones(7), rtol=1e-9)
+    brake(q0 + 0.03, fast, mass, coriolis)
+    np.testing.assert_array_equal(brake.hold, q0 + 0.03)  # beyond the slack: anew
+    fresh = Brake(tau_max=tau_max, slack=0.0)
+    fresh(q0, np.zeros(7), mass, coriolis)
+    fresh(q0 + 0.01, fast, mass, coriolis)
+    np.testing.assert_array_equal(fresh.hold, q0 + 0.01)
+    with pytest.raises(ValueError, match="slack"):
+        Brake(slack=-0.1)
+
+
 def test_the_brake_forgets_its_hold_point_when_an_obstacle_moved():
     """An obstacle that moved between the brake's last tick and its next engagement voids
     the kept hold point: the arm left it, the obstacle may be there now."""
