@@ -382,6 +382,11 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
     #: ``EVADE_FACTOR`` times the approach speed, with joint speeds up to ``EVADE_SPEED_SHARE``
     #: of the datasheet's.
     EVADE_DISTANCE, EVADE_FACTOR, EVADE_SPEED_SHARE = 0.1, 1.5, 0.5
+    #: m: a pair given way within the brake's hold memory (``brake_hold_memory``, at least
+    #: the last control period) is given way until this much beyond ``EVADE_DISTANCE`` (a
+    #: pair hovering at the distance switched the give-way on and off every few periods, and
+    #: the brake saturated at each switch).
+    EVADE_HYSTERESIS = 0.01
     #: m: an obstacle that moved more than this (as sensed) since the brake's last period
     #: voids its hold point (``backup_action``; ``brake_hold_memory``).
     HOLD_WORLD_TOLERANCE = 1e-4
@@ -543,6 +548,8 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         self._hold: np.ndarray | None = None
         self._backup_step = -2
         self._hold_world: np.ndarray | None = None
+        #: the control period of the last give-way and the pairs it gave way to
+        self._giving_way: tuple[int, np.ndarray] = (-2, np.zeros(0, dtype=bool))
         self._yielding = False  # some obstacle may yield (set with the obstacles)
         self.joint_limits = JointLimits(
             m.jnt_range[:7, 0], m.jnt_range[:7, 1], FRANKA_MAX_SPEED, range_margin,
@@ -1527,7 +1534,8 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
 
         A held arm is not safe from an obstacle that moves into it (``h' = n.(v_s - v_o)``
         with ``v_s = 0``). For each pair closer than ``EVADE_DISTANCE`` whose obstacle
-        approaches the sphere (``n.v_o > 0``, ``n`` from the obstacle to the sphere) the
+        approaches the sphere (``n.v_o > 0``, ``n`` from the obstacle to the sphere; a pair
+        given way within the hold memory until ``EVADE_HYSTERESIS`` beyond the distance) the
         sphere is asked to recede along ``n`` at ``EVADE_FACTOR n.v_o``: the least-norm
         joint velocity of those rows ``n' J_s`` (damped least squares) over the joints not
         held at their range margin (:meth:`_free_joint_velocity`), scaled into
@@ -1549,7 +1557,14 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         approach = (n * np.repeat(np.array([st[1] for st in view.obstacle_states]), n_s,
                                   axis=0)).sum(1)
         near = h < self.EVADE_DISTANCE
+        last_step, last_rows = self._giving_way
+        if (self._steps - last_step <= max(1, self._hold_memory_steps)
+                and last_rows.shape == near.shape):
+            near |= last_rows & (h < self.EVADE_DISTANCE + self.EVADE_HYSTERESIS)
         rows = np.flatnonzero(near & (approach > 0.0))
+        given = np.zeros(len(h), dtype=bool)
+        given[rows] = True
+        self._giving_way = (self._steps, given)
         if not len(rows):
             return None
         others = np.flatnonzero(near & (approach <= 0.0))
@@ -1638,6 +1653,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         self._step_rates = (None, None)
         self._last_torque = np.zeros(7)
         self._hold, self._backup_step, self._hold_world = None, -2, None
+        self._giving_way = (-2, np.zeros(0, dtype=bool))
         if not self.perception.exact:
             self._reseed_sensing()
         self._after_state_change()

@@ -732,6 +732,36 @@ def test_brake_gives_way_only_to_approaching_moving_obstacles():
     assert env._give_way_velocity() is None
 
 
+def test_give_way_keeps_a_pair_until_its_hysteresis():
+    """A pair approaching between ``EVADE_DISTANCE`` and ``EVADE_HYSTERESIS`` beyond it is
+    given way only if it was within the brake's hold memory (a pair hovering at the distance
+    switched the give-way on and off every few periods, saturating the brake at each
+    switch: tabletop, greedy, nothing known, seed 5004)."""
+    env = _moving_into_the_arm()
+    env.reset(seed=0)
+    band = (env.EVADE_DISTANCE, env.EVADE_DISTANCE + env.EVADE_HYSTERESIS)
+    n_s = len(env._sensed_view.spheres[0])
+    for step in range(0, 1500, 5):
+        env.set_time_step(step)
+        h = env.barrier_values()[:n_s]
+        if band[0] < h.min() < band[1]:
+            break
+    else:
+        raise AssertionError("no step with the sphere in the hysteresis band")
+    pair = int(np.argmin(h))
+    env._giving_way = (-2, np.zeros(0, dtype=bool))  # not given way before
+    assert env._give_way_velocity() is None
+    last = np.zeros(env.n_obstacle_barriers, dtype=bool)
+    last[pair] = True
+    memory = int(round(env.brake_hold_memory / env.dt))
+    env._giving_way = (step - memory, last)  # given way within the hold memory
+    qd = env._give_way_velocity()
+    assert qd is not None and np.abs(qd).max() > 0.0
+    assert env._giving_way[1][pair]
+    env._giving_way = (step - memory - 1, last)  # before it: lapsed
+    assert env._give_way_velocity() is None
+
+
 def test_give_way_does_not_close_in_on_other_obstacles():
     """Giving way to a sphere that moves into the arm must not drive the arm into a box
     beside it: every other pair closer than ``EVADE_DISTANCE`` has ``h' >= 0`` under the
