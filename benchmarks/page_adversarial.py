@@ -51,7 +51,7 @@ BRAKE = RESULTS / "brake.jsonl.gz"
 #: Code versions of the AFVSGP episodes run again after the brake change (the filter brakes at
 #: once instead of relaxing to the mean, and the brake keeps its hold point): the episodes
 #: that had reached the brake and a sample of the others.
-BRAKE_RERUN_CODES = ("49e78fd", "2ac8a9b", "b492550", "f6db547")
+BRAKE_RERUN_CODES = ("49e78fd", "2ac8a9b", "b492550", "f6db547", "920d688")
 #: the suite's AFVSGP grid with the conformal additive margin on every joint-limit band (the
 #: Franka envs' suggestion at that code version)
 MARGIN = RESULTS / "adversarial_limit_margin.jsonl.gz"
@@ -280,7 +280,10 @@ def codes_paragraph(recs: list[dict]) -> list[str]:
         text += (f" The {len(rerun)} AFVSGP episodes at {codes} were run again: those that "
                  "had reached the brake (a step on which no action met the chance constraints) "
                  "when the filter stopped relaxing to the mean-only program, and again when the "
-                 "brake came to keep its hold point (below), and samples of the others, whose "
+                 "brake came to keep its hold point (below), those with moving obstacles once "
+                 "more when its give-way stopped closing in on other obstacles and kept a "
+                 "pair 1 cm beyond its distance, and samples "
+                 "of the others, whose "
                  "records came out identical: an episode that never reaches the brake runs "
                  "identically at every code. The nominal-only rows were not run again.")
     return [text, ""] + hold_memory_caveat(recs)

@@ -47,7 +47,8 @@ SOURCE = RESULTS / "acceptance.jsonl.gz"
 #: Code versions of the episodes run again after the brake change (the filter brakes at once
 #: instead of relaxing to the mean, and the brake keeps its hold point): only the episodes
 #: that had reached the brake, the others being identical at that code.
-BRAKE_RERUN_CODES = ("104f9db", "2ac8a9b", "b492550", "f6db547", "da952a6")
+BRAKE_RERUN_CODES = ("104f9db", "2ac8a9b", "b492550", "f6db547", "da952a6",
+                     "920d688")
 #: optional: the priors grid at the code versions whose Franka envs suggested the conformal
 #: margin on all 28 joint-limit barriers, and the margin on the ranges with the multiplier on
 #: the speeds adapted on every step (before ``calibration_gate``)
@@ -376,6 +377,8 @@ def build() -> dict:
                      "grid: those that had reached the brake (a step on which no action met the "
                      "chance constraints) when the filter stopped relaxing to the mean-only "
                      "program, and again when the brake came to keep its hold point (below), "
+                     "those with moving obstacles once more when its give-way stopped closing "
+                     "in on other obstacles and kept a pair 1 cm beyond its distance, "
                      "and samples of the others, whose records came out identical: an episode "
                      "that never reaches the brake runs identically at every code.")
         if band:
