@@ -272,9 +272,12 @@ def codes_paragraph(recs: list[dict]) -> list[str]:
             "the constraint (below), and the brake's give-way learned to lock joints at their "
             "range margin. The oracle, the nominal-only filter and no filter learn nothing, so "
             "the first change leaves their rows as they were; the second acts only when the "
-            "brake gives way, so their rows are those of the brake before it (the filter-free "
-            "row uses no brake).")
-    rerun = [r for r in recs if str(r.get("code_version")) in BRAKE_RERUN_CODES]
+            "brake gives way" + ("" if any(r["config"]["learner"] == "oracle"
+                                            and r["infeasible_steps"] for r in recs)
+                                 else " (the oracle's episodes never reach the brake)")
+            + "; the filter-free row uses no brake.")
+    rerun = [r for r in recs if str(r.get("code_version")) in BRAKE_RERUN_CODES
+             and r["config"]["learner"] == "afvsgp"]
     if rerun:
         codes = " / ".join(f"`{c}`" for c in sorted({str(r["code_version"]) for r in rerun}))
         text += (f" The {len(rerun)} AFVSGP episodes at {codes} were run again: those that "
@@ -285,7 +288,15 @@ def codes_paragraph(recs: list[dict]) -> list[str]:
                  "pair 1 cm beyond its distance, and samples "
                  "of the others, whose "
                  "records came out identical: an episode that never reaches the brake runs "
-                 "identically at every code. The nominal-only rows were not run again.")
+                 "identically at every code.")
+    none_rerun = [r for r in recs if r["config"]["learner"] == "none"
+                  and str(r.get("code_version")) in BRAKE_RERUN_CODES]
+    if none_rerun:
+        codes = " / ".join(sorted({f"`{r['code_version']}`" for r in none_rerun}))
+        text += (f" The nominal-only filter's {len(none_rerun)} episodes that reached the "
+                 f"brake were run again at {codes}, with today's brake.")
+    else:
+        text += " The nominal-only rows were not run again."
     return [text, ""] + hold_memory_caveat(recs)
 
 
