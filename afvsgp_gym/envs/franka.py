@@ -1460,10 +1460,9 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         saturated spring back to where the brake engaged swung a 3 kg payload's wrist past
         its speed.) A saturated period takes the hold point anew where the arm is, unless
         every joint is within ``brake_hold_slack`` of it (0 by default): where the brake
-        saturates every few periods, a hold point taken anew ratchets the sag (on the
-        tabletop a hand sank 1.7 cm into the table while joint 1 flipped between holding and
-        giving way to the forearm; 0.02 rad kept it clear there, but not the same scene's
-        seed 5003).
+        saturates every few periods, a hold point taken anew can ratchet the sag. (Before the
+        give-way's hysteresis a hand sank 1.7 cm into the tabletop's table that way; 0.02 rad
+        kept it clear, but gave another seed of the scene cost.)
 
         It gives way to moving obstacles (:meth:`_give_way_velocity`): the hold point then
         moves at that joint velocity and the brake tracks it, ``-2 w (q' - q'_give)``.
@@ -1542,7 +1541,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         ``EVADE_SPEED_SHARE`` of the joint speed limits. Every other pair closer than
         ``EVADE_DISTANCE`` must not close in, ``h' = n' J_s q' - n.v_o >= 0``: a pair that
         would is held at ``h' = 0`` and the rows solved again, until none would (giving way
-        to the forearm alone drove joint 2 at its give-way speed and a hand 30 cm into the
+        to the forearm alone drove joint 2 at its give-way speed and a hand 32 cm into the
         table). Where the rows conflict, damped least squares weighs them. It is the
         robot's own reflex, with the kinematics and the obstacles' measured motion, not the
         filter's model."""

@@ -767,7 +767,7 @@ def test_give_way_does_not_close_in_on_other_obstacles():
     beside it: every other pair closer than ``EVADE_DISTANCE`` has ``h' >= 0`` under the
     give-way velocity, to the damped least squares' rounding (mm/s; the give-way to the
     moving sphere alone closed in on the box at 11 cm/s, and on the tabletop drove a hand
-    30 cm into the table). The moving sphere's pairs still recede."""
+    32 cm into the table). The moving sphere's pairs still recede."""
     env = FrankaObstacleEnv("static", obstacles=[
         {"position": [0.45, 0.0, 0.55], "start": [0.45, 0.3, 0.55], "radius": 0.05,
          "speed": 0.1, "start_time": 0.0},
