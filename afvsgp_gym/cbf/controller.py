@@ -143,7 +143,16 @@ def cone_matrices(sigma: np.ndarray, beta: float,
     """:func:`cone_matrix` of every ``Sigma`` in the stack ``sigma`` (k, m+1, m+1): one
     batched Cholesky when all are numerically positive definite, else one by one (the batch
     in the compiled step glue unless ``backend`` is ``"numpy"``, see
-    :mod:`afvsgp_gym._compiled`)."""
+    :mod:`afvsgp_gym._compiled`). A zero ``Sigma`` (a barrier the learned error cannot
+    reach: a projected row ``W_k = 0``, such as a sphere of link 1 against a table, which
+    the first joint only turns in its plane) has the zero factor, and the rest stay batched."""
+    if sigma.ndim == 3 and len(sigma) > 1:
+        zero = ~sigma.reshape(len(sigma), -1).any(axis=1)
+        if zero.any():
+            out = np.zeros(sigma.shape)
+            if not zero.all():
+                out[~zero] = cone_matrices(sigma[~zero], beta, backend)
+            return out
     if (_compiled.resolve(backend, ("step",)).step and sigma.ndim == 3
             and 1 <= sigma.shape[1] <= 17):
         out = np.empty(sigma.shape)

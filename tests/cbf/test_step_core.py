@@ -61,6 +61,28 @@ def test_cone_factors_not_positive_definite_take_the_numpy_path():
     assert np.isnan(cone_matrices(sig, 2.0)[2]).any()
 
 
+@pytest.mark.parametrize("backend", ["compiled", "numpy"])
+def test_zero_covariances_get_zero_factors_and_the_rest_stays_batched(backend):
+    """A zero covariance (a projected row W_k = 0: the shared learner's error cannot reach
+    the barrier) has the zero factor, as the one-by-one eigen-factor gives it; the others are
+    factored as they are without it, bit for bit."""
+    if backend == "compiled" and exploration._step is None:
+        pytest.skip("_step not built")
+    from afvsgp_gym.cbf.controller import cone_matrix
+
+    rng = np.random.default_rng(2)
+    sig = _covariances(rng, 5, 8, 1e4)
+    sig[[1, 3]] = 0.0
+    got = cone_matrices(sig, 2.5, backend=backend)
+    np.testing.assert_array_equal(got[[1, 3]], 0.0)
+    np.testing.assert_array_equal(got[[1, 3]], np.array([cone_matrix(s, 2.5)
+                                                         for s in sig[[1, 3]]]) + 0.0)
+    np.testing.assert_array_equal(got[[0, 2, 4]],
+                                  cone_matrices(sig[[0, 2, 4]], 2.5, backend=backend))
+    np.testing.assert_array_equal(cone_matrices(np.zeros((3, 8, 8)), 2.5, backend=backend),
+                                  0.0)
+
+
 def _gate_case(rng, n=6, m=7):
     sig = _covariances(rng, n, m + 1, 1e4) * 0.5
     a0 = rng.normal(size=n)
