@@ -50,9 +50,11 @@ def env_ids() -> list[str]:
 
 
 def learner_names() -> tuple[str, ...]:
+    """``"auto"`` (the env's suggestion, ``SafetyFilter``'s default) and the learners."""
     from afvsgp_gym.cbf import LEARNERS
+    from afvsgp_gym.wrappers.safety_filter import AUTO_LEARNER
 
-    return tuple(LEARNERS)
+    return (AUTO_LEARNER, *LEARNERS)
 
 
 def _check_env(parser: argparse.ArgumentParser, env_id: str) -> str:
@@ -568,7 +570,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="nominal | random | ram | swing1..swing7 | greedy | untrained-ppo "
                          "(policies built to break the filter) | PATH.zip (Stable-Baselines3; "
                          "default nominal)")
-    ev.add_argument("--learner", default="afvsgp", help="filter learner (default afvsgp)")
+    ev.add_argument("--learner", default="auto",
+                    help="filter learner (default auto: the env's suggestion, as SafetyFilter)")
     ev.add_argument("--compare", default=None, metavar="A,B,...",
                     help="several learners side by side on the same seeds (overrides --learner); "
                          "'unfiltered' runs the env without a filter")
@@ -643,7 +646,7 @@ def build_parser() -> argparse.ArgumentParser:
     vd = sub.add_parser("video", help="record a filtered episode (mp4 or gif)")
     vd.add_argument("--env", default=DEFAULT_ENV)
     vd.add_argument("--agent", default="nominal")
-    vd.add_argument("--learner", default="afvsgp")
+    vd.add_argument("--learner", default="auto")
     vd.add_argument("--seed", type=int, default=0)
     vd.add_argument("--max-steps", type=_positive, default=None)
     vd.add_argument("--every", type=_positive, default=5,
@@ -655,7 +658,8 @@ def build_parser() -> argparse.ArgumentParser:
     tr = sub.add_parser("train", help="train a Stable-Baselines3 agent with the filter in the loop")
     tr.add_argument("--algo", choices=("ppo", "sac"), default="ppo")
     tr.add_argument("--env", default=TRAIN_ENV, help=f"env id (default {TRAIN_ENV}, the RL task)")
-    tr.add_argument("--learner", default="afvsgp", help="filter learner (default afvsgp)")
+    tr.add_argument("--learner", default="auto",
+                    help="filter learner (default auto: the env's suggestion, as SafetyFilter)")
     tr.add_argument("--no-filter", action="store_true",
                     help="train on the bare env (no SafetyFilter; overrides --learner)")
     tr.add_argument("--timesteps", type=_positive, default=10_000,

@@ -147,12 +147,16 @@ def read_jsonl(path: Path) -> list[dict]:
 
 def parse_output(text: str) -> dict[str, float]:
     """``name  value [us]`` lines of a benchmark's printed output as {name: value}; values in
-    microseconds are returned in microseconds, lines that are not of that form are skipped."""
+    microseconds are returned in microseconds, lines that are not of that form (a version
+    such as ``numpy 1.26.4`` among them) are skipped."""
     out = {}
     for line in text.splitlines():
         m = re.match(r"^(.*?)\s+(-?[0-9.]+(?:e[-+]?[0-9]+)?)(?: us)?$", line.strip())
         if m and not line.startswith(("machine", "calibration")):
-            out[m.group(1).strip()] = float(m.group(2))
+            try:
+                out[m.group(1).strip()] = float(m.group(2))
+            except ValueError:
+                continue
     return out
 
 
@@ -218,6 +222,11 @@ def main(doc: str, build: Callable[[], dict[Path, str]]) -> int:
     return emit(build(), parser.parse_args().check)
 
 
+# Which brake a record ran with. Records written from 920d688 on by ``run_spec`` carry
+# ``brake_version`` (``FrankaObstacleEnv.BRAKE_VERSION``, bumped with every change of the
+# brake's actions); the code lists below tell the brakes of older records apart, and are
+# frozen: a later brake change bumps the version instead of adding codes to a list.
+
 #: Codes whose brake kept its hold point across feasible gaps of up to 0.1 s also while an
 #: obstacle moved (``brake_hold_memory=0.1``, their default, before 2ac8a9b).
 HOLD_WHILE_MOVING_CODES = ("2b31452", "104f9db", "49e78fd", "7562164")
@@ -235,6 +244,8 @@ def hold_memory_of(rec: dict) -> str:
     obstacles stand still, today's default), ``"fresh"`` (anew at every engagement) or
     ``"moving"`` (0.1 s, also while an obstacle moved)."""
     given = {**rec["config"]["env_kwargs"], **rec.get("ran_with", {})}.get("brake_hold_memory")
+    if brake_version(rec) >= 1:
+        return "fresh" if given == 0 else "still"
     code = str(rec.get("code_version"))
     if given is not None:
         return "fresh" if given == 0 else ("moving" if code in HOLD_WHILE_MOVING_CODES
@@ -255,6 +266,15 @@ OLD_GIVE_WAY_CODES = (*FRESH_HOLD_CODES, *HOLD_WHILE_MOVING_CODES, "da952a6", "e
 _CAMERA_OPTIONS = ("obstacle_noise", "obstacle_rate", "obstacle_delay")
 
 
+def brake_version(rec: dict) -> int:
+    """The brake a record's episode ran with: its ``brake_version``; for a record written
+    before the field, 0 (an older brake) if its code is in one of the lists above, else 1."""
+    if rec.get("brake_version") is not None:
+        return int(rec["brake_version"])
+    code = str(rec.get("code_version"))
+    return 0 if code in OLD_GIVE_WAY_CODES else 1
+
+
 def may_give_way(rec: dict) -> bool:
     """Whether the brake of a record's episode may give way: its obstacles move, or the
     robot senses them through a camera (the estimate's velocity is not exactly zero)."""
@@ -269,7 +289,7 @@ def give_way_caveat(recs: list[dict]) -> list[str]:
     again with today's give-way and those that ran with the older one."""
     braking = [r for r in recs if r["infeasible_steps"] > 0 and may_give_way(r)]
     rerun = [r for r in braking if str(r.get("code_version")) == GIVE_WAY_FIX_CODE]
-    old = [r for r in braking if str(r.get("code_version")) in OLD_GIVE_WAY_CODES]
+    old = [r for r in braking if brake_version(r) == 0]
     out = []
     if rerun:
         out.append(f"{len(rerun)} of the episodes that reached the brake with moving obstacles "

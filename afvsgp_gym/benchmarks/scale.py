@@ -10,7 +10,8 @@ learner (``"afvsgp"``: 21 or 525 pair learners and 7 joint learners) and the sha
 configurations advance in lockstep (:func:`afvsgp_gym.benchmarks.arm.time_lockstep`, whose
 module docstring says what ``step``, ``learners``, ``update`` and ``env.step`` time), so their
 ratios are measured on the same seconds. Pin the process to one core (``taskset -c 0``) with
-``OPENBLAS_NUM_THREADS=1``.
+``OPENBLAS_NUM_THREADS=1``. ``--crossover`` times the two learners at 1, 2, 3, 4 and 6
+obstacles with the robot's own model as the prior: where the shared one becomes the faster.
 """
 
 from __future__ import annotations
@@ -68,15 +69,43 @@ def run(quick: bool = False, steps: int | None = None, rounds: int = 1,
     return out
 
 
+#: obstacle counts of :func:`crossover`: the first of :data:`CLUTTER`'s spheres
+CROSSOVER_OBSTACLES = (1, 2, 3, 4, 6)
+
+
+def crossover(steps: int = 1500, seed: int = 0) -> dict[str, float]:
+    """Where the shared learner's step becomes the faster: the filter's step (median, s)
+    per learner with the first 1, 2, 3, 4 and 6 obstacles of :data:`CLUTTER` (21 pairs each)
+    and the robot's own model as the prior (``"perturbed"``, where ``learner="auto"`` may
+    take the shared learner, ``FrankaObstacleEnv.SHARED_LEARNER_PAIRS``), each count's two
+    configurations in lockstep."""
+    out: dict[str, float] = {}
+    for n in CROSSOVER_OBSTACLES:
+        specs = {name: {"learner": learner, "nominal_model": "perturbed",
+                        "obstacles": CLUTTER[:n]}
+                 for name, learner in (("per-pair", "afvsgp"), ("shared", "afvsgp-shared"))}
+        res = time_lockstep(specs, steps=steps, seed=seed)
+        for name, r in res.items():
+            out[f"{21 * n} pairs, {name}: step median_s"] = float(np.median(r["step"]))
+        out[f"{21 * n} pairs: step median, shared / per-pair"] = (
+            out[f"{21 * n} pairs, shared: step median_s"]
+            / out[f"{21 * n} pairs, per-pair: step median_s"])
+    return out
+
+
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true", help="200 steps, one round")
     p.add_argument("--steps", type=int, default=None, help="timed steps per episode")
     p.add_argument("--rounds", type=int, default=1, help="lockstep rounds")
+    p.add_argument("--crossover", action="store_true",
+                   help="the step per learner at 1, 2, 3, 4 and 6 obstacles instead")
     args = p.parse_args(argv)
     print(machine())
     print(calibration_line(), flush=True)
-    for key, val in run(args.quick, args.steps, args.rounds).items():
+    results = (crossover(200 if args.quick else args.steps or 1500) if args.crossover
+               else run(args.quick, args.steps, args.rounds))
+    for key, val in results.items():
         shown = f"{val * 1e6:10.1f} us" if key.endswith("_s") else f"{val:10.3f}"
         print(f"{key:70s} {shown}")
 

@@ -387,6 +387,17 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
     #: pair hovering at the distance switched the give-way on and off every few periods, and
     #: the brake saturated at each switch).
     EVADE_HYSTERESIS = 0.01
+    #: The brake's behaviour (:meth:`backup_action`), written into every episode record
+    #: (``brake_version``) so that results tell which brake they ran with. 1: the hold point
+    #: kept for ``brake_hold_memory`` while the obstacles stand still, the give-way holding
+    #: every other near pair from closing in and keeping a pair until ``EVADE_HYSTERESIS``
+    #: beyond ``EVADE_DISTANCE`` (920d688). Bump it with any change of the brake's actions.
+    BRAKE_VERSION = 1
+    #: Sphere pairs (obstacle and self-collision) above which ``SafetyFilter``'s default
+    #: learner is the shared one where the prior knows the dynamics (:meth:`suggested_learner`):
+    #: one obstacle on the 21 arm spheres, where the two learners' steps are equal; from two
+    #: obstacles on the shared one's is the faster (``benchmarks.scale --crossover``)
+    SHARED_LEARNER_PAIRS = 21
     #: m: an obstacle that moved more than this (as sensed) since the brake's last period
     #: voids its hold point (``backup_action``; ``brake_hold_memory``).
     HOLD_WORLD_TOLERANCE = 1e-4
@@ -735,6 +746,21 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
                              "'perturbed', or the per-barrier learner 'afvsgp'")
         return arm_layout(self._n_pair_barriers,
                           self.joint_limits if self.limit_barriers else None, projected=True)
+
+    def suggested_learner(self) -> str:
+        """The learner ``SafetyFilter(learner="auto")`` (its default) runs: the shared one,
+        ``"afvsgp-shared"``, where the nominal model knows the dynamics (``"perturbed"``, the
+        robot's own model, or ``"exact"``), the joint-limit barriers are on and there are more
+        than :attr:`SHARED_LEARNER_PAIRS` sphere pairs; the per-barrier ``"afvsgp"`` otherwise.
+        With the robot's model as the prior the shared learner was as safe as the per-pair
+        learners and tracked as well, and its step stays flat as pairs are added where theirs
+        grows; with nothing of the dynamics known
+        (``"kinematic"``) it tracked worse, and ``"zero"`` has no kinematics to project
+        through (the docs' Safety and Performance pages have the figures)."""
+        if (self.nominal_model in ("perturbed", "exact") and self.limit_barriers
+                and self._n_pair_barriers > self.SHARED_LEARNER_PAIRS):
+            return "afvsgp-shared"
+        return "afvsgp"
 
     @property
     def activation_distance(self) -> float | np.ndarray:

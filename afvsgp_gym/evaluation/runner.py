@@ -165,13 +165,18 @@ def _first(x: Any) -> float:
 def run_spec(spec: EpisodeSpec, trace: bool = False) -> tuple[dict, dict | None]:
     """Run one episode in a fresh env and filter; returns ``(record, trace)``.
 
-    The record (JSON-able) holds ``key``, ``config``, ``seed``, ``code_version``, the counts of
-    :func:`run_episode`, ``wall_s`` and ``cpu_s`` (construction and run, wall-clock and CPU
-    time of the worker), ``host``, ``machine`` (the CPU model) and ``date`` (the day it ran).
+    The record (JSON-able) holds ``key``, ``config``, ``seed``, ``code_version``,
+    ``brake_version`` (the env's ``BRAKE_VERSION``, where it declares one: the Franka envs),
+    ``learner_used`` (the filter's learner, the env's suggestion for ``"auto"``), the counts
+    of :func:`run_episode`, ``wall_s`` and ``cpu_s`` (construction and run, wall-clock and
+    CPU time of the worker), ``host``, ``machine`` (the CPU model) and ``date`` (the day it
+    ran).
     This is the task every executor runs.
     """
     t0, c0 = time.perf_counter(), time.process_time()
     env = make_env(spec)
+    brake = getattr(env.unwrapped, "BRAKE_VERSION", None)
+    used = getattr(env, "learner_name", None)  # the filter's learner ("auto" resolved)
     try:
         policy = make_policy(spec.agent, env, seed=spec.seed)
         counts, tr = run_episode(env, policy, spec.seed, max_steps=spec.max_steps, trace=trace)
@@ -182,6 +187,8 @@ def run_spec(spec: EpisodeSpec, trace: bool = False) -> tuple[dict, dict | None]
         "config": spec.config(),
         "seed": int(spec.seed),
         "code_version": code_version(),
+        **({} if brake is None else {"brake_version": int(brake)}),
+        **({} if used is None else {"learner_used": str(used)}),
         **counts,
         "wall_s": time.perf_counter() - t0,
         "cpu_s": time.process_time() - c0,

@@ -11,7 +11,7 @@ import numpy as np
 from afvsgp_gym.cbf import SafetyController
 from afvsgp_gym.cbf.config import resolve_miss_probability
 from afvsgp_gym.cbf.fastpath import clip
-from afvsgp_gym.cbf.learners import REGISTRY, check_learner_name
+from afvsgp_gym.cbf.learners import LEARNERS, REGISTRY, check_learner_name
 from afvsgp_gym.validation import check_choice
 from afvsgp_gym.wrappers.obstacle_tracking import ObstacleTracking
 
@@ -34,6 +34,21 @@ def _layout(base: Any, learner: str) -> Any:
             "joint-limit barriers and a nominal model that knows the kinematics "
             f"('kinematic', 'perturbed'). {type(base).__name__} has none")
     return base.shared_barrier_layout  # the env says why it cannot, by name
+
+
+#: ``SafetyFilter``'s default ``learner``: the env's :func:`resolve_learner` suggestion
+AUTO_LEARNER = "auto"
+
+
+def resolve_learner(base: Any, learner: Any) -> Any:
+    """``learner``, or for ``"auto"`` the learner the env ``base`` suggests
+    (``base.suggested_learner()``: the Franka envs' shared learner where it is as safe and
+    faster, see :meth:`~afvsgp_gym.envs.franka.FrankaObstacleEnv.suggested_learner`), else
+    the paper's per-barrier ``"afvsgp"``."""
+    if not (isinstance(learner, str) and learner == AUTO_LEARNER):
+        return learner
+    suggest = getattr(base, "suggested_learner", None)
+    return str(suggest()) if callable(suggest) else "afvsgp"
 
 
 def with_env_suggestions(base: Any, learner: str, options: dict[str, Any]) -> dict[str, Any]:
@@ -104,7 +119,10 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
     Args:
         env: the environment.
         learner: one of ``afvsgp_gym.cbf.LEARNERS`` ("none", "oracle", "gp", "vsgp", "sogp",
-            "afvsgp", "afvsgp-shared").
+            "afvsgp", "afvsgp-shared"), or ``"auto"`` (default): the env's suggestion
+            (:func:`resolve_learner`; the Franka envs take the shared learner with the
+            robot's own model as the prior and many obstacle pairs, the per-barrier
+            ``"afvsgp"`` otherwise), which ``learner_name`` then holds.
         backup: ``"env"`` (default: ``env.unwrapped.backup_action()`` if the env has one),
             a callable ``obs -> action`` evaluated on the last observation, or None (the
             max-worst-margin fallback only).
@@ -158,7 +176,7 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
     """
 
     def __init__(
-        self, env: gym.Env, learner: str = "afvsgp", backup: Any = "env",
+        self, env: gym.Env, learner: str = AUTO_LEARNER, backup: Any = "env",
         oracle_terms: str = "true", obstacle_estimator: str = "auto",
         estimator_process_std: float = 0.03, **options: Any
     ):
@@ -167,7 +185,12 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
             obstacle_estimator=obstacle_estimator,
             estimator_process_std=estimator_process_std, **options)
         gym.Wrapper.__init__(self, env)
-        check_learner_name(learner)
+        if not (isinstance(learner, str) and (learner == AUTO_LEARNER or learner in LEARNERS)):
+            raise ValueError(f"learner must be {AUTO_LEARNER!r} or one of {list(LEARNERS)}. "
+                             f"Got: {learner!r}")
+        learner = resolve_learner(env.unwrapped, learner)
+        #: the learner the filter runs (``learner``, or the env's suggestion for "auto")
+        self.learner_name = check_learner_name(learner)
         check_choice("oracle_terms", oracle_terms, ORACLE_TERMS)
         if oracle_terms != "true" and learner != "oracle":
             raise ValueError(f"oracle_terms={oracle_terms!r} needs learner='oracle'. "

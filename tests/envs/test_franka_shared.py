@@ -77,3 +77,37 @@ def test_filtered_steps_predict_the_pairs_through_the_joint_learners():
         banded += int(np.isfinite(info["delta_b_lower"][:P]).any())
     assert banded > 20
     assert env.controller.n_update_failures == 0
+
+
+@pytest.mark.parametrize(("env_id", "kwargs", "expected"), [
+    # one obstacle (21 pairs): the per-pair learners, whose step is the faster there
+    ("afvsgp_gym/FrankaObstacleStatic-v0", {"nominal_model": "perturbed"}, "afvsgp"),
+    # the tabletop's clutter with the robot's own model as the prior: the shared learner
+    ("afvsgp_gym/FrankaTabletop-v0", {"nominal_model": "perturbed"}, "afvsgp-shared"),
+    ("afvsgp_gym/FrankaShelf-v0", {"nominal_model": "exact"}, "afvsgp-shared"),
+    # nothing of the dynamics known, or no kinematics at all: the per-pair learners
+    ("afvsgp_gym/FrankaTabletop-v0", {"nominal_model": "kinematic"}, "afvsgp"),
+    ("afvsgp_gym/FrankaTabletop-v0", {"nominal_model": "zero"}, "afvsgp"),
+    # no joint-limit barriers to hold the seven joint learners
+    ("afvsgp_gym/FrankaTabletop-v0", {"nominal_model": "perturbed", "limit_barriers": False},
+     "afvsgp"),
+    ("afvsgp_gym/PointMassObstacle-v0", {}, "afvsgp"),  # no suggestion: the paper's
+])
+def test_auto_learner_follows_the_env_suggestion(env_id, kwargs, expected):
+    """``SafetyFilter``'s default learner ("auto") is the env's suggestion; the filter runs
+    it (a projected bank for the shared learner)."""
+    env = SafetyFilter(gym.make(env_id, **kwargs))
+    assert env.learner_name == env.controller.learner_name == expected
+    base = env.unwrapped
+    if hasattr(base, "suggested_learner"):
+        assert base.suggested_learner() == expected
+        if expected == "afvsgp-shared":
+            assert base.n_obstacle_barriers > base.SHARED_LEARNER_PAIRS
+            assert env.controller.bank.layout.projected.any()
+    env.close()
+
+
+def test_unknown_learner_is_refused_naming_auto():
+    env = gym.make("afvsgp_gym/PointMassObstacle-v0")
+    with pytest.raises(ValueError, match="learner must be 'auto' or one of"):
+        SafetyFilter(env, learner="afvsgp-shard")

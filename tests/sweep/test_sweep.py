@@ -69,6 +69,11 @@ def test_serial_and_parallel_records_are_identical(tmp_path):
         assert (r["steps"], r["cost_steps"], r["learner_error_steps"]) == (700, 0, 0), r
         assert r["min_h"] > 0.3 and r["interventions"] == 0, r
     assert franka[0]["return"] != franka[1]["return"]  # the seeds differ
+    # which brake a record ran with: the Franka env's, none for the point mass's
+    from afvsgp_gym.envs.franka import FrankaObstacleEnv
+
+    assert {r.get("brake_version") for r in franka} == {FrankaObstacleEnv.BRAKE_VERSION}
+    assert all("brake_version" not in r for r in parallel.records if r["block"] != "franka")
 
 
 def test_resume_skips_finished_episodes(tmp_path, capsys):
