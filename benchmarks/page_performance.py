@@ -4,9 +4,11 @@
     python benchmarks/page_performance.py --check    # exit 1 if it is not what this writes
 
 Reads ``benchmarks/results/arm.json`` (the whole-arm step: the printed output of several runs
-of ``python -m afvsgp_gym.benchmarks.arm`` in one sitting on one machine, each with its mode)
-and ``benchmarks/results/solver.json`` (one run of ``python -m afvsgp_gym.benchmarks.solver``);
-each file gives its ``machine``, ``date``, ``code`` and the command. To refresh one, run the
+of ``python -m afvsgp_gym.benchmarks.arm`` in one sitting on one machine, each with its mode),
+``benchmarks/results/solver.json`` (one run of ``python -m afvsgp_gym.benchmarks.solver``) and
+``benchmarks/results/scale.json`` (one run each of ``python -m afvsgp_gym.benchmarks.scale`` and
+``python benchmarks/oscbf_side_by_side.py --oscbf PATH``, one after the other); each file gives
+its ``machine``, ``date``, ``code`` and the command. To refresh one, run the
 command as the file says, put each printed output in ``runs`` (or ``output``) with the date
 and the code version, and run this script.
 """
@@ -19,6 +21,7 @@ from docgen import DOCS, RESULTS, main, measured, parse_output, provenance, read
 
 ARM = RESULTS / "arm.json"
 SOLVER = RESULTS / "solver.json"
+SCALE = RESULTS / "scale.json"
 PAGE = DOCS / "performance.md"
 
 CONFIGS = {
@@ -132,9 +135,121 @@ def solver_section() -> list[str]:
                    "cbfpy elastiqp", "SOCP: ours / clarabel's own solve"), rows), ""]
 
 
+def _us(x: float) -> str:
+    return f"{x:.0f}"
+
+
+def scale_section() -> list[str]:
+    data = read_json(SCALE)
+    outputs = {r["command"]: parse_output(r["output"]) for r in data["runs"]}
+    sc = outputs["python -m afvsgp_gym.benchmarks.scale"]
+    osc = outputs["python benchmarks/oscbf_side_by_side.py --oscbf PATH"]
+    versions = "; ".join(f"`{r['command']}`: {r['versions']}" for r in data["runs"])
+    learners = (("per-pair learners", "per-pair (`afvsgp`, the default with this prior)"),
+                ("shared learner", "shared (`afvsgp-shared`)"))
+    rows = []
+    for pairs in ("21", "525"):
+        for key, name in learners:
+            k = f"{pairs} pairs + 28 limits, {key}"
+            rows.append((f"{pairs} + 28", name, _us(sc[f"{k}: step median_s"]),
+                         _us(sc[f"{k}: step p99_s"]), _us(sc[f"{k}: update median_s"]),
+                         _us(sc[f"{k}: env_step median_s"]), _us(sc[f"{k}: env_step p99_s"]),
+                         f"{sc[f'{k}: barriers in program (mean)']:.1f}"))
+    growth = {key: sc[f"525 pairs + 28 limits, {key}: env_step median_s"]
+              / sc[f"21 pairs + 28 limits, {key}: env_step median_s"] for key, _ in learners}
+    ours = ("ours, model known (oracle)", "ours, shared learner", "ours, per-pair learners")
+    names = {ours[0]: "ours, model known (`oracle`)", ours[1]: "ours, shared learner",
+             ours[2]: "ours, per-pair learners (the default with this prior)"}
+    rows2 = []
+    for k in ours:
+        rows2.append((names[k], _us(osc[f"{k}: filter + learning median_s"]),
+                      _us(osc[f"{k}: filter + learning p99_s"]),
+                      _us(osc[f"{k}: OSCBF at its states median_s"]),
+                      _us(osc[f"{k}: OSCBF at its states p99_s"]),
+                      f"{osc[f'{k}: filter + learning median / OSCBF' + chr(39) + 's']:.2f}x",
+                      f"{osc[f'{k}: barriers in program (mean)']:.1f}",
+                      _us(osc[f"{k}: env.step median_s"]),
+                      f"{osc[f'{k}: steps with cost']:.0f}"))
+    rows2.append(("OSCBF at its speed test's random states", "-", "-",
+                  _us(osc["OSCBF at its test's random states: median_s"]),
+                  _us(osc["OSCBF at its test's random states: p99_s"]), "-", "-", "-", "-"))
+    shared, per = (osc[f"{k}: filter + learning median / OSCBF's"] for k in ours[1:])
+    return ["## Hundreds of barriers, and beside OSCBF", "",
+            "Each obstacle pair has a learner of its own by default, so the learning grows "
+            "with the number of obstacles; the shared learner learns the seven "
+            "joint-acceleration errors once and projects them onto every pair "
+            "([Learners](learners.md#the-shared-learner)), which needs the kinematics: both "
+            "run with the nominal model \"kinematic\" (nothing of the dynamics known). "
+            "`python -m afvsgp_gym.benchmarks.scale`: the static scenario's tracker with its "
+            "obstacle alone (21 arm spheres x 1) and with 24 more spheres around the "
+            "workspace (x 25), the four configurations in lockstep; microseconds per control "
+            "step after the warm-up, `step` the filter and the learning, `env.step` the whole "
+            "wrapped step.", "",
+            measured(data), "", f"Versions: {versions}.", "",
+            "```bash\nOPENBLAS_NUM_THREADS=1 taskset -c 0 python -m afvsgp_gym.benchmarks.scale"
+            "\n```", "",
+            table(("barriers", "learner", "step median", "step p99", "update median",
+                   "env.step median", "env.step p99", "barriers in program"), rows), "",
+            "The wrapped step at 525 pairs against 21: "
+            + ", ".join(f"{name.split(' (')[0]} {growth[key]:.2f}x" for key, name in learners)
+            + ".", "",
+            "[OSCBF](https://github.com/StanfordASL/oscbf) (Morton and Pavone, IROS 2025), a "
+            "whole-body "
+            "torque CBF filter in jax with the model known, on its own cluttered-tabletop "
+            "scene: 25 spheres and a table against 21 arm spheres, "
+            f"{osc['OSCBF: constraints']:.0f} constraints (ours add the 28 joint-limit "
+            "barriers). `python benchmarks/oscbf_side_by_side.py` (its docstring says how to "
+            "install a copy of OSCBF beside this package) runs each configuration of ours in "
+            "lockstep with OSCBF's compiled controller (its operational-space nominal torque "
+            "and its QP) called at the state our episode is in, toward the same reference; "
+            "`/ OSCBF` is the ratio of the two medians in that lockstep. Our step is the "
+            "filter and the learning (the tracker's torque is not in it; OSCBF's nominal "
+            "controller is in its step).", "",
+            "```bash\nOPENBLAS_NUM_THREADS=1 taskset -c 0 python benchmarks/oscbf_side_by_side.py "
+            "--oscbf PATH\n```", "",
+            table(("filter", "ours: median", "ours: p99", "OSCBF: median", "OSCBF: p99",
+                   "ours / OSCBF", "barriers in program", "our env.step median",
+                   "steps with cost"), rows2), "",
+            f"With the shared learner our learned filter takes {shared:.2f}x OSCBF's "
+            f"known-model step at the same states; with the per-pair learners {per:.2f}x.",
+            ""] + crossover_part(outputs)
+
+
+def crossover_part(outputs: dict[str, dict[str, float]]) -> list[str]:
+    """Where the shared learner's step becomes the faster (``--crossover``), if it ran."""
+    cross = outputs.get("python -m afvsgp_gym.benchmarks.scale --crossover")
+    if not cross:
+        return []
+    counts = sorted({int(m.group(1)) for k in cross
+                     if (m := re.match(r"(\d+) pairs, ", k))})
+    rows = [(n, _us(cross[f"{n} pairs, per-pair: step median_s"]),
+             _us(cross[f"{n} pairs, shared: step median_s"]),
+             f"{cross[f'{n} pairs: step median, shared / per-pair']:.2f}x") for n in counts]
+    ratio = {n: cross[f"{n} pairs: step median, shared / per-pair"] for n in counts}
+    faster = [n for n in counts if ratio[n] < 0.95]
+    even = [str(n) for n in counts if 0.95 <= ratio[n] <= 1.05]
+    first = (("the two are within 5 % at " + ", ".join(even) + " pairs; " if even else "")
+             + (f"the shared learner is the faster from {faster[0]} pairs on" if faster
+                else "the shared learner is not the faster at any of these counts"))
+    return ["**The default.** `SafetyFilter`'s default learner (`\"auto\"`) is the shared "
+            "one where the prior knows the dynamics and the pairs are many "
+            "([Learners](learners.md#the-shared-learner)): with the robot's own model as the "
+            "prior it was as safe and tracked as well; with nothing of the dynamics known it "
+            "tracked worse ([Safety](safety.md#the-shared-learner)). Where its step becomes "
+            "the faster, the static scenario's tracker with the first obstacles of the "
+            "clutter above and the robot's own model as the prior, each count's two learners "
+            f"in lockstep: {first} (the default takes it above "
+            "`FrankaObstacleEnv.SHARED_LEARNER_PAIRS` sphere pairs).", "",
+            "```bash\nOPENBLAS_NUM_THREADS=1 taskset -c 0 python -m afvsgp_gym.benchmarks.scale "
+            "--crossover\n```", "",
+            table(("pairs", "per-pair: step median", "shared: step median", "shared / per-pair"),
+                  rows), ""]
+
+
 def build() -> dict:
     out = [provenance("benchmarks/page_performance.py",
-                      ["benchmarks/results/arm.json", "benchmarks/results/solver.json"]), "",
+                      ["benchmarks/results/arm.json", "benchmarks/results/solver.json",
+                       "benchmarks/results/scale.json"]), "",
            "# Performance", "",
            "What one filtered control step costs, and the cone program against another CBF "
            "library. Absolute times are the machine's; the ratios within one run carry over "
@@ -143,6 +258,7 @@ def build() -> dict:
            "magnitude.", ""]
     out += arm_section()
     out += solver_section()
+    out += scale_section()
     out += ["## Other benchmarks", "",
             "`afvsgp-gym bench [--quick] [--only gp,envs,filter,sweep]` prints the speed figures "
             "of the learners (one AFVSGP step at the paper's size against VSGP and SOGP), the "

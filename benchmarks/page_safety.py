@@ -57,6 +57,9 @@ BRAKE_RERUN_CODES = ("104f9db", "2ac8a9b", "b492550", "f6db547", "da952a6",
 SHARED = RESULTS / "shared.jsonl.gz"
 #: the adversarial suite, for the per-pair learners beside the shared one on the same seeds
 ADVERSARIAL = RESULTS / "adversarial.jsonl.gz"
+#: the registered scenes' grid, for the per-pair learners beside the shared one on the scenes
+SCENES = RESULTS / "scenes.jsonl.gz"
+SCENE_NAMES = {"afvsgp_gym/FrankaTabletop-v0": "tabletop", "afvsgp_gym/FrankaShelf-v0": "shelf"}
 LIMIT_BANDS = (("margin on all 28", RESULTS / "acceptance_limit_margin.jsonl.gz"),
                ("mixed, every step", RESULTS / "acceptance_limit_mixed_ungated.jsonl.gz"))
 #: the one-sided miss probability the default band promises, Phi(-2.5)
@@ -166,7 +169,7 @@ def shared_section(recs: list[dict]) -> list[str]:
                    if r["seed"] in seeds_]
             ora = select(recs, "oracle", scenario=sc, prior=same_tracker(pr))
             o = summary(ora)["track"] if ora else float("nan")
-            for name, group in (("per-pair (default)", per), ("shared", mine)):
+            for name, group in (("per-pair", per), ("shared", mine)):
                 if group:
                     g = summary(group)
                     rows.append((sc, pr, name, g["n"], g["cost"], f"{g['min_h']:.4f}",
@@ -179,11 +182,19 @@ def shared_section(recs: list[dict]) -> list[str]:
             "behind the nominal tracker on the priors grid's scenarios and first seeds, with "
             "the priors that know the kinematics (`afvsgp-gym sweep "
             "benchmarks/configs/shared.toml`, its `tracker` block; code `" + code + "`, "
-            "results/shared.jsonl.gz), beside the default per-pair learners on the same "
-            "seeds; tracking with its ratio to the oracle's.", "",
+            "results/shared.jsonl.gz), beside the per-pair learners on the same seeds; "
+            "tracking with its ratio to the oracle's. `SafetyFilter`'s default "
+            "(`learner=\"auto\"`, [Learners](learners.md#the-shared-learner)) runs the "
+            "per-pair learners on these one-obstacle scenarios and the shared learner on the "
+            "scenes below when the prior is the robot's own model.", "",
             table(("scenario", "prior", "learner", "episodes", "with cost", "min h [m]",
                    "tracking [m]", "backup / episode", "kept"), rows), ""] + \
-        shared_adversarial(everything)
+        shared_adversarial(everything) + shared_scenes(everything)
+
+
+def _episode_key(rec: dict) -> tuple:
+    c = rec["config"]
+    return (c["agent"], c["env_id"], c["env_kwargs"].get("nominal_model"), rec["seed"])
 
 
 def shared_adversarial(everything: list[dict]) -> list[str]:
@@ -192,14 +203,12 @@ def shared_adversarial(everything: list[dict]) -> list[str]:
     mine = [r for r in everything if r["block"] == "adversarial"]
     if not mine or not ADVERSARIAL.exists():
         return []
-    keys = {(r["config"]["agent"], r["config"]["env_id"],
-             r["config"]["env_kwargs"].get("nominal_model"), r["seed"]) for r in mine}
-    per = [r for r in read_jsonl(ADVERSARIAL) if r["config"]["learner"] == "afvsgp"
-           and (r["config"]["agent"], r["config"]["env_id"],
-                r["config"]["env_kwargs"].get("nominal_model"), r["seed"]) in keys]
+    keys = {_episode_key(r) for r in mine}
+    per = [r for r in read_jsonl(ADVERSARIAL)
+           if r["config"]["learner"] == "afvsgp" and _episode_key(r) in keys]
     rows = []
     for pr in PRIORS:
-        for name, group in (("per-pair (default)", per), ("shared", mine)):
+        for name, group in (("per-pair", per), ("shared", mine)):
             g = [r for r in group if r["config"]["env_kwargs"].get("nominal_model") == pr]
             if g:
                 s = summary(g)
@@ -213,6 +222,39 @@ def shared_adversarial(everything: list[dict]) -> list[str]:
             f"same seeds (code `{codes[0]}`):", "",
             table(("prior", "learner", "episodes", "with cost", "min h [m]",
                    "backup / episode"), rows), ""]
+
+
+def shared_scenes(everything: list[dict]) -> list[str]:
+    """The shared learner's ``scenes_*`` blocks beside the per-pair learners' episodes of the
+    scenes grid (``results/scenes.jsonl.gz``) on the same seeds, policies and prior."""
+    mine = [r for r in everything if r["block"].startswith("scenes_")]
+    if not mine or not SCENES.exists():
+        return []
+    keys = {_episode_key(r) for r in mine}
+    per = [r for r in read_jsonl(SCENES)
+           if r["config"]["learner"] == "afvsgp" and _episode_key(r) in keys]
+    rows = []
+    for env_id, scene in SCENE_NAMES.items():
+        for policies, tracker in (("tracker", True), ("adversarial", False)):
+            for name, group in (("per-pair", per), ("shared", mine)):
+                g = [r for r in group if r["config"]["env_id"] == env_id
+                     and (r["config"]["agent"] == "nominal") == tracker]
+                if not g:
+                    continue
+                s = summary(g)
+                rows.append((scene, policies, name, s["n"], s["cost"],
+                             sum((r.get("self_contact_steps") or 0) > 0 for r in g),
+                             f"{s['min_h']:.4f}", f"{s['track']:.4f}" if tracker else "-",
+                             f"{s['backup']:.1f}"))
+    codes = [" / ".join(sorted({str(r["code_version"]) for r in g})) for g in (per, mine)]
+    return ["On the registered scenes ([Scenes](scenes.md): the tabletop's table, clutter "
+            "and moving forearm; the shelf) with the robot's own model as the prior "
+            "(\"perturbed\"), the tracker and the adversarial policies on the scenes grid's "
+            f"seeds, the `scenes_*` blocks of the same config (code `{codes[1]}`) beside the "
+            f"per-pair learners' episodes of that grid (code `{codes[0]}`); `self-contact`: "
+            "episodes where two non-adjacent links touched:", "",
+            table(("scene", "policies", "learner", "episodes", "with cost", "self-contact",
+                   "min h [m]", "tracking [m]", "backup / episode"), rows), ""]
 
 
 def limit_band_section(recs: list[dict]) -> list[str]:

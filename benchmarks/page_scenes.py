@@ -25,16 +25,21 @@ from docgen import (
 from page_adversarial import cost_cell, meta
 
 SOURCE = RESULTS / "scenes.jsonl.gz"
+#: optional: the shared learner's ``scenes_*`` blocks (``benchmarks/configs/shared.toml``)
+SHARED = RESULTS / "shared.jsonl.gz"
 SPEED = RESULTS / "primitives.json"
 PAGE = DOCS / "scenes.md"
 SCENES = {"afvsgp_gym/FrankaTabletop-v0": "tabletop", "afvsgp_gym/FrankaShelf-v0": "shelf"}
 FILTERS = (("oracle", None, "oracle (true model)"),
-           ("afvsgp", "zero", "AFVSGP, prior \"zero\""),
-           ("afvsgp", "perturbed", "AFVSGP, prior \"perturbed\""),
+           ("afvsgp", "zero", "AFVSGP, prior \"zero\" (per pair, the default)"),
+           ("afvsgp", "perturbed", "AFVSGP per pair, prior \"perturbed\""),
+           ("afvsgp-shared", "perturbed", "AFVSGP shared, prior \"perturbed\" (the default)"),
            (None, None, "no filter"))
 REPRODUCE = """\
 afvsgp-gym sweep benchmarks/configs/scenes.toml --out scenes.jsonl --workers 2
 gzip -c scenes.jsonl > benchmarks/results/scenes.jsonl.gz
+afvsgp-gym sweep benchmarks/configs/shared.toml --out shared.jsonl --workers 2
+gzip -c shared.jsonl > benchmarks/results/shared.jsonl.gz
 python benchmarks/page_scenes.py"""
 
 
@@ -79,7 +84,7 @@ def rows_by_agent(recs: list[dict]) -> list[tuple]:
             if not cell:
                 continue
             row = [sc, agent]
-            for name, pr, _ in FILTERS[:3]:
+            for name, pr, _ in FILTERS[:4]:
                 group = of(cell, name, pr)
                 row.append(f"{sum(r['cost_steps'] > 0 for r in group)} / {len(group)}"
                            if group else "-")
@@ -111,7 +116,7 @@ def failures(recs: list[dict]) -> list[str]:
         return ["No filtered episode has cost.", ""]
     out = ["Filtered episodes with cost:", ""]
     for r in sorted(bad, key=lambda r: (scene(r), r["config"]["agent"], r["seed"])):
-        pr = prior(r) if learner(r) == "afvsgp" else None
+        pr = prior(r) if learner(r) in ("afvsgp", "afvsgp-shared") else None
         name = learner(r) + (f" ({pr})" if pr else "")
         out.append(f"- {scene(r)}, `{r['config']['agent']}` seed {r['seed']}, {name}: "
                    f"{r['cost_steps']} cost steps ({r['contact_steps']} with contact), min h "
@@ -147,6 +152,7 @@ def speed_section() -> list[str]:
 
 def build() -> dict:
     out = [provenance("benchmarks/page_scenes.py", ["benchmarks/results/scenes.jsonl.gz",
+                                                  "benchmarks/results/shared.jsonl.gz",
                                                   "benchmarks/results/primitives.json"]),
            "", "# Scenes", "",
            "The workspace scenes ([Environments](environments.md)): "
@@ -158,8 +164,9 @@ def build() -> dict:
            "shelf of five boxes). Full episodes (16 s, 4000 steps) behind the nominal tracker and "
            "behind the adversarial policies of [Any policy](adversarial.md), with the oracle "
            "(the true model), AFVSGP with nothing known about the dynamics (prior \"zero\") "
-           "and with the robot's own model (\"perturbed\"), and without a filter. An episode "
-           "has cost when some step has an obstacle barrier below zero, an arm-obstacle "
+           "and with the robot's own model (\"perturbed\"), per pair and shared (the "
+           "default there, [Learners](learners.md#the-shared-learner)), and without a filter. "
+           "An episode has cost when some step has an obstacle barrier below zero, an arm-obstacle "
            "contact (MuJoCo's geoms) or a joint past its range or datasheet speed; contact "
            "between the arm's own links is counted beside it (the scenes' ids turn the "
            "self-collision barriers on).", ""]
@@ -167,8 +174,11 @@ def build() -> dict:
         out += ["No results yet: run", "", "```bash", REPRODUCE, "```"]
         return {PAGE: "\n".join(out) + "\n"}
     recs = read_jsonl(SOURCE)
+    if SHARED.exists():
+        recs += [r for r in read_jsonl(SHARED) if r["block"].startswith("scenes_")]
     out += ["## By scene, policy and filter", "",
-            measured(meta(recs)) + f" {len(recs)} episodes of `benchmarks/configs/scenes.toml`."
+            measured(meta(recs)) + f" {len(recs)} episodes of `benchmarks/configs/scenes.toml`"
+            " (and the `scenes_*` blocks of `shared.toml`)."
             " `min h` is the closest approach of any safety sphere to any obstacle (cm); "
             "tracking the mean distance of the hand to the reference (m, s.e. over episodes); "
             "`backup` the steps per episode with no action meeting the chance constraints "
@@ -180,7 +190,8 @@ def build() -> dict:
                   rows_by_filter(recs)), "", *failures(recs),
             "## By adversarial policy", "",
             "Episodes with cost per policy (seeds of `scenes.toml`).", "",
-            table(("scene", "policy", "oracle", "AFVSGP zero", "AFVSGP perturbed"),
+            table(("scene", "policy", "oracle", "AFVSGP zero", "AFVSGP per pair, perturbed",
+                   "AFVSGP shared, perturbed"),
                   rows_by_agent(recs)), "",
             "To regenerate:", "", "```bash", REPRODUCE, "```", "", *speed_section()]
     return {PAGE: "\n".join(out).rstrip("\n") + "\n"}

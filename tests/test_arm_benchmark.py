@@ -49,3 +49,37 @@ def test_primitives_benchmark_builds_the_typed_scenes_it_names():
     assert min(env.barrier_terms("true").h[: 21 * 12]) > 0.0  # clear of the ready pose
     env.close()
     assert len(configs()) == 2 * len(COUNTS)
+
+
+def test_oscbf_scene_is_its_demo_draw_and_clear_at_the_ready_pose(monkeypatch):
+    """benchmarks/oscbf_side_by_side.py draws OSCBF's demo's 25 spheres as the demo does
+    (numpy's global generator seeded 0: 50 centres, then 50 radii) without touching numpy's
+    global state, and our env builds 21 x 26 pair barriers and the 28 limits from them,
+    every pair clear at the ready pose (so both filters start from a safe state)."""
+    import pathlib
+    import sys
+
+    from afvsgp_gym.envs.franka import FrankaObstacleEnv
+
+    monkeypatch.syspath_prepend(str(pathlib.Path(__file__).parents[1] / "benchmarks"))
+    sys.modules.pop("oscbf_side_by_side", None)
+    import oscbf_side_by_side as side
+
+    state = np.random.get_state()[1].copy()  # noqa: NPY002
+    centres, radii = side.oscbf_clutter()
+    np.testing.assert_array_equal(np.random.get_state()[1], state)  # noqa: NPY002
+    saved = np.random.get_state()  # noqa: NPY002
+    try:
+        np.random.seed(0)  # noqa: NPY002  (the demo's own draw, on the global generator)
+        want_c = np.random.uniform(  # noqa: NPY002
+            low=[0.2, -0.4, 0.1], high=[0.8, 0.4, 0.3], size=(50, 3))
+        want_r = np.random.uniform(low=0.01, high=0.1, size=(50,))  # noqa: NPY002
+    finally:
+        np.random.set_state(saved)  # noqa: NPY002
+    np.testing.assert_array_equal(centres, want_c[:25])
+    np.testing.assert_array_equal(radii, want_r[:25])
+    env = FrankaObstacleEnv("static", obstacles=side.our_obstacles(centres, radii))
+    assert env.n_barriers == 21 * 26 + 28
+    env.reset(seed=0)
+    assert min(env.barrier_terms("true").h[: 21 * 26]) > 0.0
+    env.close()
