@@ -212,7 +212,29 @@ def scale_section() -> list[str]:
                    "steps with cost"), rows2), "",
             f"With the shared learner our learned filter takes {shared:.2f}x OSCBF's "
             f"known-model step at the same states; with the per-pair learners {per:.2f}x.",
-            ""] + crossover_part(outputs)
+            ""] + crossover_part(outputs) + defaults_part(outputs)
+
+
+def defaults_part(outputs: dict[str, dict[str, float]]) -> list[str]:
+    """``SafetyFilter``'s default learner at 21 and 525 pairs (``--defaults``), if it ran."""
+    d = outputs.get("python -m afvsgp_gym.benchmarks.scale --defaults")
+    if not d:
+        return []
+    rows = []
+    for pairs in (21, 525):
+        k = f"default, {pairs} pairs + 28 limits"
+        rows.append((f"{pairs} + 28", "shared" if d[f"{k}: shared learner"] else "per-pair",
+                     _us(d[f"{k}: step median_s"]), _us(d[f"{k}: step p99_s"]),
+                     _us(d[f"{k}: env_step median_s"]), _us(d[f"{k}: env_step p99_s"])))
+    return ["With `SafetyFilter`'s defaults and the robot's own model as the prior (the "
+            "scale benchmark's two scenes in lockstep), the wrapped step at 525 pairs costs "
+            f"{d['default: env_step median, 525 / 21 pairs']:.2f}x the step at 21, and the "
+            "filter and the learning "
+            f"{d['default: step median, 525 / 21 pairs']:.2f}x:", "",
+            "```bash\nOPENBLAS_NUM_THREADS=1 taskset -c 0 python -m afvsgp_gym.benchmarks.scale "
+            "--defaults\n```", "",
+            table(("barriers", "learner the default took", "step median", "step p99",
+                   "env.step median", "env.step p99"), rows), ""]
 
 
 def crossover_part(outputs: dict[str, dict[str, float]]) -> list[str]:

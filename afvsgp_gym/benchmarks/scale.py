@@ -11,7 +11,8 @@ configurations advance in lockstep (:func:`afvsgp_gym.benchmarks.arm.time_lockst
 module docstring says what ``step``, ``learners``, ``update`` and ``env.step`` time), so their
 ratios are measured on the same seconds. Pin the process to one core (``taskset -c 0``) with
 ``OPENBLAS_NUM_THREADS=1``. ``--crossover`` times the two learners at 1, 2, 3, 4 and 6
-obstacles with the robot's own model as the prior: where the shared one becomes the faster.
+obstacles with the robot's own model as the prior: where the shared one becomes the faster;
+``--defaults`` times ``SafetyFilter``'s default learner at 21 and 525 pairs with that prior.
 """
 
 from __future__ import annotations
@@ -69,6 +70,36 @@ def run(quick: bool = False, steps: int | None = None, rounds: int = 1,
     return out
 
 
+def defaults(steps: int = 1000, seed: int = 0) -> dict[str, float]:
+    """``SafetyFilter``'s defaults (``learner="auto"``) with the robot's own model as the
+    prior (``"perturbed"``): the step, the learning and the wrapped ``env.step`` (median and
+    p99, s) at 21 and 525 pairs in lockstep, which learner the default took there (1: the
+    shared one), and the ratios 525 / 21."""
+    from afvsgp_gym.benchmarks.arm import TimedEpisode
+
+    eps = {pairs: TimedEpisode({"learner": "auto", "nominal_model": "perturbed", **kw},
+                               steps=steps, seed=seed)
+           for pairs, kw in ((21, {}), (525, {"obstacles": CLUTTER}))}
+    shared = {p: float(ep.env.learner_name == "afvsgp-shared") for p, ep in eps.items()}
+    order = list(eps.values())
+    while any(ep.remaining > 0 for ep in order):
+        for ep in order:
+            ep.step()
+        order.reverse()
+    out: dict[str, float] = {}
+    for pairs, ep in eps.items():
+        res, name = ep.result(), f"default, {pairs} pairs + 28 limits"
+        out[f"{name}: shared learner"] = shared[pairs]
+        for part in ("step", "learners", "env_step"):
+            out[f"{name}: {part} median_s"] = float(np.median(res[part]))
+            out[f"{name}: {part} p99_s"] = float(np.percentile(res[part], 99))
+    for part in ("step", "env_step"):
+        out[f"default: {part} median, 525 / 21 pairs"] = (
+            out[f"default, 525 pairs + 28 limits: {part} median_s"]
+            / out[f"default, 21 pairs + 28 limits: {part} median_s"])
+    return out
+
+
 #: obstacle counts of :func:`crossover`: the first of :data:`CLUTTER`'s spheres
 CROSSOVER_OBSTACLES = (1, 2, 3, 4, 6)
 
@@ -100,11 +131,17 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--rounds", type=int, default=1, help="lockstep rounds")
     p.add_argument("--crossover", action="store_true",
                    help="the step per learner at 1, 2, 3, 4 and 6 obstacles instead")
+    p.add_argument("--defaults", action="store_true",
+                   help="SafetyFilter's default learner at 21 and 525 pairs, prior perturbed")
     args = p.parse_args(argv)
     print(machine())
     print(calibration_line(), flush=True)
-    results = (crossover(200 if args.quick else args.steps or 1500) if args.crossover
-               else run(args.quick, args.steps, args.rounds))
+    if args.crossover:
+        results = crossover(200 if args.quick else args.steps or 1500)
+    elif args.defaults:
+        results = defaults(200 if args.quick else args.steps or 1000)
+    else:
+        results = run(args.quick, args.steps, args.rounds)
     for key, val in results.items():
         shown = f"{val * 1e6:10.1f} us" if key.endswith("_s") else f"{val:10.3f}"
         print(f"{key:70s} {shown}")

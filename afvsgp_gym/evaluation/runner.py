@@ -220,7 +220,8 @@ def evaluate(
     ----------
     env_id : a registered ``afvsgp_gym/...`` id.
     agent : ``"nominal"``, ``"random"`` or a path to a Stable-Baselines3 ``.zip``.
-    learners : filter learner names (``afvsgp_gym.cbf.LEARNERS``); ``None`` runs the bare env.
+    learners : filter learner names (``afvsgp_gym.cbf.LEARNERS``, or ``"auto"``: the env's
+        suggestion, labelled ``"auto (<learner>)"`` in the result); ``None`` runs the bare env.
     episodes, seed : episode ``i`` is reset with ``seed + i``, in a fresh env and filter (whose
         exploration noise is seeded with the same number unless ``filter_kwargs`` sets
         ``seed``).
@@ -267,6 +268,8 @@ def evaluate(
     for i, spec in enumerate(specs):
         record, tr = outcomes[i]
         name = spec.learner_name
+        if name == "auto" and record.get("learner_used"):  # which learner the env suggested
+            name = f"auto ({record['learner_used']})"
         rows.append({"learner": name, "episode": spec.seed - int(seed),
                      **{k: record[k] for k in EPISODE_FIELDS if k in record}})
         full.setdefault(name, []).append(record)

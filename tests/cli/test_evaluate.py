@@ -128,3 +128,16 @@ def test_limit_violations_are_counted_by_kind_and_printed(tmp_path, capsys):
     assert data["episodes"][0]["limit_steps"] == limits
     assert data["episodes"][0]["cost_steps"] == costs
     assert data["summary"]["unfiltered"]["episodes_with_limit_violation"] == 1
+
+
+def test_default_learner_is_labelled_with_what_the_env_suggested(tmp_path, capsys):
+    """``--learner`` defaults to "auto"; the report names the learner it resolved to (the
+    point mass suggests none: the paper's per-barrier AFVSGP)."""
+    jpath = tmp_path / "report.json"
+    rc = main(["evaluate", "--env", PM, "--episodes", "1", "--max-steps", "40",
+               "--json", str(jpath), "--no-progress"])
+    assert rc == 0
+    data = json.loads(jpath.read_text())
+    assert list(data["summary"]) == ["auto (afvsgp)"]
+    assert [r["learner"] for r in data["episodes"]] == ["auto (afvsgp)"]
+    assert "auto (afvsgp)" in capsys.readouterr().out
