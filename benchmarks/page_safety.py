@@ -233,6 +233,9 @@ def shared_scenes(everything: list[dict]) -> list[str]:
     keys = {_episode_key(r) for r in mine}
     per = [r for r in read_jsonl(SCENES)
            if r["config"]["learner"] == "afvsgp" and _episode_key(r) in keys]
+    both = {_episode_key(r) for r in per}
+    more = len(mine) - len(both)
+    mine = [r for r in mine if _episode_key(r) in both]  # side by side on the same seeds
     rows = []
     for env_id, scene in SCENE_NAMES.items():
         for policies, tracker in (("tracker", True), ("adversarial", False)):
@@ -252,7 +255,9 @@ def shared_scenes(everything: list[dict]) -> list[str]:
             "(\"perturbed\"), the tracker and the adversarial policies on the scenes grid's "
             f"seeds, the `scenes_*` blocks of the same config (code `{codes[1]}`) beside the "
             f"per-pair learners' episodes of that grid (code `{codes[0]}`); `self-contact`: "
-            "episodes where two non-adjacent links touched:", "",
+            "episodes where two non-adjacent links touched"
+            + (f" ({more} more episodes of the shared learner on later seeds: "
+               "[Scenes](scenes.md))" if more else "") + ":", "",
             table(("scene", "policies", "learner", "episodes", "with cost", "self-contact",
                    "min h [m]", "tracking [m]", "backup / episode"), rows), ""]
 

@@ -74,6 +74,19 @@ def rows_by_filter(recs: list[dict]) -> list[tuple]:
     return rows
 
 
+def rows_pooled(recs: list[dict]) -> list[tuple]:
+    """Per scene and filter, the tracker's and the adversarial policies' episodes together."""
+    rows = []
+    for sc in SCENES.values():
+        for name, pr, text in FILTERS:
+            group = of([r for r in recs if scene(r) == sc], name, pr)
+            if group:
+                s = summary(group)
+                rows.append((sc, text, s["n"], cost_cell(s), f"{100 * s['bound']:.3g} %",
+                             self_contact(group), f"{100 * s['min_h']:+.2f}"))
+    return rows
+
+
 def rows_by_agent(recs: list[dict]) -> list[tuple]:
     adversarial = [r for r in recs if policy(r) == "adversarial"]
     agents = list(dict.fromkeys(r["config"]["agent"] for r in adversarial))
@@ -188,6 +201,9 @@ def build() -> dict:
             table(("scene", "policy", "filter", "episodes", "with cost", "95 % bound",
                    "w/ self-contact", "min h [cm]", "tracking [m] (s.e.)", "backup", "code"),
                   rows_by_filter(recs)), "", *failures(recs),
+            "Pooled over the tracker and the adversarial policies, per scene and filter:", "",
+            table(("scene", "filter", "episodes", "with cost", "95 % bound",
+                   "w/ self-contact", "min h [cm]"), rows_pooled(recs)), "",
             "## By adversarial policy", "",
             "Episodes with cost per policy (seeds of `scenes.toml`).", "",
             table(("scene", "policy", "oracle", "AFVSGP zero", "AFVSGP per pair, perturbed",

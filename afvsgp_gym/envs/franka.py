@@ -754,9 +754,9 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         than :attr:`SHARED_LEARNER_PAIRS` sphere pairs; the per-barrier ``"afvsgp"`` otherwise.
         With the robot's model as the prior the shared learner was as safe as the per-pair
         learners and tracked as well, and its step stays flat as pairs are added where theirs
-        grows; with nothing of the dynamics known
-        (``"kinematic"``) it tracked worse, and ``"zero"`` has no kinematics to project
-        through (the docs' Safety and Performance pages have the figures)."""
+        grows; with nothing of the dynamics known (``"kinematic"``) it tracked worse, and
+        ``"zero"`` has no kinematics to project through (the docs' Safety and Performance
+        pages have the figures)."""
         if (self.nominal_model in ("perturbed", "exact") and self.limit_barriers
                 and self._n_pair_barriers > self.SHARED_LEARNER_PAIRS):
             return "afvsgp-shared"
