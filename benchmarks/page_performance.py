@@ -199,12 +199,14 @@ def scale_section() -> list[str]:
             "scene: 25 spheres and a table against 21 arm spheres, "
             f"{osc['OSCBF: constraints']:.0f} constraints (ours add the 28 joint-limit "
             "barriers). `python benchmarks/oscbf_side_by_side.py` (its docstring says how to "
-            "install a copy of OSCBF beside this package) runs each configuration of ours in "
+            "install a copy of OSCBF beside this package) runs each configuration of ours (the "
+            "learned ones with the nominal model \"kinematic\", as above) in "
             "lockstep with OSCBF's compiled controller (its operational-space nominal torque "
             "and its QP) called at the state our episode is in, toward the same reference; "
             "`/ OSCBF` is the ratio of the two medians in that lockstep. Our step is the "
             "filter and the learning (the tracker's torque is not in it; OSCBF's nominal "
-            "controller is in its step).", "",
+            "controller is in its step). Interleaved with jax's calls our step is slower than "
+            "the same episode alone, so the ratios are on the conservative side.", "",
             "```bash\nOPENBLAS_NUM_THREADS=1 taskset -c 0 python benchmarks/oscbf_side_by_side.py "
             "--oscbf PATH\n```", "",
             table(("filter", "ours: median", "ours: p99", "OSCBF: median", "OSCBF: p99",
