@@ -24,8 +24,9 @@ __all__ = ["CALIBRATION_FIELDS", "CALIBRATION_LEGEND", "COST_DEFINITION", "SAFE_
 #: The one definition of the safety cost, printed with every table.
 COST_DEFINITION = (
     "cost: steps with info['cost'] > 0, i.e. some obstacle barrier has h < 0 (h<0), the robot "
-    "touches an obstacle (contact), or a joint is at its range stop or above its speed limit "
-    "(limits; with the env's optional checks also above its acceleration or torque-rate limit)"
+    "touches an obstacle (contact), a joint is at its range stop or above its speed limit "
+    "(limits; with the env's optional checks also above its acceleration or torque-rate "
+    "limit), or two non-adjacent links of the robot touch (self)"
 )
 
 #: The counts of the learned band's calibration (:class:`EpisodeCounter` attributes, episode

@@ -1,10 +1,12 @@
-"""Hashes of the observations of 4 filtered episodes: a check that a change keeps the
+"""Hashes of the observations of 5 filtered episodes: a check that a change keeps the
 arithmetic (run before and after on one machine; equal hashes mean bit-identical episodes).
 
     python benchmarks/bit_identity.py [--steps 1500]
 
-The episodes: static, dynamic with the kinematic prior, random, and static with the
-end-effector sphere; AFVSGP behind the nominal tracker, seeds 0-3.
+The episodes: static, dynamic with the kinematic prior, random (these three without the
+self-collision barriers, as before they were the default), static with the end-effector
+sphere, and static with today's defaults (self-collision on); AFVSGP behind the nominal
+tracker, seeds 0-4.
 """
 
 from __future__ import annotations
@@ -20,10 +22,12 @@ from afvsgp_gym.agents import NominalController
 from afvsgp_gym.wrappers import SafetyFilter
 
 CASES = (
-    ("afvsgp_gym/FrankaObstacleStatic-v0", {}),
-    ("afvsgp_gym/FrankaObstacleDynamic-v0", {"nominal_model": "kinematic"}),
-    ("afvsgp_gym/FrankaObstacleRandom-v0", {}),
+    ("afvsgp_gym/FrankaObstacleStatic-v0", {"self_collision": False}),
+    ("afvsgp_gym/FrankaObstacleDynamic-v0",
+     {"nominal_model": "kinematic", "self_collision": False}),
+    ("afvsgp_gym/FrankaObstacleRandom-v0", {"self_collision": False}),
     ("afvsgp_gym/FrankaObstacleStatic-v0", {"safety_spheres": "ee"}),
+    ("afvsgp_gym/FrankaObstacleStatic-v0", {}),
 )
 
 

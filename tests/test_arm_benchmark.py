@@ -35,7 +35,9 @@ def test_env_kwargs_keep_a_list_of_obstacles():
 
 def test_primitives_benchmark_builds_the_typed_scenes_it_names():
     """Each count's list has that many primitives, the table first, every type, and the env
-    builds one barrier per (arm sphere, primitive) and the 28 limit barriers from it."""
+    builds one barrier per (arm sphere, primitive) and the 28 limit barriers from it (the
+    benchmarks' env options: no self-collision barriers)."""
+    from afvsgp_gym.benchmarks.arm import _env_kwargs
     from afvsgp_gym.benchmarks.primitives import COUNTS, configs, ring_primitives
     from afvsgp_gym.envs.franka import FrankaObstacleEnv
 
@@ -43,7 +45,7 @@ def test_primitives_benchmark_builds_the_typed_scenes_it_names():
         obs = ring_primitives(n)
         assert len(obs) == n and obs[0]["type"] == "plane"
     assert {o["type"] for o in ring_primitives(4)} == {"plane", "box", "capsule", "sphere"}
-    env = FrankaObstacleEnv("static", obstacles=ring_primitives(12))
+    env = FrankaObstacleEnv("static", **_env_kwargs({"obstacles": ring_primitives(12)}))
     assert env.n_barriers == 21 * 12 + 28
     env.reset(seed=0)
     assert min(env.barrier_terms("true").h[: 21 * 12]) > 0.0  # clear of the ready pose
@@ -59,6 +61,7 @@ def test_oscbf_scene_is_its_demo_draw_and_clear_at_the_ready_pose(monkeypatch):
     import pathlib
     import sys
 
+    from afvsgp_gym.benchmarks.arm import _env_kwargs
     from afvsgp_gym.envs.franka import FrankaObstacleEnv
 
     monkeypatch.syspath_prepend(str(pathlib.Path(__file__).parents[1] / "benchmarks"))
@@ -78,7 +81,8 @@ def test_oscbf_scene_is_its_demo_draw_and_clear_at_the_ready_pose(monkeypatch):
         np.random.set_state(saved)  # noqa: NPY002
     np.testing.assert_array_equal(centres, want_c[:25])
     np.testing.assert_array_equal(radii, want_r[:25])
-    env = FrankaObstacleEnv("static", obstacles=side.our_obstacles(centres, radii))
+    env = FrankaObstacleEnv("static", **_env_kwargs({"obstacles": side.our_obstacles(centres,
+                                                                                   radii)}))
     assert env.n_barriers == 21 * 26 + 28
     env.reset(seed=0)
     assert min(env.barrier_terms("true").h[: 21 * 26]) > 0.0

@@ -1,9 +1,11 @@
 """Whole-arm filter timing: the filtered step against the number of barriers.
 
 ``python -m afvsgp_gym.benchmarks.arm [--quick] [--steps N] [--seeds S ...]`` runs the nominal
-tracker behind ``SafetyFilter(learner)`` on the static Franka scenario (nominal "zero"): the
-default env (21 arm spheres and the 28 joint-limit barriers, 49 in all, which share 21 + 7
-learners), the same arm before the limits (the 21 obstacle pairs, the linear class-K chain and
+tracker behind ``SafetyFilter(learner)`` on the static Franka scenario (nominal "zero"; every
+configuration here, and those of the benchmarks built on :class:`TimedEpisode`, without the
+env's 93 self-collision barriers unless it says ``self_collision``: the counts are the arm's
+pairs with obstacles): the default env (21 arm spheres and the 28 joint-limit barriers, 49 in
+all, which share 21 + 7 learners), the same arm before the limits (the 21 obstacle pairs, the linear class-K chain and
 the warm-up around the proposal: the price of the limits), and the obstacle pairs alone with 1,
 7, 21 and 42 barriers (the end-effector sphere; the 7 hand spheres; the 21 arm spheres; the
 arm with a second obstacle), each with the env's suggested settings (AFVSGP with M = 30, P =
@@ -82,6 +84,7 @@ def _env_kwargs(spec: dict[str, Any]) -> dict[str, Any]:
     from afvsgp_gym.envs.safety_spheres import PANDA_ARM_SPHERES
 
     kw = dict(spec)
+    kw.setdefault("self_collision", False)  # the barriers counted: the arm's with obstacles
     for key in ("fast_path", "filter", "learner"):
         kw.pop(key, None)
     if kw.get("safety_spheres") == "hand":

@@ -155,8 +155,9 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
     ``true_terms_error_bound`` (``2 sum_j |n' J_s M^-1|_j f_j``), for an oracle safe under
     friction (``SafetyFilter(..., learner="oracle", oracle_terms="true_robust")``).
 
-    With ``self_collision`` (off by default; needs ``safety_spheres="arm"``) the arm's own
-    links are kept apart too: after the obstacle barriers come ``n_self_collision_barriers``
+    With ``self_collision`` (on by default with ``safety_spheres="arm"``, the default; off
+    with other sphere sets, which its pairs are not chosen for) the arm's own links are kept
+    apart too: after the obstacle barriers come ``n_self_collision_barriers``
     barriers, one per pair of :data:`~afvsgp_gym.envs.self_collision.PANDA_SELF_COLLISION_PAIRS`
     (93: spheres on links at least two apart in the chain, the base's two spheres of
     :data:`~afvsgp_gym.envs.safety_spheres.PANDA_BASE_SPHERES` included, that can come within
@@ -226,8 +227,9 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
     (2.175 rad/s joints 1-4, 2.61 rad/s joints 5-7); with ``check_acceleration`` also above
     the datasheet acceleration limits (15, 7.5, 10, 12.5, 15, 20, 20 rad/s^2, measured over a
     control period) and with ``check_torque_rate`` above 1000 Nm/s of commanded torque. The
-    limits count whether or not ``limit_barriers`` are on. The arm touching itself or its
-    base (``info["self_contact"]``) does not count in this version.
+    limits count whether or not ``limit_barriers`` are on. So does the arm touching itself
+    or its base (``info["self_contact"]``), whether or not ``self_collision`` is on
+    (:attr:`COST_VERSION` 1; before it, self-contact was reported but not counted).
 
     ## Starting State
     The ready pose ``q = (0, -0.785, 0, -2.356, 0, 0, 0.785)`` (end-effector at the reference
@@ -310,7 +312,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
     | brake_hold_memory | 0.1 | s, the brake's hold point outlives feasible gaps this short |
     | brake_hold_slack | 0.0 | rad, a saturated brake keeps its hold point this near |
     | limit_barriers | True | joint range and speed barriers after the obstacle ones |
-    | self_collision | False | barriers between the arm's own links, after the obstacle ones |
+    | self_collision | None | the arm's own links kept apart (None: on with the "arm" spheres) |
     | range_margin, speed_margin | 0.1, 0.4 | rad, rad/s: the limit barriers' margins |
     | check_acceleration, check_torque_rate | False, False | optional limit checks (Cost) |
     | obstacle_noise, obstacle_rate, obstacle_delay | 0.0, None, 0.0 | m, Hz, s: the camera |
@@ -343,6 +345,8 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
     another type they raise ValueError (the joint encoders and pushes work with every type).
 
     ## Version History
+    - v0: ``self_collision`` on by default with the arm's spheres, and self-contact counts
+      as cost (:attr:`COST_VERSION` 1; issue 46).
     - v0: ``self_collision`` barriers (opt-in) and ``info["self_contact"]``, the base
       included in both (issue 46).
     - v0: the ``"tabletop"`` and ``"shelf"`` scenes (issue 46) joined the scenarios.
@@ -393,6 +397,9 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
     #: every other near pair from closing in and keeping a pair until ``EVADE_HYSTERESIS``
     #: beyond ``EVADE_DISTANCE`` (920d688). Bump it with any change of the brake's actions.
     BRAKE_VERSION = 1
+    #: What ``info["cost"]`` counts; episode records carry it. 1: also the arm touching
+    #: itself or its base (``info["self_contact"]``); 0 (before): obstacles and limits only.
+    COST_VERSION = 1
     #: Sphere pairs (obstacle and self-collision) above which ``SafetyFilter``'s default
     #: learner is the shared one where the prior knows the dynamics (:meth:`suggested_learner`):
     #: one obstacle on the 21 arm spheres, where the two learners' steps are equal; from two
@@ -443,7 +450,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         brake_hold_memory: float = 0.1,
         brake_hold_slack: float = 0.0,
         limit_barriers: bool = True,
-        self_collision: bool = False,
+        self_collision: bool | None = None,
         range_margin: float = 0.1,
         speed_margin: float = 0.4,
         check_acceleration: bool = False,
@@ -485,9 +492,10 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         self.reset_noise = float(reset_noise)
         self.normalize_action = bool(normalize_action)
         self.limit_barriers = bool(limit_barriers)
-        if not isinstance(self_collision, bool | np.bool_):
-            raise ValueError(f"self_collision must be True or False. Got: {self_collision!r}")
-        self.self_collision = bool(self_collision)
+        if self_collision is not None and not isinstance(self_collision, bool | np.bool_):
+            raise ValueError(
+                f"self_collision must be True, False or None. Got: {self_collision!r}")
+        self._self_collision_arg = None if self_collision is None else bool(self_collision)
         range_margin = check_real(range_margin, "range_margin", low=0.0)
         speed_margin = check_real(speed_margin, "speed_margin", low=0.0)
         self.perception = Perception(obstacle_noise, obstacle_rate, obstacle_delay,
@@ -669,12 +677,16 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         )
 
     def _self_collision_pairs(self, spec, spheres) -> SelfCollisionPairs | None:
-        """The self-collision pairs (``self_collision``), chosen for the ``"arm"`` spheres
-        and the base's, which stay where the model puts link0: with another sphere set
-        ``ValueError`` names both options."""
+        """The self-collision pairs (``self_collision``; None: on exactly with the ``"arm"``
+        spheres), chosen for those spheres and the base's, which stay where the model puts
+        link0: ``self_collision=True`` with another sphere set raises ``ValueError`` naming
+        both options. Sets :attr:`self_collision` to what was resolved."""
+        arm = tuple(spheres) == PANDA_ARM_SPHERES
+        wanted = self._self_collision_arg
+        self.self_collision = arm if wanted is None else wanted
         if not self.self_collision:
             return None
-        if tuple(spheres) != PANDA_ARM_SPHERES:
+        if not arm:
             raise ValueError(f"self_collision=True needs safety_spheres='arm' (its pairs are "
                              f"chosen for those spheres). Got: safety_spheres={spec!r}")
         m = self.model
@@ -1689,10 +1701,12 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
 
     def _safety_info(self) -> dict[str, Any]:
         """The base's (from the true state), whether the arm touches itself
-        (:meth:`_self_contact`), the sensing errors (:meth:`sensing_errors`) and whether a
-        push acts."""
+        (:meth:`_self_contact`, counted as cost), the sensing errors
+        (:meth:`sensing_errors`) and whether a push acts."""
         info = super()._safety_info()
         info["self_contact"] = self._self_contact()
+        if info["self_contact"]:
+            info["cost"] = 1.0
         info.update(self.sensing_errors())
         info["push_active"] = self._pushes is not None and self._pushes.body >= 0
         return info

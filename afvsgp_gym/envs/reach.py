@@ -77,7 +77,7 @@ class FrankaObstacleReachEnv(FrankaObstacleEnv):
     ## Rewards
     Per 4 ms step, as Safety-Gymnasium's goal tasks: ``reward_progress = progress_weight
     (d_prev - d)`` with ``d = |p - g|`` (m), ``reward_time = -time_penalty``, ``reward_ctrl =
-    -control_weight |u|^2``, ``reward_cost = -cost_weight * cost`` (contact or h < 0),
+    -control_weight |u|^2``, ``reward_cost = -cost_weight * cost`` (contact, self-contact or h < 0),
     ``reward_success = success_bonus`` on the step that reaches the goal; ``reward`` is their
     sum (terms in ``info``). Cost stays a separate signal too (``info["cost"]``), and the
     penalty makes an unfiltered agent learn to avoid the obstacles, a fair baseline.
@@ -119,6 +119,7 @@ class FrankaObstacleReachEnv(FrankaObstacleEnv):
     | n_obstacles | 1 | static spheres near the straight path |
     | nominal_model | "zero" | "zero", "kinematic", "perturbed", "exact" |
     | safety_spheres | "arm" | "arm", "ee" or a list of (body, offset, radius) |
+    | self_collision | None | barriers between the arm's own links (None: on with "arm") |
     | max_speed | 0.3 | m/s per unit action |
     | task_damping | 200.0 | N s/m, inner loop ``D`` |
     | goal_tolerance | 0.05 | m (as FetchReach and panda-gym) |
@@ -158,6 +159,7 @@ class FrankaObstacleReachEnv(FrankaObstacleEnv):
         n_obstacles: int = 1,
         nominal_model: str = "zero",
         safety_spheres: str | Sequence = "arm",
+        self_collision: bool | None = None,
         max_speed: float = 0.3,
         task_damping: float = 200.0,
         goal_tolerance: float = 0.05,
@@ -209,6 +211,7 @@ class FrankaObstacleReachEnv(FrankaObstacleEnv):
         self._task_ready = False
         super().__init__(
             "static", nominal_model=nominal_model, safety_spheres=safety_spheres,
+            self_collision=self_collision,
             payload_mass=payload_mass, mass_scale=mass_scale, damping=damping,
             friction=friction, armature=armature, plant_seed=plant_seed, physics_dt=physics_dt,
             frame_skip=frame_skip, obstacles=parked, warmup_steps=warmup_steps,

@@ -166,7 +166,9 @@ def run_spec(spec: EpisodeSpec, trace: bool = False) -> tuple[dict, dict | None]
     """Run one episode in a fresh env and filter; returns ``(record, trace)``.
 
     The record (JSON-able) holds ``key``, ``config``, ``seed``, ``code_version``,
-    ``brake_version`` (the env's ``BRAKE_VERSION``, where it declares one: the Franka envs),
+    ``brake_version`` and ``cost_version`` (the env's ``BRAKE_VERSION`` and
+    ``COST_VERSION``, where it declares them: the Franka envs), ``self_collision`` (whether
+    the env's self-collision barriers were on, where it has them),
     ``learner_used`` (the filter's learner, the env's suggestion for ``"auto"``), the counts
     of :func:`run_episode`, ``wall_s`` and ``cpu_s`` (construction and run, wall-clock and
     CPU time of the worker), ``host``, ``machine`` (the CPU model) and ``date`` (the day it
@@ -175,7 +177,10 @@ def run_spec(spec: EpisodeSpec, trace: bool = False) -> tuple[dict, dict | None]
     """
     t0, c0 = time.perf_counter(), time.process_time()
     env = make_env(spec)
-    brake = getattr(env.unwrapped, "BRAKE_VERSION", None)
+    base = env.unwrapped
+    brake = getattr(base, "BRAKE_VERSION", None)
+    cost_version = getattr(base, "COST_VERSION", None)
+    self_collision = getattr(base, "self_collision", None)
     used = getattr(env, "learner_name", None)  # the filter's learner ("auto" resolved)
     try:
         policy = make_policy(spec.agent, env, seed=spec.seed)
@@ -188,6 +193,8 @@ def run_spec(spec: EpisodeSpec, trace: bool = False) -> tuple[dict, dict | None]
         "seed": int(spec.seed),
         "code_version": code_version(),
         **({} if brake is None else {"brake_version": int(brake)}),
+        **({} if cost_version is None else {"cost_version": int(cost_version)}),
+        **({} if self_collision is None else {"self_collision": bool(self_collision)}),
         **({} if used is None else {"learner_used": str(used)}),
         **counts,
         "wall_s": time.perf_counter() - t0,

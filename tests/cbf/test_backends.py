@@ -104,9 +104,10 @@ def test_whole_arm_filter_agrees_across_backends(env_id, steps):
     conformal margin (a miss is a decision)."""
     opts = dict(learner="afvsgp", seed=0, online_exploration=0.0, residual_correction=0.0,
                 learner_kwargs={"adapt_inducing": False}, calibration="off")
-    ctrls = [SafetyFilter(gym.make(env_id), backend=backend, **opts).controller
+    kwargs = {"self_collision": False}  # the 21 pairs and 28 limits of the docstring
+    ctrls = [SafetyFilter(gym.make(env_id, **kwargs), backend=backend, **opts).controller
              for backend in BACKENDS]
-    env = gym.make(env_id)
+    env = gym.make(env_id, **kwargs)
     base = env.unwrapped
     policy = NominalController(env)
     obs, _ = env.reset(seed=0)
