@@ -43,8 +43,12 @@ from docgen import (
     read_jsonl,
     table,
 )
+from self_collision_tables import by_agent_rows, self_cell, suite_rows, tracker_rows
 
 SOURCE = RESULTS / "adversarial.jsonl.gz"
+#: ``afvsgp-gym sweep benchmarks/configs/self_collision.toml``: the suite with today's
+#: defaults (self-collision barriers on, self-contact counted as cost)
+SELF = RESULTS / "self_collision.jsonl.gz"
 ROUTES = RESULTS / "routes.jsonl.gz"
 AUTHORITY = RESULTS / "braking_authority.json"
 BRAKE = RESULTS / "brake.jsonl.gz"
@@ -90,7 +94,7 @@ PAGE = DOCS / "adversarial.md"
 FIELDS = ("block", "config", "seed", "code_version", "machine", "date", "steps",
           "cost_steps", "violation_steps", "contact_steps", "limit_steps", "min_h",
           "infeasible_steps", "tracking_error_mean", "safe_proposals", "safe_proposals_kept",
-          "filter_time_median_s")
+          "filter_time_median_s", "self_contact_steps")
 
 AGENTS = ("ram", "greedy", "swing1", "swing2", "swing3", "swing4", "swing5", "swing6",
           "swing7", "random", "untrained-ppo")
@@ -134,12 +138,13 @@ def headline(recs: list[dict]) -> list[tuple]:
                 code = " / ".join(sorted({str(r.get("code_version")) for r in sub}))
                 rows.append((label(sub[0]) + (f", prior \"{pr}\"" if pr else ""), s["n"],
                              cost_cell(s), f"{100 * s['bound']:.3g} %", f"{s['min_h']:+.4f}",
-                             f"`{code}`"))
+                             self_cell(sub), f"`{code}`"))
         if name == "afvsgp" and len({prior(r) for r in group}) > 1:
             s = summary(group)
             code = " / ".join(sorted({str(r.get("code_version")) for r in group}))
             rows.append(("**AFVSGP, all priors**", s["n"], cost_cell(s),
-                         f"{100 * s['bound']:.3g} %", f"{s['min_h']:+.4f}", f"`{code}`"))
+                         f"{100 * s['bound']:.3g} %", f"{s['min_h']:+.4f}", self_cell(group),
+                         f"`{code}`"))
     return rows
 
 
@@ -300,6 +305,40 @@ def codes_paragraph(recs: list[dict]) -> list[str]:
     return [text, ""] + hold_memory_caveat(recs)
 
 
+def self_collision_section(recs: list[dict], old: list[dict]) -> list[str]:
+    """The suite and the tracker with today's defaults (:mod:`self_collision_tables`)."""
+    header, rows = by_agent_rows(recs, AGENTS)
+    return [
+        "## Episodes with cost",
+        "",
+        "With today's defaults: the self-collision barriers on (93 sphere pairs on "
+        "non-adjacent links and the base, after the obstacle ones) and self-contact counted "
+        "(`benchmarks/configs/self_collision.toml`); each prior with its default learner (per "
+        "pair with nothing of the dynamics known, shared with the robot's own model). "
+        "`before`: of the same episodes (scenario, policy, seed, prior) in the suite's first "
+        "run below, those where the arm touched itself or its base, among those that "
+        "recorded it.",
+        "",
+        measured(meta(recs)) + f" {len(recs)} episodes.",
+        "",
+        table(("filter", "episodes", "with cost", "95 % bound", "min h [m]",
+               "self-contact before"), suite_rows(recs, old)),
+        "",
+        "By policy (episodes with cost / episodes, the three scenarios):",
+        "",
+        table(header, rows),
+        "",
+        "Behind the nominal tracker on the acceptance seeds, the self-collision barriers on "
+        "and off in the same run (tracking: the mean distance of the hand to the reference, "
+        "m, s.e. over episodes; `backup`: brake steps per episode; `filter`: the median of "
+        "the episodes' median filter step, us):",
+        "",
+        table(("filter", "self-collision barriers", "episodes", "with cost", "self-contact",
+               "tracking [m]", "backup", "filter [us]"), tracker_rows(recs)),
+        "",
+    ]
+
+
 def build() -> dict:
     recs = read_jsonl(SOURCE)
     out = [provenance("benchmarks/page_adversarial.py",
@@ -317,17 +356,26 @@ def build() -> dict:
            "the true model (`greedy`), uniform random actions (`random`) and a freshly "
            "initialised PPO policy sampled stochastically (`untrained-ppo`). An episode *has "
            "cost* when any step has `info[\"cost\"] > 0`: an obstacle barrier `h < 0`, an "
-           "arm-obstacle contact, or a joint at its range stop or above its datasheet speed "
-           "(`limits`). The bound is the exact one-sided Clopper-Pearson 95 % upper bound on "
-           "the per-episode cost rate; `min h` the closest approach to an obstacle (m).",
-           "",
-           measured(meta(recs)) + f" {len(recs)} episodes "
+           "arm-obstacle contact, a joint at its range stop or above its datasheet speed "
+           "(`limits`), or two non-adjacent links of the robot touching (`self`, counted "
+           "since the envs' `COST_VERSION` 1). The bound is the exact one-sided "
+           "Clopper-Pearson 95 % upper bound on the per-episode cost rate; `min h` the "
+           "closest approach to an obstacle (m).",
+           ""]
+    if SELF.exists():
+        out += self_collision_section(read_jsonl(SELF), recs)
+    out += [measured(meta(recs)) + f" {len(recs)} episodes "
            "(`afvsgp-gym sweep benchmarks/configs/adversarial.toml`).",
            "",
-           "## Episodes with cost",
+           "## Episodes with cost, before the self-collision barriers",
            "",
-           table(("filter", "episodes", "with cost", "95 % bound", "min h [m]", "code"),
-                 headline(recs)),
+           "The suite's first run, before the self-collision barriers were on by default and "
+           "self-contact counted as cost: the column `with cost` counts what the cost counted "
+           "then, `self-contact` the episodes (of those that recorded it) where the arm "
+           "touched itself or its base.",
+           "",
+           table(("filter", "episodes", "with cost", "95 % bound", "min h [m]", "self-contact",
+                  "code"), headline(recs)),
            "",
            *codes_paragraph(recs),
            "By policy (episodes with cost / episodes, the three scenarios):",

@@ -42,6 +42,7 @@ from docgen import (
     replace_block,
     table,
 )
+from self_collision_tables import self_cell
 
 SOURCE = RESULTS / "acceptance.jsonl.gz"
 #: Code versions of the episodes run again after the brake change (the filter brakes at once
@@ -118,13 +119,17 @@ def readme_table(recs: list[dict]) -> str:
         if group:
             s = summary(group)
             rows.append((name, s["n"], cost_cell(s), f"{100 * s['bound']:.2g} %",
-                         f"{100 * s['min_h']:+.1f} cm"))
+                         f"{100 * s['min_h']:+.1f} cm",
+                         self_cell(group) if "Franka" in group[0]["config"]["env_id"] else "-"))
     m = meta(recs)
     return (f"Seeded 16 s episodes of the obstacle-blind tracker behind the filter, measured "
             f"{m['date']} ([Safety evidence](docs/safety.md) has the machine, every grid and "
-            "the tracking error):\n\n"
+            "the tracking error), before self-collision barriers and self-contact as cost "
+            "(the episodes, of those that recorded it, where the arm touched itself; today's "
+            "defaults against policies built to break them: [Any policy](docs/adversarial.md))"
+            ":\n\n"
             + table(("filter", "episodes", "with cost", "95 % bound on the cost rate",
-                     "closest approach (min h)"), rows) + "\n")
+                     "closest approach (min h)", "self-contact"), rows) + "\n")
 
 
 def recheck_section(recs: list[dict], later: list[dict]) -> list[str]:
@@ -185,8 +190,10 @@ def shared_section(recs: list[dict]) -> list[str]:
             "results/shared.jsonl.gz), beside the per-pair learners on the same seeds; "
             "tracking with its ratio to the oracle's. `SafetyFilter`'s default "
             "(`learner=\"auto\"`, [Learners](learners.md#the-shared-learner)) runs the "
-            "per-pair learners on these one-obstacle scenarios and the shared learner on the "
-            "scenes below when the prior is the robot's own model.", "",
+            "shared learner when the prior is the robot's own model and the pairs are many: "
+            "on the scenes below, and, since the self-collision barriers are on by default "
+            "(114 pairs), on these scenarios too ([Any policy](adversarial.md)); these "
+            "episodes ran without those barriers.", "",
             table(("scenario", "prior", "learner", "episodes", "with cost", "min h [m]",
                    "tracking [m]", "backup / episode", "kept"), rows), ""] + \
         shared_adversarial(everything) + shared_scenes(everything)
@@ -368,6 +375,12 @@ def build() -> dict:
            "(`limits`). The bound is the exact one-sided Clopper-Pearson 95 % upper bound on the "
            "per-episode cost rate; `min h` the closest approach of any safety sphere to the "
            "obstacle over the episodes (m).",
+           "",
+           "These episodes ran before the self-collision barriers were on by default and the "
+           "arm touching itself or its base counted as cost (the envs' `COST_VERSION` 1): "
+           f"of the whole-arm AFVSGP episodes that recorded it, {self_cell(arm)} had "
+           "self-contact. The tracker with today's defaults, barriers on and off in one run, "
+           "and the policies built to break them: [Any policy](adversarial.md).",
            "",
            measured(meta(recs)) + f" {len(recs)} episodes.",
            "",

@@ -23,6 +23,7 @@ from docgen import (
     table,
 )
 from page_adversarial import cost_cell, meta
+from self_collision_tables import self_cell
 
 SOURCE = RESULTS / "scenes.jsonl.gz"
 #: optional: the shared learner's ``scenes_*`` blocks (``benchmarks/configs/shared.toml``)
@@ -196,7 +197,10 @@ def build() -> dict:
             "tracking the mean distance of the hand to the reference (m, s.e. over episodes); "
             "`backup` the steps per episode with no action meeting the chance constraints "
             "(the brake); `w/ self-contact` the episodes where two non-adjacent links touched "
-            "(MuJoCo's geoms; not part of the cost).", "", *versions(recs),
+            "(MuJoCo's geoms; part of the cost since the envs' `COST_VERSION` 1"
+            + (f"; of the episodes run before it, {self_cell(old)} had any"
+               if (old := [r for r in recs if not r.get("cost_version")]) else "")
+            + ").", "", *versions(recs),
             *hold_memory_caveat(recs),
             table(("scene", "policy", "filter", "episodes", "with cost", "95 % bound",
                    "w/ self-contact", "min h [cm]", "tracking [m] (s.e.)", "backup", "code"),

@@ -5,13 +5,13 @@ tracker behind ``SafetyFilter(learner)`` on the static Franka scenario (nominal 
 configuration here, and those of the benchmarks built on :class:`TimedEpisode`, without the
 env's 93 self-collision barriers unless it says ``self_collision``: the counts are the arm's
 pairs with obstacles): the default env (21 arm spheres and the 28 joint-limit barriers, 49 in
-all, which share 21 + 7 learners), the same arm before the limits (the 21 obstacle pairs, the linear class-K chain and
-the warm-up around the proposal: the price of the limits), and the obstacle pairs alone with 1,
-7, 21 and 42 barriers (the end-effector sphere; the 7 hand spheres; the 21 arm spheres; the
-arm with a second obstacle), each with the env's suggested settings (AFVSGP with M = 30, P =
-500 on several spheres, the method's M = 40, P = 1000 on one), plus the end-effector sphere at
-the whole-arm settings (K = 21 against K = 1 at equal settings) and the arm at the method's, and
-times, per control step after the warm-up, with ``perf_counter``:
+all, which share 21 + 7 learners), the same arm before the limits (the 21 obstacle pairs, the
+linear class-K chain and the warm-up around the proposal: the price of the limits), and the
+obstacle pairs alone with 1, 7, 21 and 42 barriers (the end-effector sphere; the 7 hand spheres;
+the 21 arm spheres; the arm with a second obstacle), each with the env's suggested settings
+(AFVSGP with M = 30, P = 500 on several spheres, the method's M = 40, P = 1000 on one), plus the
+end-effector sphere at the whole-arm settings (K = 21 against K = 1 at equal settings) and the
+arm at the method's, and times, per control step after the warm-up, with ``perf_counter``:
 
 - ``step``: the filter's own work, ``SafetyController.filter`` (constraints, the learners'
   predictions for the barriers in the program, the cone program) plus

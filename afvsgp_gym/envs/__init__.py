@@ -12,7 +12,7 @@
 - ``primitives``: exact signed distance from a safety sphere's centre to spheres, boxes,
   capsules and planes, with the normal and curvature a relative-degree-2 barrier needs.
 - ``self_collision``: the pairs of safety spheres on the arm's own links and its base that
-  can meet, and their barrier terms (numpy).
+  can meet, and their barrier terms (numpy); on by default with the arm's spheres.
 - ``scenes``: the tabletop (clutter drawn per reset, a moving forearm) and shelf scenes of
   several typed obstacles.
 - ``registration``: the Gymnasium ids (string entry points: importing this package does

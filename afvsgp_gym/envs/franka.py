@@ -347,7 +347,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
     ## Version History
     - v0: ``self_collision`` on by default with the arm's spheres, and self-contact counts
       as cost (:attr:`COST_VERSION` 1; issue 46).
-    - v0: ``self_collision`` barriers (opt-in) and ``info["self_contact"]``, the base
+    - v0: ``self_collision`` barriers (then opt-in) and ``info["self_contact"]``, the base
       included in both (issue 46).
     - v0: the ``"tabletop"`` and ``"shelf"`` scenes (issue 46) joined the scenarios.
     - v0: initial version; whole-arm safety spheres (``safety_spheres="arm"``) are the

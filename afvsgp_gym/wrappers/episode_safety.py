@@ -46,8 +46,8 @@ class EpisodeSafetyStats(gym.Wrapper, gym.utils.RecordConstructorArgs):
       ``info["warmup"]`` False (the filter's learners fitted; every step without a filter);
       ``violation_steps`` h < 0; ``contact_steps`` ``info["collision"]``;
       ``self_contact_steps`` ``info["self_contact"]`` (the Franka envs: the arm touching
-      itself or its base, not a cost); ``limit_steps`` ``info["limit_violation"]``; ``min_h`` the
-      smallest h.
+      itself or its base, a cost since their ``COST_VERSION`` 1); ``limit_steps``
+      ``info["limit_violation"]``; ``min_h`` the smallest h.
     - ``interventions``: ``info["filter_active"]``; ``infeasible_steps`` not
       ``info["filter_feasible"]``, split by ``info["filter_status"]`` into ``backup_steps``
       (the backup or max-margin fallback applied) and ``relaxed_steps`` (the mean-only

@@ -54,7 +54,8 @@ def test_true_terms_match_finite_differences(fd_env):
     lf, lg = t0.lf.copy(), t0.lg.copy()
     dt = env.dt
     deg = env.barrier_layout.relative_degree
-    assert env.n_barriers == env.n_obstacle_barriers + 28 and np.count_nonzero(deg == 1) == 14
+    assert env.n_barriers == env.n_obstacle_barriers + env.n_self_collision_barriers + 28
+    assert np.count_nonzero(deg == 1) == 14 and env.self_collision == (len(env.safety_spheres) > 1)
     rows, top = np.arange(env.n_barriers), deg - 1  # the highest measured derivative
     d0 = _probe(env, q, qd, k, np.zeros(7))
     lf_fd = (d0[rows, top] - d_now[rows, top]) / dt
@@ -127,7 +128,7 @@ def test_sphere_centres_velocities_and_features(fd_env):
     m, d = env.model, env.data
     po, vo, _ = env._obstacle_states[0]
     assert env.n_obstacle_barriers == len(env.safety_spheres) * env.n_obstacles
-    assert env.n_barriers == env.n_obstacle_barriers + 28 == len(t)
+    assert env.n_barriers == env.n_obstacle_barriers + env.n_self_collision_barriers + 28 == len(t)
     for k, s in enumerate(env.safety_spheres):
         b = m.body(s.body).id
         p = d.xpos[b] + d.xmat[b].reshape(3, 3) @ np.array(s.offset)
@@ -143,9 +144,10 @@ def test_sphere_centres_velocities_and_features(fd_env):
                                    atol=1e-13)
     assert env.feature_dim == t.xi.shape[1] == 20
     lim = env.joint_limits  # the joint-limit barriers: [q, q', 0] and h in rad, rad/s
-    np.testing.assert_array_equal(t.xi[env.n_obstacle_barriers:],
+    first = env.n_obstacle_barriers + env.n_self_collision_barriers
+    np.testing.assert_array_equal(t.xi[first:],
                                   np.tile(np.r_[d.qpos, d.qvel, np.zeros(6)], (28, 1)))
-    np.testing.assert_allclose(t.derivatives[env.n_obstacle_barriers::2][:7, 0],
+    np.testing.assert_allclose(t.derivatives[first::2][:7, 0],
                                d.qpos - lim.lower - lim.range_margin, rtol=1e-15)
 
 
@@ -222,7 +224,7 @@ def test_filter_suggestions_by_sphere_set():
            {"body": "panda0_link5", "offset": (0, 0, 0), "radius": 0.06}]
     for spheres in ("arm", two):
         env = FrankaObstacleEnv("static", safety_spheres=spheres)
-        k = env.n_obstacle_barriers
+        k = env.n_obstacle_barriers + env.n_self_collision_barriers  # 93 with "arm", 0 else
         np.testing.assert_array_equal(env.activation_distance,
                                       np.r_[np.full(k, 0.15), np.full(14, 0.3),
                                             np.full(14, np.inf)])
@@ -286,7 +288,7 @@ def test_delta_b_true_is_true_minus_nominal(nominal_model):
     np.testing.assert_allclose(tn.derivatives, tt.derivatives)
     _, _, _, _, info = env.step(u)
     expected = (tt.lf + tt.lg @ u) - (tn.lf + tn.lg @ u)
-    assert info["delta_b_true"].shape == (env.n_barriers,) == (21 + 28,)
+    assert info["delta_b_true"].shape == (env.n_barriers,) == (21 + 93 + 28,)
     np.testing.assert_allclose(info["delta_b_true"], expected, rtol=1e-10,
                                atol=1e-12 * np.abs(expected).max())
     if nominal_model == "exact":
@@ -296,7 +298,8 @@ def test_delta_b_true_is_true_minus_nominal(nominal_model):
     if nominal_model == "zero":
         assert not np.any(tn.lf) and not np.any(tn.lg)
     if nominal_model == "kinematic":  # kinematics known; joint accelerations are dynamics
-        assert not np.any(tn.lg) and np.all(tn.lf[:21] != 0.0) and not np.any(tn.lf[21:])
+        pairs = env.n_obstacle_barriers + env.n_self_collision_barriers  # then the limits
+        assert not np.any(tn.lg) and np.all(tn.lf[:pairs] != 0.0) and not np.any(tn.lf[pairs:])
 
 
 def test_gravity_compensation_and_torque_scaling():
@@ -403,12 +406,13 @@ def test_info_reward_and_spaces():
         assert key in info
     base = env.unwrapped
     assert base.relative_degree == 2 and base.n_obstacles == 1
-    assert base.n_obstacle_barriers == 21 and base.n_barriers == 21 + 28
+    assert base.n_obstacle_barriers == 21 and base.n_self_collision_barriers == 93
+    assert base.n_barriers == 21 + 93 + 28
     assert "limit_violation" in info and not info["limit_violation"]
     assert base.metadata["render_fps"] == round(1 / base.dt) == 250
     terms = base.barrier_terms()
-    assert len(terms) == 49 and terms[0].lg.shape == (7,) and terms[0].derivatives.shape == (2,)
-    assert info["h"] == info["h_per_barrier"][:21].min() and info["h_per_barrier"].shape == (49,)
+    assert len(terms) == 142 and terms[0].lg.shape == (7,) and terms[0].derivatives.shape == (2,)
+    assert info["h"] == info["h_per_barrier"][:21].min() and info["h_per_barrier"].shape == (142,)
 
 
 def test_bad_input_never_reaches_mujoco():
@@ -471,7 +475,7 @@ def test_multiple_obstacles_collision_and_render():
     assert info["collision"] and info["cost"] == 1.0 and hs[0].min() < 0 < hs[1].min()
     assert base.barrier_names[21].endswith("/obstacle1")
     _, _, _, _, info = env.step(np.zeros(7))
-    assert info["delta_b_true"].shape == (70,) and len(base.barrier_terms()) == 70
+    assert info["delta_b_true"].shape == (163,) and len(base.barrier_terms()) == 42 + 93 + 28
     img = env.render()
     assert img.shape == (96, 96, 3) and img.std() > 0
     env.close()

@@ -26,7 +26,7 @@ def test_pair_model_error_is_the_projection_of_the_joint_errors(prior):
     their sign on their own joint. The error is ~10 m/s^2: the agreement is to rounding."""
     base = _stepped(prior).unwrapped
     nom, true = base.barrier_terms("nominal"), base.barrier_terms("true")
-    P, lim = base.n_obstacle_barriers, base.joint_limits
+    P, lim = base.n_obstacle_barriers + base.n_self_collision_barriers, base.joint_limits
     lower = P + np.flatnonzero((np.arange(lim.n_barriers) < 2 * lim.n_joints) & (lim.sign > 0))
     W = nom.projection
     assert W.shape == (base.n_barriers, 7)
@@ -40,7 +40,8 @@ def test_pair_model_error_is_the_projection_of_the_joint_errors(prior):
 
 def test_shared_layout_projects_every_pair_onto_the_seven_joints():
     base = gym.make("afvsgp_gym/FrankaObstacleStatic-v0", nominal_model="kinematic").unwrapped
-    lay, P = base.shared_barrier_layout, base.n_obstacle_barriers
+    lay, P = base.shared_barrier_layout, base.n_obstacle_barriers + base.n_self_collision_barriers
+    assert P == 21 + 93  # the obstacle pairs and the self-collision pairs, all projected
     assert lay.n_learners == 7 and lay.projected[:P].all() and not lay.projected[P:].any()
     np.testing.assert_array_equal(lay.learner[P:], base.joint_limits.joint)
 
@@ -80,8 +81,11 @@ def test_filtered_steps_predict_the_pairs_through_the_joint_learners():
 
 
 @pytest.mark.parametrize(("env_id", "kwargs", "expected"), [
-    # one obstacle (21 pairs): the per-pair learners, whose step is the faster there
-    ("afvsgp_gym/FrankaObstacleStatic-v0", {"nominal_model": "perturbed"}, "afvsgp"),
+    # one obstacle without self-collision (21 pairs): the per-pair learners, as fast there
+    ("afvsgp_gym/FrankaObstacleStatic-v0", {"nominal_model": "perturbed",
+                                            "self_collision": False}, "afvsgp"),
+    # with them (the default, 114 pairs) the shared learner
+    ("afvsgp_gym/FrankaObstacleStatic-v0", {"nominal_model": "perturbed"}, "afvsgp-shared"),
     # the tabletop's clutter with the robot's own model as the prior: the shared learner
     ("afvsgp_gym/FrankaTabletop-v0", {"nominal_model": "perturbed"}, "afvsgp-shared"),
     ("afvsgp_gym/FrankaShelf-v0", {"nominal_model": "exact"}, "afvsgp-shared"),
@@ -102,7 +106,8 @@ def test_auto_learner_follows_the_env_suggestion(env_id, kwargs, expected):
     if hasattr(base, "suggested_learner"):
         assert base.suggested_learner() == expected
         if expected == "afvsgp-shared":
-            assert base.n_obstacle_barriers > base.SHARED_LEARNER_PAIRS
+            pairs = base.n_obstacle_barriers + base.n_self_collision_barriers
+            assert pairs > base.SHARED_LEARNER_PAIRS
             assert env.controller.bank.layout.projected.any()
     env.close()
 

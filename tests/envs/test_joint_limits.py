@@ -93,7 +93,7 @@ def test_franka_refuses_bad_limit_arguments(kwargs, match):
 
 
 def test_franka_limits_are_the_models_ranges_and_the_datasheet_speeds():
-    env = FrankaObstacleEnv("static")
+    env = FrankaObstacleEnv("static", self_collision=False)  # 21 pairs, then the limits
     lim = env.joint_limits
     np.testing.assert_array_equal(lim.lower, env.model.jnt_range[:7, 0])
     np.testing.assert_array_equal(lim.upper, env.model.jnt_range[:7, 1])
@@ -106,7 +106,7 @@ def test_franka_limits_are_the_models_ranges_and_the_datasheet_speeds():
     assert layout.n_learners == 21 + 7 and np.array_equal(layout.group, [0] * 21 + [1] * 7)
     np.testing.assert_array_equal(layout.learner[21:25], [21, 21, 22, 22])
     np.testing.assert_array_equal(layout.sign[21:25], [1, -1, 1, -1])
-    off = FrankaObstacleEnv("static", limit_barriers=False)
+    off = FrankaObstacleEnv("static", limit_barriers=False, self_collision=False)
     assert off.n_barriers == off.n_obstacle_barriers == 21 and off.barrier_layout.is_uniform
 
 
@@ -149,7 +149,7 @@ def test_perturbed_limit_terms_match_finite_differences_of_the_nominal_model():
     q, qd = fm.Q_HOME + rng.uniform(-0.3, 0.3, 7), rng.uniform(-1.0, 1.0, 7)
     env.set_state(q, qd)
     terms = env.barrier_terms("nominal")
-    k = env.n_obstacle_barriers
+    k = env.n_obstacle_barriers + env.n_self_collision_barriers  # the first limit barrier
     m = env.nominal_mj_model
     data = mujoco.MjData(m)
 

@@ -98,7 +98,8 @@ def test_encoders_noise_reaches_the_observation_and_the_terms_not_info():
         dq.append(obs[:7] - base.data.qpos[:7])
         dqd.append(obs[7:14] - base.data.qvel[:7])
         lim = base.joint_limits
-        speed_h = base.barrier_terms("nominal").h[base.n_obstacle_barriers + 14:]
+        first_limit = base.n_obstacle_barriers + base.n_self_collision_barriers
+        speed_h = base.barrier_terms("nominal").h[first_limit + 14:]
         measured = base._sensed_view.data.qvel[:7]
         top = lim.max_speed - lim.speed_margin
         np.testing.assert_allclose(speed_h[1::2], top - measured, atol=1e-12)

@@ -377,7 +377,9 @@ def test_every_model_and_the_barriers_around_them():
     self-collision, bit for bit, and so are their sensing covariances; layout, projection
     and filter settings put the pairs between the two."""
     kwargs = {"nominal_model": "perturbed", "velocity_noise": 0.01, "position_noise": 0.001}
-    on, off = FrankaObstacleEnv(self_collision=True, **kwargs), FrankaObstacleEnv(**kwargs)
+    on = FrankaObstacleEnv(**kwargs)  # on by default with the arm's spheres
+    off = FrankaObstacleEnv(self_collision=False, **kwargs)
+    assert on.self_collision and not off.self_collision
     rng = np.random.default_rng(5)
     q, qd = fm.Q_HOME + rng.uniform(-0.4, 0.4, 7), rng.uniform(-0.5, 0.5, 7)
     for env in (on, off):
@@ -451,8 +453,8 @@ def test_every_model_and_the_barriers_around_them():
 
 
 def test_bad_input_is_refused_by_name():
-    for value in ("yes", 1, None):
-        with pytest.raises(ValueError, match="self_collision must be True or False"):
+    for value in ("yes", 1, 0.0):
+        with pytest.raises(ValueError, match="self_collision must be True, False or None"):
             FrankaObstacleEnv(self_collision=value)
     with pytest.raises(ValueError, match="self_collision=True needs safety_spheres='arm'"):
         gym.make("afvsgp_gym/FrankaObstacleStatic-v0", self_collision=True,
@@ -515,11 +517,12 @@ def test_self_contact_flag_equals_a_direct_check(contact_pairs):
         assert not term
         flags.append(info["self_contact"])
         assert flags[-1] == _touching(env.model, env.data, contact_pairs)
+        assert info["cost"] == 1.0 or not flags[-1]  # self-contact is a cost
         base_only += flags[-1] and not _touching(env.model, env.data, arm_pairs)
     assert 20 < sum(flags) < 380 and base_only > 0
     env.set_state(FOLDED, np.zeros(7))
     _, _, _, _, info = env.step(np.zeros(7))
-    assert info["self_contact"] and info["cost"] == 0.0  # not a cost in this version
+    assert info["self_contact"] and info["cost"] == 1.0 and not info["collision"]
 
 
 def test_every_barrier_held_means_no_self_contact(contact_pairs):

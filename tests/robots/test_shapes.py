@@ -37,7 +37,8 @@ RADII = sphere_arrays(PANDA_ARM_SPHERES)[2]
 def env():
     # the exact model of a plant whose gravity the robot compensates fully (test_terms.py)
     e = FrankaObstacleEnv(obstacles=OBSTACLES, nominal_model="exact", payload_mass=0.0,
-                          mass_scale=1.0, damping=0.0, friction=0.0, normalize_action=False)
+                          mass_scale=1.0, damping=0.0, friction=0.0, normalize_action=False,
+                          self_collision=False)  # the bridge has no self-collision barriers
     e.reset(seed=0)
     yield e
     e.close()

@@ -16,7 +16,8 @@ def env():
     # the exact model of a plant whose gravity the robot compensates fully: no payload,
     # catalogue masses, no damping or friction (the rotor armature stays in M)
     e = FrankaObstacleEnv("dynamic", nominal_model="exact", payload_mass=0.0, mass_scale=1.0,
-                          damping=0.0, friction=0.0, normalize_action=False)
+                          damping=0.0, friction=0.0, normalize_action=False,
+                          self_collision=False)  # the bridge has no self-collision barriers
     e.reset(seed=0)
     yield e
     e.close()
