@@ -698,23 +698,8 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         return SelfCollisionPairs.of(PANDA_SELF_COLLISION_SPHERES, fixed_centres=fixed)
 
     def _self_contact_geoms(self) -> _GeomPairs:
-        """The pairs of the robot's collision geoms (the base's and the arm's) on links at
-        least two apart in the chain (:func:`~afvsgp_gym.envs.self_collision.chain_index`: a
-        geom on link7 beyond the flange is the hand's) that do not touch at the ready
-        pose."""
-        m = self.model
-        g = np.concatenate([fm.base_collision_geoms(m), self._arm_geoms])
-        index = np.array([chain_index(m.body(m.geom_bodyid[i]).name, m.geom_pos[i, 2])
-                          for i in g])
-        ia, ib = np.triu_indices(len(g), 1)
-        far = np.abs(index[ia] - index[ib]) >= 2
-        a, b = g[ia[far]], g[ib[far]]
-        d = mujoco.MjData(m)
-        d.qpos[:7] = fm.Q_HOME
-        mujoco.mj_kinematics(m, d)
-        apart = np.array([mujoco.mj_geomDistance(m, d, int(x), int(y), 0.01, None) >= 0.0
-                          for x, y in zip(a, b, strict=True)], dtype=bool)
-        return _GeomPairs.of(a[apart], b[apart], m.geom_rbound)
+        """The pairs of :func:`self_contact_geom_pairs` of this env's model."""
+        return self_contact_geom_pairs(self.model)
 
     @property
     def n_obstacle_barriers(self) -> int:
@@ -1715,11 +1700,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         """Some two collision geoms of the robot (the arm's and the base's) on non-adjacent
         links touch (``mj_geomDistance`` < 0; the pairs of :meth:`_self_contact_geoms`, those
         whose bounding spheres overlap)."""
-        m, d, pairs = self.model, self.data, self._self_contact_pairs
-        for a, b in pairs.near(d.geom_xpos):
-            if mujoco.mj_geomDistance(m, d, a, b, 0.01, None) < 0:
-                return True
-        return False
+        return self._self_contact_pairs.touching(self.model, self.data)
 
     def _limit_violation(self) -> bool:
         """A joint at its range stop or above its speed (or, with ``check_acceleration`` /
@@ -1777,6 +1758,33 @@ class _GeomPairs(NamedTuple):
         diff = (flat[self.first_xyz] - flat[self.second_xyz]).reshape(-1, 3)
         rows = np.flatnonzero(np.einsum("ij,ij->i", diff, diff) < self.reach2).tolist()
         return [(self.first[i], self.second[i]) for i in rows]
+
+    def touching(self, m: mujoco.MjModel, d: mujoco.MjData) -> bool:
+        """Some pair touches (``mj_geomDistance`` < 0) at ``d``'s geom poses (only the pairs
+        whose bounding spheres overlap are asked)."""
+        for a, b in self.near(d.geom_xpos):
+            if mujoco.mj_geomDistance(m, d, a, b, 0.01, None) < 0:
+                return True
+        return False
+
+
+def self_contact_geom_pairs(m: mujoco.MjModel) -> _GeomPairs:
+    """The pairs of the Panda's collision geoms (the base's and the arm's: links 1-7, hand,
+    fingers) on links at least two apart in the chain
+    (:func:`~afvsgp_gym.envs.self_collision.chain_index`: a geom on link7 beyond the flange
+    is the hand's) that do not touch at the ready pose: ``info["self_contact"]``'s pairs."""
+    g = np.concatenate([fm.base_collision_geoms(m), fm.arm_collision_geoms(m)])
+    index = np.array([chain_index(m.body(m.geom_bodyid[i]).name, m.geom_pos[i, 2])
+                      for i in g])
+    ia, ib = np.triu_indices(len(g), 1)
+    far = np.abs(index[ia] - index[ib]) >= 2
+    a, b = g[ia[far]], g[ib[far]]
+    d = mujoco.MjData(m)
+    d.qpos[:7] = fm.Q_HOME
+    mujoco.mj_kinematics(m, d)
+    apart = np.array([mujoco.mj_geomDistance(m, d, int(x), int(y), 0.01, None) >= 0.0
+                      for x, y in zip(a, b, strict=True)], dtype=bool)
+    return _GeomPairs.of(a[apart], b[apart], m.geom_rbound)
 
 
 #: Half extent (m) of the rectangle drawn for a plane obstacle (:mod:`franka_model`'s).

@@ -168,7 +168,8 @@ class BridgeReport:
     ``late_reads`` the reads more than 1.5 periods after the last; ``lost_commands`` (a
     stand-in's) the ticks the robot went without a new command; ``min_h`` the smallest
     measured obstacle barrier (m); ``kinematics_error`` the start's check of the kinematics
-    against the robot's own."""
+    against the robot's own; ``barriers`` and ``self_collision_barriers`` the program's
+    barriers (all of them, and the self-collision pairs among them)."""
 
     steps: int = 0
     seconds: float = 0.0
@@ -188,6 +189,8 @@ class BridgeReport:
     min_h: float = math.inf
     lost_commands: int | None = None
     kinematics_error: dict[str, float] | None = None
+    barriers: int = 0
+    self_collision_barriers: int = 0
 
     def to_dict(self) -> dict[str, Any]:
         out = asdict(self)
@@ -403,9 +406,13 @@ class Bridge:
         if warm_up:
             self.warm_up(warm_up)
         n_max = int(round(seconds / CONTROL_PERIOD))
+        model = self.barriers
         self.report = rep = BridgeReport(cost_source="measured" if self.cost is None
                                          else "true_state",
-                                         kinematics_error=self.kinematics_error)
+                                         kinematics_error=self.kinematics_error,
+                                         barriers=model.n_barriers,
+                                         self_collision_barriers=model.n_pair_rows
+                                         - model.n_pairs)
         step_times = np.empty(n_max)
         observe_times = np.empty(n_max)
         self._last_tau, self._last_finite, self._on_time = None, None, False

@@ -17,7 +17,7 @@ from afvsgp_gym.robots.bridge import Bridge, BridgeReport
 from afvsgp_gym.robots.kinematics import FRANKA_PANDA, DHChain, SphereKinematics
 from afvsgp_gym.robots.libfranka import TAU_MAX, check_kinematics, connect, panda_limits
 from afvsgp_gym.robots.policies import WARMUP_SECONDS, make_robot_policy
-from afvsgp_gym.robots.terms import BarrierModel, ObstacleEstimate
+from afvsgp_gym.robots.terms import BarrierModel, ObstacleEstimate, panda_self_collision_pairs
 
 __all__ = ["build_bridge", "make_controller", "obstacle_specs", "realtime_priority", "run_robot",
            "run_simulated", "scripted_obstacles", "static_obstacles"]
@@ -82,7 +82,9 @@ def build_bridge(robot: Any, model: Any, torques: Callable, *, chain: DHChain,
     """The :class:`~afvsgp_gym.robots.bridge.Bridge` of one robot: its kinematics ``chain``,
     safety ``spheres``, joint ``limits``, the obstacles' radii (and ``obstacle_shapes``:
     :class:`~afvsgp_gym.robots.terms.BarrierModel`'s ``shapes``, None: spheres) and
-    perception callback, the policy ``agent``
+    perception callback (with the Panda's arm spheres, the default, the self-collision
+    barriers of :func:`~afvsgp_gym.robots.terms.panda_self_collision_pairs` too, as the
+    simulation's default), the policy ``agent``
     (:data:`~afvsgp_gym.robots.policies.ROBOT_AGENTS`) from the robot's current pose and a
     filter with ``learner``. ``chain`` is first checked against the robot's own flange pose
     and Jacobian (:func:`~afvsgp_gym.robots.libfranka.check_kinematics`; ``RuntimeError``
@@ -90,8 +92,10 @@ def build_bridge(robot: Any, model: Any, torques: Callable, *, chain: DHChain,
     state = robot.read_once()
     checked = check_kinematics(state, model, chain)  # RuntimeError: not the robot's
     kin = SphereKinematics.from_spheres(chain, spheres)
+    pairs = panda_self_collision_pairs() if tuple(spheres) == PANDA_ARM_SPHERES else None
     barriers = BarrierModel(kin, sphere_arrays(spheres)[2], obstacle_radii, limits,
-                            torque_error=torque_error, shapes=obstacle_shapes)
+                            torque_error=torque_error, shapes=obstacle_shapes,
+                            self_collision=pairs)
     controller = make_controller(barriers, learner, **(filter_kwargs or {}))
     q0 = np.asarray(state.q, dtype=np.float64)
     policy = make_robot_policy(agent, chain, q0)

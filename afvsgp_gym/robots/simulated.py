@@ -49,6 +49,7 @@ import mujoco
 import numpy as np
 
 from afvsgp_gym.envs import franka_model as fm
+from afvsgp_gym.envs.franka import self_contact_geom_pairs
 from afvsgp_gym.envs.joint_limits import FRANKA_MAX_SPEED, FRANKA_MAX_TORQUE_RATE, JointLimits
 from afvsgp_gym.envs.primitives import Plane, pair_barriers, stack_shapes
 from afvsgp_gym.envs.safety_spheres import PANDA_ARM_SPHERES, SafetySphere, sphere_arrays
@@ -485,13 +486,20 @@ class SimulatedFranka:
                     return True
         return False
 
+    def self_contact(self) -> bool:
+        """True when two of the robot's collision geoms on non-adjacent links touch (the
+        simulation's ``info["self_contact"]``)."""
+        return self._self_contact_pairs.touching(self.model, self.data)
+
     def cost(self) -> bool:
         """True when the true state has a sphere inside an obstacle, an arm geom touching
-        one (:meth:`contact`) or a joint at its range stop or above its datasheet speed."""
+        one (:meth:`contact`), a joint at its range stop or above its datasheet speed, or
+        the arm touching itself or its base (:meth:`self_contact`), as the simulation's
+        cost."""
         d = self.data
         return bool(self.clearance().min() < 0.0
                     or self.joint_limits.violation(d.qpos[:7], d.qvel[:7])
-                    or self.contact())
+                    or self.contact() or self.self_contact())
 
     def _setup_obstacle_checks(self) -> None:
         """The obstacle geoms and mocap bodies, the arm's collision geoms and their reach
@@ -503,6 +511,7 @@ class SimulatedFranka:
         self._obstacle_mocap = np.array([m.body_mocapid[m.body(f"obstacle{i}").id]
                                          for i in range(n_o)])
         self._arm_geoms = fm.arm_collision_geoms(m)
+        self._self_contact_pairs = self_contact_geom_pairs(m)
         self._arm_rbound = m.geom_rbound[self._arm_geoms].copy()
         reach = self._arm_rbound[None, :] + self._obstacle_radii[:, None]
         self._reach2 = reach * reach

@@ -14,6 +14,12 @@ The barriers and their conventions are :class:`~afvsgp_gym.envs.franka.FrankaObs
   ``d = p_s - p_o``, ``h' = n.v_rel`` (``n = d/|d|``, ``v_rel = v_s - v_o``), relative
   degree 2, ``lf = n.(J_s q''_0 + J_s' q' - a_o) + (|v_rel|^2 - (n.v_rel)^2)/|d|`` and
   ``lg = n' J_s M^-1 diag(action_scale)``; features ``xi = [q, q', d, v_rel]``;
+- with ``self_collision`` (:class:`~afvsgp_gym.envs.self_collision.SelfCollisionPairs`,
+  :func:`panda_self_collision_pairs` for the Panda's arm spheres), one barrier per pair of
+  spheres on non-adjacent links and the base: the pair's barrier with the second sphere in
+  the obstacle's place (``h = |p_a - p_b| - r_a - r_b``, the same ``lf`` and ``lg`` with
+  ``J_a - J_b``, features ``[q, q', p_a - p_b, v_a - v_b]``), as the simulation's
+  ``self_collision`` (on by default there);
 - then the 28 joint range and speed barriers of
   :class:`~afvsgp_gym.envs.joint_limits.JointLimits` with ``lf, lg = +-(q''_0, M^-1
   diag(action_scale))`` of their joint and features ``[q, q', 0 (6)]``.
@@ -65,11 +71,13 @@ from afvsgp_gym.envs.primitives import (
     pair_barriers_and_hessians,
     stack_shapes,
 )
+from afvsgp_gym.envs.safety_spheres import PANDA_BASE_SPHERES
 from afvsgp_gym.envs.scenario import bounding_radius, sphere_barriers
+from afvsgp_gym.envs.self_collision import PANDA_SELF_COLLISION_SPHERES, SelfCollisionPairs
 from afvsgp_gym.robots.kinematics import SphereKinematics
 from afvsgp_gym.types import BarrierLayout, BarrierSet
 
-__all__ = ["FEATURE_DIM", "BarrierModel", "ObstacleEstimate"]
+__all__ = ["FEATURE_DIM", "BarrierModel", "ObstacleEstimate", "panda_self_collision_pairs"]
 
 #: Features per barrier: ``[q (7), q' (7), d (3), v_rel (3)]``, the simulation's.
 FEATURE_DIM = 20
@@ -144,6 +152,10 @@ class BarrierModel:
         is not used), None for a sphere of its ``obstacle_radii`` entry
         (:attr:`~afvsgp_gym.envs.scenario.ObstacleSpec.shape`). None (default): every
         obstacle a sphere.
+    self_collision : SelfCollisionPairs or None
+        Pairs of the kinematics' spheres (and fixed spheres at centres in the base frame)
+        kept apart, after the obstacle pairs (:func:`panda_self_collision_pairs`: the
+        simulation's 93 for the Panda's arm spheres). None (default): none.
     """
 
     #: The filter settings :class:`~afvsgp_gym.envs.franka.FrankaObstacleEnv` suggests
@@ -154,7 +166,7 @@ class BarrierModel:
 
     def __init__(self, kinematics: SphereKinematics, sphere_radii, obstacle_radii,
                  limits: JointLimits | None, action_scale=1.0, torque_error=0.0, *,
-                 shapes=None) -> None:
+                 shapes=None, self_collision: SelfCollisionPairs | None = None) -> None:
         if not isinstance(kinematics, SphereKinematics):
             raise ValueError(f"kinematics must be a SphereKinematics. Got: {kinematics!r}")
         n_s = len(kinematics.links)
@@ -189,7 +201,14 @@ class BarrierModel:
             self._shape_const = (stack_shapes(prims, n_s), hessian_stack(prims, n_s),
                                  np.tile(rs, len(ro)),
                                  np.repeat([shape is None for shape in self.shapes], n_s))
-        self.n_barriers = self.n_pairs + (0 if limits is None else limits.n_barriers)
+        if self_collision is not None and (not isinstance(self_collision, SelfCollisionPairs)
+                                           or self_collision.n_moving != n_s):
+            raise ValueError(f"self_collision must be the SelfCollisionPairs of the {n_s} "
+                             f"spheres or None. Got: {self_collision!r}")
+        self.self_collision = self_collision
+        #: the rows of sphere pairs (obstacle, then self-collision), before the limits
+        self.n_pair_rows = self.n_pairs + (0 if self_collision is None else len(self_collision))
+        self.n_barriers = self.n_pair_rows + (0 if limits is None else limits.n_barriers)
         if limits is not None:  # h = sign * [q, q'][source] + offset for every limit row
             n = limits.n_joints
             self._limit_source = limits.joint + np.repeat([0, n], 2 * n)
@@ -203,7 +222,7 @@ class BarrierModel:
     def layout(self) -> BarrierLayout:
         """The pairs of relative degree 2 with one learner each, then the joint-limit
         barriers sharing one learner per joint (``FrankaObstacleEnv.barrier_layout``)."""
-        return arm_layout(self.n_pairs, self.limits)
+        return arm_layout(self.n_pair_rows, self.limits)
 
     @property
     def shared_layout(self) -> BarrierLayout:
@@ -211,7 +230,7 @@ class BarrierModel:
         (``learner="afvsgp-shared"``; ``FrankaObstacleEnv.shared_barrier_layout``): the terms
         carry ``projection`` (``n' J_s`` per pair; the robot's kinematics are known). Needs
         the joint limits."""
-        return arm_layout(self.n_pairs, self.limits, projected=True)
+        return arm_layout(self.n_pair_rows, self.limits, projected=True)
 
     @property
     def filter_defaults(self) -> dict:
@@ -219,7 +238,7 @@ class BarrierModel:
         same barriers (``FrankaObstacleEnv.filter_defaults`` without the warm-up ones):
         activation distances, braking decelerations and first gains per barrier, and the
         joint-limit barriers' band correction."""
-        k, lim = self.n_pairs, self.limits
+        k, lim = self.n_pair_rows, self.limits
         out = {"activation_distance": np.full(k, self.OBSTACLE_ACTIVATION),
                "braking_deceleration": np.full(k, self.OBSTACLE_DECELERATION),
                "first_gain": np.full(k, np.nan)}
@@ -283,6 +302,11 @@ class BarrierModel:
             cov = np.zeros((nb, 3, 3))
             cov[:k], bias = self._pair_covariance(d, n, vr, per_pair, w, hess)
             lf[:k] -= bias
+        rows = (None if self.limits is None  # n' J_s per pair: the shared learner's
+                else np.einsum("osi,sij->osj", ns, jac).reshape(k, 7))
+        if self.self_collision is not None:
+            k, rows = self._self_rows(k, q, qd, p, v, jac, acc, gain, lf, lg, derivs, xi,
+                                      rows)
         lim, projection = self.limits, None
         if lim is not None:  # JointLimits.terms, .derivatives and .features, in place
             joint, sign = lim.joint, lim.sign
@@ -293,11 +317,23 @@ class BarrierModel:
             derivs[k:r, 1] = sign[: r - k] * qd[joint[: r - k]]
             derivs[r:, 1] = 0.0
             xi[k:, 14:] = 0.0
-            projection = joint_projection(np.einsum("osi,sij->osj", ns, jac).reshape(k, 7),
-                                          lim)
+            projection = joint_projection(rows, lim)
         if self._error_per_action.any():  # the worst residual torque within the bound
             lf -= np.abs(lg) @ self._error_per_action
         return BarrierSet(derivs, lf, lg, xi, cov, projection=projection)
+
+    def _self_rows(self, k, q, qd, p, v, jac, acc, gain, lf, lg, derivs, xi, rows):
+        """Fill the self-collision rows after the ``k`` obstacle rows, in place; returns the
+        first limit row and the pairs' projection rows ``n'(J_a - J_b)`` after ``rows`` (None
+        without the limits: no projection)."""
+        pairs = self.self_collision
+        end = k + len(pairs)
+        geometry = pairs.geometry(p, v)
+        lf[k:end], lg[k:end] = pairs.terms(geometry, acc, gain, 7)
+        derivs[k:end, 0], derivs[k:end, 1] = geometry.h, geometry.hd
+        xi[k:end] = pairs.features(geometry, q, qd, FEATURE_DIM)
+        return end, None if rows is None else np.concatenate([rows,
+                                                              pairs.rows(geometry, jac)])
 
     def _pair_geometry(self, d: np.ndarray, vr: np.ndarray,
                        hessians: bool = False) -> tuple[np.ndarray | None, ...]:
@@ -367,3 +403,11 @@ def _check_shapes(shapes, obstacle_radii: np.ndarray) -> tuple:
                              f"{obstacle_radii[i]}")
         out.append(None if shape is None or isinstance(shape, Sphere) else shape)
     return tuple(out)
+
+
+def panda_self_collision_pairs() -> SelfCollisionPairs:
+    """The simulation's self-collision pairs of the Panda's 21 arm spheres and the base's two,
+    the base's centres in the robot's base frame (link0's, where the base spheres are
+    given)."""
+    return SelfCollisionPairs.of(PANDA_SELF_COLLISION_SPHERES,
+                                 fixed_centres=[s.offset for s in PANDA_BASE_SPHERES])

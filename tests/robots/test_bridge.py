@@ -239,7 +239,7 @@ def test_the_shared_learner_runs_on_the_robots_own_model():
     tip = SphereKinematics.from_spheres(probe.kinematics, probe.spheres).positions(q0)[-1]
     robot = SimulatedFranka([ObstacleSpec(tip + [0.0, 0.12, 0.0], 0.05)], realtime=False)
     bridge, _, _ = _bridge(robot, agent="hold", learner="afvsgp-shared")
-    ctrl, k = bridge.controller, bridge.barriers.n_pairs
+    ctrl, k = bridge.controller, bridge.barriers.n_pair_rows  # obstacle and self pairs
     results = []
     inner = ctrl.filter
     ctrl.filter = lambda u, terms, **kw: results.append(r := inner(u, terms, **kw)) or r
@@ -473,3 +473,22 @@ def test_the_stand_ins_obstacles_are_mujoco_geoms_of_their_type_that_follow_them
                      {**TABLE, "position": [0.0, 0.0, tip[2]]}):
         touching = SimulatedFranka([obstacle], realtime=False)
         assert touching.contact() and touching.cost()
+
+
+def test_the_stand_ins_cost_counts_the_arm_touching_itself():
+    """The stand-in's cost is the simulation's: a folded arm (the hand on link 1, no obstacle
+    near) is a self-contact and a cost, the ready pose neither, and the flag is the
+    simulation env's at the same joint angles."""
+    from afvsgp_gym.envs.franka import FrankaObstacleEnv
+
+    robot = SimulatedFranka(realtime=False)
+    env = FrankaObstacleEnv()
+    folded = np.array([0.0, 0.0, 0.0, -2.8, 0.0, -0.3, 0.785])  # test_self_collision's
+    for q, touching in ((env.q_home, False), (folded, True)):
+        robot.set_state(q, np.zeros(7))
+        env.set_state(q, np.zeros(7))
+        _, _, _, _, info = env.step(np.zeros(7))
+        robot.set_state(env.data.qpos[:7], env.data.qvel[:7])
+        assert robot.self_contact() == info["self_contact"] == touching
+        assert robot.cost() == touching and robot.clearance().min() > 0.0
+    env.close()

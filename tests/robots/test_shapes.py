@@ -14,7 +14,7 @@ from afvsgp_gym.envs.safety_spheres import PANDA_ARM_SPHERES, sphere_arrays
 from afvsgp_gym.envs.scenario import ObstacleSpec, quat_to_rotation
 from afvsgp_gym.robots.kinematics import GYMNASIUM_PANDA, SphereKinematics
 from afvsgp_gym.robots.run import obstacle_specs, scripted_obstacles
-from afvsgp_gym.robots.terms import BarrierModel, ObstacleEstimate
+from afvsgp_gym.robots.terms import BarrierModel, ObstacleEstimate, panda_self_collision_pairs
 
 EPS = np.finfo(np.float64).eps
 C = np.array([0.3068, 0.0, 0.4872])  # the reference centre (end-effector at the ready pose)
@@ -37,8 +37,7 @@ RADII = sphere_arrays(PANDA_ARM_SPHERES)[2]
 def env():
     # the exact model of a plant whose gravity the robot compensates fully (test_terms.py)
     e = FrankaObstacleEnv(obstacles=OBSTACLES, nominal_model="exact", payload_mass=0.0,
-                          mass_scale=1.0, damping=0.0, friction=0.0, normalize_action=False,
-                          self_collision=False)  # the bridge has no self-collision barriers
+                          mass_scale=1.0, damping=0.0, friction=0.0, normalize_action=False)
     e.reset(seed=0)
     yield e
     e.close()
@@ -58,9 +57,9 @@ def _estimate(env, covariance=None):
     return ObstacleEstimate(*(np.array([s[j] for s in states]) for j in range(3)), covariance)
 
 
-def _bridge_model(obstacles, limits=None, action_scale=1.0):
+def _bridge_model(obstacles, limits=None, action_scale=1.0, self_collision=None):
     return BarrierModel(KINEMATICS, RADII, [o.radius for o in obstacles], limits, action_scale,
-                        shapes=[o.shape for o in obstacles])
+                        shapes=[o.shape for o in obstacles], self_collision=self_collision)
 
 
 def test_terms_equal_the_simulations_with_a_box_a_capsule_and_a_table(env):
@@ -71,7 +70,8 @@ def test_terms_equal_the_simulations_with_a_box_a_capsule_and_a_table(env):
     rho >= ~1 cm, so h, h', xi and lg agree to 1e-12 and lf, which holds J M^-1 c with c up
     to ~100 Nm, to 1e-9 (test_terms.py's tolerances for spheres)."""
     base = env.unwrapped
-    model = _bridge_model(base.obstacles, base.joint_limits, base.action_scale)
+    model = _bridge_model(base.obstacles, base.joint_limits, base.action_scale,
+                          panda_self_collision_pairs())  # the env's default
     assert [o.kind for o in base.obstacles] == ["box", "capsule", "plane", "sphere"]
     rng = np.random.default_rng(4)
     lim = base.joint_limits

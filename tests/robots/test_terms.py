@@ -8,16 +8,17 @@ from afvsgp_gym.envs.franka import FrankaObstacleEnv
 from afvsgp_gym.envs.safety_spheres import PANDA_ARM_SPHERES, sphere_arrays
 from afvsgp_gym.robots.kinematics import GYMNASIUM_PANDA, SphereKinematics
 from afvsgp_gym.robots.run import make_controller
-from afvsgp_gym.robots.terms import BarrierModel, ObstacleEstimate
+from afvsgp_gym.robots.terms import BarrierModel, ObstacleEstimate, panda_self_collision_pairs
 
 
-@pytest.fixture(scope="module")
-def env():
+@pytest.fixture(scope="module", params=[True, False], ids=["self-collision", "obstacles"])
+def env(request):
     # the exact model of a plant whose gravity the robot compensates fully: no payload,
-    # catalogue masses, no damping or friction (the rotor armature stays in M)
+    # catalogue masses, no damping or friction (the rotor armature stays in M); with the
+    # self-collision barriers (the default) and without
     e = FrankaObstacleEnv("dynamic", nominal_model="exact", payload_mass=0.0, mass_scale=1.0,
                           damping=0.0, friction=0.0, normalize_action=False,
-                          self_collision=False)  # the bridge has no self-collision barriers
+                          self_collision=request.param)
     e.reset(seed=0)
     yield e
     e.close()
@@ -27,8 +28,9 @@ def _bridge_model(env):
     lim = env.joint_limits
     kin = SphereKinematics.from_spheres(GYMNASIUM_PANDA, PANDA_ARM_SPHERES)
     radii = sphere_arrays(PANDA_ARM_SPHERES)[2]
+    pairs = panda_self_collision_pairs() if env.self_collision else None
     return BarrierModel(kin, radii, [ob.radius for ob in env.obstacles], lim,
-                        env.action_scale)
+                        env.action_scale, self_collision=pairs)
 
 
 def _model_of(env):
@@ -85,13 +87,14 @@ def test_terms_equal_the_simulations(env, with_covariance):
 def test_layout_names_and_filter_defaults_are_the_simulations(env):
     base = env.unwrapped
     model = _bridge_model(base)
-    assert model.n_barriers == base.n_barriers == 21 + 28
+    n_self = 93 if base.self_collision else 0
+    assert model.n_barriers == base.n_barriers == 21 + n_self + 28
     for got, want in ((model.layout, base.barrier_layout),
                       (model.shared_layout, base.shared_barrier_layout)):
         for key in ("relative_degree", "learner", "sign", "group"):
             np.testing.assert_array_equal(getattr(got, key), getattr(want, key))
     shared = make_controller(model, "afvsgp-shared")  # the robot runs the shared learner too
-    assert shared.layout.projected.sum() == 21 and shared.layout.n_learners == 7
+    assert shared.layout.projected.sum() == 21 + n_self and shared.layout.n_learners == 7
     sim = base.filter_defaults
     for key, value in model.filter_defaults.items():
         if isinstance(value, tuple):
@@ -127,7 +130,8 @@ def test_torque_error_lowers_lf_by_the_worst_residual(env):
     exact = _bridge_model(base)
     bound = np.array([3.0, 3.0, 3.0, 3.0, 1.0, 1.0, 1.0])
     robust = BarrierModel(exact.kinematics, exact.sphere_radii, exact.obstacle_radii,
-                          exact.limits, torque_error=bound)
+                          exact.limits, torque_error=bound,
+                          self_collision=exact.self_collision)
     rng = np.random.default_rng(9)
     q, qd = base.q_home + rng.uniform(-0.2, 0.2, 7), rng.uniform(-1, 1, 7)
     mass = np.diag(rng.uniform(0.5, 2.0, 7))
