@@ -1567,7 +1567,8 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         to the forearm alone drove joint 2 at its give-way speed and a hand 32 cm into the
         table). Where the rows conflict, damped least squares weighs them. It is the
         robot's own reflex, with the kinematics and the obstacles' measured motion, not the
-        filter's model."""
+        filter's model. Called once per brake period: it records the pairs given way (the
+        hysteresis' state, ``_giving_way``)."""
         view = self._sensed_view
         exact_static = (self._obstacle_constants()[1] is not None
                         and view.obstacle_states is self._obstacle_states)

@@ -39,6 +39,7 @@ checks the table against that file and re-checks the file in part.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -211,20 +212,34 @@ class SelfCollisionPairs:
         return tuple(f"{name(a)}/{name(b)}" for a, b in zip(self.first, self.second,
                                                            strict=True))
 
-    def _with_fixed(self, x: np.ndarray, value: np.ndarray | None = None) -> np.ndarray:
-        """The moving spheres' ``x`` (M, ...) with the fixed spheres' rows after them:
-        ``value`` (their centres), else zeros."""
-        if not len(self.fixed):
-            return x
-        tail = np.zeros((len(self.fixed),) + x.shape[1:]) if value is None else value
-        return np.concatenate([x, tail])
+    @functools.cached_property
+    def _difference(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(D, F)``: ``D`` (P, M) with +1 at each pair's first sphere and -1 at its second
+        where that one moves, ``F`` (P, 3) the fixed second sphere's centre (else 0), so that
+        ``x_a - x_b = D x`` for any per-sphere quantity of the moving spheres (a fixed sphere
+        has none) and ``p_a - p_b = D p - F``: one product, each entry ``x_a - x_b`` rounded
+        once, as the direct difference."""
+        rows = np.arange(len(self))
+        diff = np.zeros((len(self), self.n_moving))
+        diff[rows, self.first] = 1.0
+        moving = self.second < self.n_moving
+        diff[rows[moving], self.second[moving]] = -1.0
+        centres = np.zeros((len(self), 3))
+        centres[~moving] = self.fixed[self.second[~moving] - self.n_moving]
+        return diff, centres
+
+    def _pair_difference(self, x: np.ndarray) -> np.ndarray:
+        """``x_a - x_b`` (P, ...) of a per-sphere array ``x`` (M, ...) of the moving spheres,
+        0 for a fixed sphere."""
+        diff = self._difference[0]
+        return (diff @ x.reshape(len(x), -1)).reshape((len(self),) + x.shape[1:])
 
     def geometry(self, p: np.ndarray, v: np.ndarray) -> SelfPairGeometry:
         """The pairs' geometry from the moving sphere centres ``p`` and velocities ``v``
         (M, 3)."""
-        p, v = self._with_fixed(p, self.fixed), self._with_fixed(v)
-        offset = p[self.first] - p[self.second]
-        v_rel = v[self.first] - v[self.second]
+        diff, centres = self._difference
+        offset = diff @ p - centres
+        v_rel = diff @ v
         h, hd, n, curv = sphere_barriers(offset, v_rel, self.radius)
         return SelfPairGeometry(h, hd, n, curv, offset, v_rel)
 
@@ -232,8 +247,7 @@ class SelfCollisionPairs:
         """``n'(J_a - J_b)`` (P, nv) from the moving centres' Jacobians ``jac`` (M, 3, nv):
         ``h' = rows q'``, and a joint-acceleration error ``Delta q''`` moves ``h''`` by ``rows
         Delta q''``."""
-        jac = self._with_fixed(jac)
-        return np.einsum("pi,pij->pj", geometry.n, jac[self.first] - jac[self.second])
+        return np.einsum("pi,pij->pj", geometry.n, self._pair_difference(jac))
 
     def terms(self, geometry: SelfPairGeometry, acceleration: np.ndarray,
               gain: np.ndarray | None, n_actions: int) -> tuple[np.ndarray, np.ndarray]:
@@ -242,13 +256,11 @@ class SelfCollisionPairs:
         n_actions; ``J_s M^-1 diag(action_scale)``), or ``lg = 0`` when ``gain`` is None (a
         model that knows the kinematics only)."""
         n = geometry.n
-        acceleration = self._with_fixed(acceleration)
-        lf = np.einsum("pi,pi->p", n, acceleration[self.first] - acceleration[self.second])
+        lf = np.einsum("pi,pi->p", n, self._difference[0] @ acceleration)
         lf += geometry.curvature
         if gain is None:
             return lf, np.zeros((len(self), n_actions))
-        gain = self._with_fixed(gain)
-        return lf, np.einsum("pi,pij->pj", n, gain[self.first] - gain[self.second])
+        return lf, np.einsum("pi,pij->pj", n, self._pair_difference(gain))
 
     def features(self, geometry: SelfPairGeometry, q: np.ndarray, qd: np.ndarray,
                  feature_dim: int) -> np.ndarray:

@@ -305,7 +305,7 @@ class BarrierModel:
         rows = (None if self.limits is None  # n' J_s per pair: the shared learner's
                 else np.einsum("osi,sij->osj", ns, jac).reshape(k, 7))
         if self.self_collision is not None:
-            k, rows = self._self_rows(k, q, qd, p, v, jac, acc, gain, lf, lg, derivs, xi,
+            k, rows = self._self_rows(k, q, qd, p, v, jac, acc, minv, lf, lg, derivs, xi,
                                       rows)
         lim, projection = self.limits, None
         if lim is not None:  # JointLimits.terms, .derivatives and .features, in place
@@ -322,18 +322,20 @@ class BarrierModel:
             lf -= np.abs(lg) @ self._error_per_action
         return BarrierSet(derivs, lf, lg, xi, cov, projection=projection)
 
-    def _self_rows(self, k, q, qd, p, v, jac, acc, gain, lf, lg, derivs, xi, rows):
+    def _self_rows(self, k, q, qd, p, v, jac, acc, minv, lf, lg, derivs, xi, rows):
         """Fill the self-collision rows after the ``k`` obstacle rows, in place; returns the
         first limit row and the pairs' projection rows ``n'(J_a - J_b)`` after ``rows`` (None
-        without the limits: no projection)."""
+        without the limits: no projection). ``lg`` is those rows times ``M^-1
+        diag(action_scale)`` (one product for the pairs, not one per sphere)."""
         pairs = self.self_collision
         end = k + len(pairs)
         geometry = pairs.geometry(p, v)
-        lf[k:end], lg[k:end] = pairs.terms(geometry, acc, gain, 7)
+        pair_rows = pairs.rows(geometry, jac)
+        lf[k:end] = pairs.terms(geometry, acc, None, 7)[0]
+        lg[k:end] = pair_rows @ (minv * self.action_scale)
         derivs[k:end, 0], derivs[k:end, 1] = geometry.h, geometry.hd
         xi[k:end] = pairs.features(geometry, q, qd, FEATURE_DIM)
-        return end, None if rows is None else np.concatenate([rows,
-                                                              pairs.rows(geometry, jac)])
+        return end, None if rows is None else np.concatenate([rows, pair_rows])
 
     def _pair_geometry(self, d: np.ndarray, vr: np.ndarray,
                        hessians: bool = False) -> tuple[np.ndarray | None, ...]:
