@@ -43,7 +43,13 @@ from docgen import (
     read_jsonl,
     table,
 )
-from self_collision_tables import by_agent_rows, self_cell, suite_rows, tracker_rows
+from self_collision_tables import (
+    by_agent_rows,
+    failure_lines,
+    self_cell,
+    suite_rows,
+    tracker_rows,
+)
 
 SOURCE = RESULTS / "adversarial.jsonl.gz"
 #: ``afvsgp-gym sweep benchmarks/configs/self_collision.toml``: the suite with today's
@@ -305,6 +311,13 @@ def codes_paragraph(recs: list[dict]) -> list[str]:
     return [text, ""] + hold_memory_caveat(recs)
 
 
+def traced(rec: dict) -> bool:
+    """The episode with cost whose trace the section describes."""
+    c = rec["config"]
+    return (rec["cost_steps"] > 0 and rec["seed"] == 3007 and c["agent"] == "ram"
+            and c["env_id"].endswith("Dynamic-v0") and prior(rec) == "zero")
+
+
 def self_collision_section(recs: list[dict], old: list[dict]) -> list[str]:
     """The suite and the tracker with today's defaults (:mod:`self_collision_tables`)."""
     header, rows = by_agent_rows(recs, AGENTS)
@@ -328,6 +341,17 @@ def self_collision_section(recs: list[dict], old: list[dict]) -> list[str]:
         "",
         table(header, rows),
         "",
+        *([f"The episodes with cost ({len(fails)}):", "", *fails, ""]
+          if (fails := failure_lines(recs)) else []),
+        *(["Traced (`FrankaObstacleDynamic-v0`, `ram`, seed 3007, prior \"zero\"): the "
+           "self pairs between link 5's and link 7's spheres sit within a "
+           "centimetre of their boundary at the ready pose (the spheres over-approximate "
+           "meshes that can meet within the joint ranges) and the 12 Nm wrist joints give "
+           "them little authority; with nothing of the dynamics known their learned band "
+           "made the program infeasible while the `ram` policy pressed the hand towards the "
+           "sphere, and the brake, whose hold point follows the arm while the obstacle "
+           "moves, let the arm sag under the undeclared payload onto it.", ""]
+          if any(traced(r) for r in recs) else []),
         "Behind the nominal tracker on the acceptance seeds, the self-collision barriers on "
         "and off in the same run (tracking: the mean distance of the hand to the reference, "
         "m, s.e. over episodes; `backup`: brake steps per episode; `filter`: the median of "

@@ -115,3 +115,19 @@ def tracker_rows(recs: list[dict]) -> list[tuple]:
                          f"{statistics.fmean(r['infeasible_steps'] for r in group):.1f}",
                          f"{filter_us:.0f}"))
     return rows
+
+
+def failure_lines(recs: list[dict]) -> list[str]:
+    """One line per episode with cost: filter, scenario, policy, seed, its cost steps by kind,
+    the closest approach and the brake's steps."""
+    out = []
+    for r in recs:
+        if not with_cost(r):
+            continue
+        c = r["config"]
+        out.append(f"- {label(r)}, `{c['env_id'].split('/')[-1]}`, `{c['agent']}`, seed "
+                   f"{r['seed']}: {r['cost_steps']} steps with cost (h < 0: "
+                   f"{r['violation_steps']}, contact: {r['contact_steps']}, limits: "
+                   f"{r.get('limit_steps') or 0}, self: {r.get('self_contact_steps') or 0}), "
+                   f"min h {100 * r['min_h']:+.2f} cm, {r['infeasible_steps']} brake steps.")
+    return out
