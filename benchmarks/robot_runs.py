@@ -64,9 +64,13 @@ RUNS: dict[str, dict] = {
     "perception-exact": dict(kind="stepped", seconds=14.0),
     "perception-noise-1cm": dict(kind="stepped", seconds=14.0, obstacle_noise_m=0.01),
     "learner-afvsgp": dict(kind="stepped", seconds=16.0, learner="afvsgp"),
+    # the bridge's self-collision barriers (opt-in): the price of their step
+    "10s-fifo-self-collision": dict(kind="wall-clock", seconds=10.0, rt_priority=50,
+                                    self_collision=True),
+    "bound-default-self-collision": dict(kind="stepped", seconds=16.0, self_collision=True),
 }
 SETTINGS = dict(agent="nominal", learner="none", torque_error_nm=DEFAULT_BOUND,
-                payload_kg=1.0, obstacle_noise_m=0.0, rt_priority=None)
+                payload_kg=1.0, obstacle_noise_m=0.0, rt_priority=None, self_collision=False)
 
 
 def code_version() -> str:
@@ -104,7 +108,8 @@ def stepped(s: dict) -> dict:
                           obstacles=robot.obstacle_estimate, limits=robot.joint_limits,
                           agent=s["agent"], learner=s["learner"], spheres=robot.spheres,
                           budget=s["budget_ms"] * 1e-3, cost=cost,
-                          torque_error=list(s["torque_error_nm"]))
+                          torque_error=list(s["torque_error_nm"]),
+                          self_collision=s["self_collision"])
     report = bridge.run(s["seconds"])
     report.lost_commands = robot.lost_commands
     return {**report.to_dict(),
@@ -117,7 +122,8 @@ def wall_clock(s: dict) -> dict:
                            budget=s["budget_ms"] * 1e-3,
                            torque_error=list(s["torque_error_nm"]),
                            robot_kwargs={"payload_mass": s["payload_kg"],
-                                         "obstacle_noise": s["obstacle_noise_m"]})
+                                         "obstacle_noise": s["obstacle_noise_m"]},
+                           self_collision=s["self_collision"])
     return report.to_dict()
 
 

@@ -78,13 +78,15 @@ def build_bridge(robot: Any, model: Any, torques: Callable, *, chain: DHChain,
                  spheres: Sequence[SafetySphere] = PANDA_ARM_SPHERES, budget: float = 0.9e-3,
                  cost: Callable[[], bool] | None = None, torque_error=0.0,
                  filter_kwargs: dict | None = None,
-                 obstacle_shapes: Sequence | None = None) -> Bridge:
+                 obstacle_shapes: Sequence | None = None,
+                 self_collision: bool = False) -> Bridge:
     """The :class:`~afvsgp_gym.robots.bridge.Bridge` of one robot: its kinematics ``chain``,
     safety ``spheres``, joint ``limits``, the obstacles' radii (and ``obstacle_shapes``:
     :class:`~afvsgp_gym.robots.terms.BarrierModel`'s ``shapes``, None: spheres) and
-    perception callback (with the Panda's arm spheres, the default, the self-collision
-    barriers of :func:`~afvsgp_gym.robots.terms.panda_self_collision_pairs` too, as the
-    simulation's default), the policy ``agent``
+    perception callback (``self_collision``: the self-collision barriers of
+    :func:`~afvsgp_gym.robots.terms.panda_self_collision_pairs` too, chosen for the Panda's
+    arm spheres; off by default: on the stand-in at 1 kHz on 2 cores their step does not
+    fit the deadline, docs/robot.md), the policy ``agent``
     (:data:`~afvsgp_gym.robots.policies.ROBOT_AGENTS`) from the robot's current pose and a
     filter with ``learner``. ``chain`` is first checked against the robot's own flange pose
     and Jacobian (:func:`~afvsgp_gym.robots.libfranka.check_kinematics`; ``RuntimeError``
@@ -92,7 +94,10 @@ def build_bridge(robot: Any, model: Any, torques: Callable, *, chain: DHChain,
     state = robot.read_once()
     checked = check_kinematics(state, model, chain)  # RuntimeError: not the robot's
     kin = SphereKinematics.from_spheres(chain, spheres)
-    pairs = panda_self_collision_pairs() if tuple(spheres) == PANDA_ARM_SPHERES else None
+    if self_collision and tuple(spheres) != PANDA_ARM_SPHERES:
+        raise ValueError("self_collision=True needs the Panda's arm spheres (its pairs are "
+                         "chosen for them). Got: other spheres")
+    pairs = panda_self_collision_pairs() if self_collision else None
     barriers = BarrierModel(kin, sphere_arrays(spheres)[2], obstacle_radii, limits,
                             torque_error=torque_error, shapes=obstacle_shapes,
                             self_collision=pairs)
@@ -108,12 +113,14 @@ def build_bridge(robot: Any, model: Any, torques: Callable, *, chain: DHChain,
 def run_simulated(seconds: float, *, agent: str = "nominal", learner: str = "none",
                   realtime: bool = True, budget: float = 0.9e-3, torque_error=0.0,
                   robot_kwargs: dict | None = None,
-                  filter_kwargs: dict | None = None) -> BridgeReport:
+                  filter_kwargs: dict | None = None,
+                  self_collision: bool = False) -> BridgeReport:
     """Run the bridge for ``seconds`` against a
     :class:`~afvsgp_gym.robots.simulated.SimulatedFranka` (``robot_kwargs``: its arguments;
     by default a 1 kg payload the served model does not know and the simulation's moving
     sphere; ``obstacles``: specs or the envs' dicts of any type); cost from the stand-in's
-    true state."""
+    true state (the arm touching itself included); ``self_collision`` as
+    :func:`build_bridge`'s."""
     from afvsgp_gym.robots.simulated import SimulatedFranka, Torques
 
     robot = SimulatedFranka(realtime=realtime, **(robot_kwargs or {}))
@@ -123,7 +130,8 @@ def run_simulated(seconds: float, *, agent: str = "nominal", learner: str = "non
                           agent=agent, learner=learner, spheres=robot.spheres, budget=budget,
                           cost=robot.cost, torque_error=torque_error,
                           filter_kwargs=filter_kwargs,
-                          obstacle_shapes=[o.shape for o in robot.obstacles])
+                          obstacle_shapes=[o.shape for o in robot.obstacles],
+                          self_collision=self_collision)
     report = bridge.run(seconds)
     report.lost_commands = robot.lost_commands
     return report
@@ -185,10 +193,12 @@ def scripted_obstacles(specs: Sequence[ObstacleSpec]) -> Callable[[float], Obsta
 
 def run_robot(host: str, seconds: float, *, obstacles: Sequence = (),
               agent: str = "hold", learner: str = "none", budget: float = 0.9e-3,
-              torque_error=0.0, filter_kwargs: dict | None = None) -> BridgeReport:
+              torque_error=0.0, filter_kwargs: dict | None = None,
+              self_collision: bool = False) -> BridgeReport:
     """Run the bridge for ``seconds`` on the robot at ``host`` (pylibfranka, Franka's DH
     table and the Panda's datasheet limits) with virtual ``obstacles`` (:func:`obstacle_specs`:
-    specs, the envs' dicts of any type or fixed spheres ``(x, y, z, r)``)."""
+    specs, the envs' dicts of any type or fixed spheres ``(x, y, z, r)``); ``self_collision``
+    as :func:`build_bridge`'s."""
     specs = obstacle_specs(obstacles)  # (ValueError before connecting)
     robot, model, torques = connect(host)
     bridge = build_bridge(robot, model, torques, chain=FRANKA_PANDA,
@@ -196,5 +206,6 @@ def run_robot(host: str, seconds: float, *, obstacles: Sequence = (),
                           obstacles=scripted_obstacles(specs), limits=panda_limits(),
                           agent=agent, learner=learner, budget=budget,
                           torque_error=torque_error, filter_kwargs=filter_kwargs,
-                          obstacle_shapes=[ob.shape for ob in specs])
+                          obstacle_shapes=[ob.shape for ob in specs],
+                          self_collision=self_collision)
     return bridge.run(seconds)
