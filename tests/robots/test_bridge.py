@@ -492,3 +492,21 @@ def test_the_stand_ins_cost_counts_the_arm_touching_itself():
         assert robot.self_contact() == info["self_contact"] == touching
         assert robot.cost() == touching and robot.clearance().min() > 0.0
     env.close()
+
+
+def test_self_collision_barriers_are_opt_in_on_the_bridge():
+    """Off by default; ``self_collision=True`` adds the simulation's 93 pairs after the
+    obstacle pairs and the loop runs (stepped) without cost; with other spheres than the
+    Panda's arm spheres it is refused by name."""
+    from afvsgp_gym.robots.run import run_simulated
+
+    assert _bridge()[0].barriers.n_pair_rows == 21
+    report = run_simulated(0.5, realtime=False, budget=1.0, self_collision=True)
+    assert report.stop_reason == "completed" and report.cost_steps == 0
+    assert report.self_collision_barriers == 93 and report.barriers == 21 + 93 + 28
+    robot = SimulatedFranka(realtime=False)
+    with pytest.raises(ValueError, match="self_collision=True needs"):
+        build_bridge(robot, robot.load_model(), Torques, chain=robot.kinematics,
+                     obstacle_radii=[0.05], obstacles=robot.obstacle_estimate,
+                     limits=robot.joint_limits, spheres=robot.spheres[14:],
+                     self_collision=True)
