@@ -123,6 +123,11 @@ def test_bad_input_names_the_argument(env):
     with pytest.raises(ValueError, match="obstacles"):
         model.terms(np.zeros(7), np.zeros(7), np.eye(7), np.zeros(7),
                     ObstacleEstimate(np.zeros((2, 3)), np.zeros((2, 3)), np.zeros((2, 3))))
+    hand = SphereKinematics.from_spheres(GYMNASIUM_PANDA, PANDA_ARM_SPHERES[14:])
+    for pairs, kin in ((True, model.kinematics), (panda_self_collision_pairs(), hand)):
+        with pytest.raises(ValueError, match="self_collision must be the SelfCollisionPairs"):
+            BarrierModel(kin, np.full(len(kin.links), 0.05), [0.05], None,
+                         self_collision=pairs)
 
 
 def test_torque_error_lowers_lf_by_the_worst_residual(env):
