@@ -38,7 +38,10 @@ def self_cell(recs: list[dict]) -> str:
 
 def with_cost(rec: dict) -> bool:
     """An episode with cost, self-contact counted: what ``info["cost"]`` counts from
-    ``cost_version`` 1 on (for older records, their cost or a recorded self-contact)."""
+    ``cost_version`` 1 on (for older records, without a ``cost_version``, their cost or a
+    recorded self-contact)."""
+    if rec.get("cost_version", 0) >= 1:
+        return rec["cost_steps"] > 0
     return rec["cost_steps"] > 0 or bool(self_contact(rec))
 
 

@@ -117,6 +117,7 @@ class TimedEpisode:
                                       learner=spec.get("learner", learner), seed=seed,
                                       **spec.get("filter", {}))
         ctrl, bank = env.controller, env.controller.bank
+        ctrl.prepare_programs()  # as a real-time loop would: no solver built while timed
         ctrl.socp.fast_path = bool(spec.get("fast_path", True))
         clock = dict.fromkeys(("learners", "update", "predict", "n_predicted"), 0.0)
 

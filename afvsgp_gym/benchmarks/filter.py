@@ -151,6 +151,7 @@ def time_filtered_step(
             "seed": seed, "relative_degree": base.relative_degree,
             "warmup_samples": min(200, base.warmup_steps - 1)}),
     )
+    ctrl.prepare_programs()  # as a real-time loop would: no solver built while timed
     policy = NominalController(env)
     obs, _ = env.reset(seed=seed)
     t_f, t_o, act = [], [], []

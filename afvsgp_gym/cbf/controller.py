@@ -57,6 +57,11 @@ __all__ = ["FilterResult", "SafetyController", "StepPrediction"]
 
 _step = _compiled.extension("step")
 
+#: Program sizes (barriers in the program) whose solvers the constructor builds ahead: the
+#: activation distance keeps the program to a few tens of barriers in the shipped scenes, and
+#: building every size of a scene's hundreds took ~1 s per filter.
+PREPARED_PROGRAM_SIZES = 48
+
 #: Options that were replaced, and by what (named in the error for the old name).
 _REPLACED_OPTIONS = {"compiled_solver": "backend", "compiled_learners": "backend"}
 
@@ -251,9 +256,7 @@ class SafetyController:
         self.learns = self.bank.learns
         #: barriers projected onto the learners (``BarrierSet.projection``), if any
         self._projected = bool(self.learns and layout.projected.any())
-        self.socp.prepare(self.n_barriers, cones=False)  # the QP: known model, mean fallback
-        if self.learns and cfg.beta > 0:
-            self.socp.prepare(self.n_barriers, cones=True)
+        self.prepare_programs(min(self.n_barriers, PREPARED_PROGRAM_SIZES))
         self.exploration = Exploration(self.low, self.high, cfg.exploration_noise,
                                        cfg.online_exploration, cfg.seed)
         self.residuals = ResidualObserver(self.n_barriers, cfg.residual_correction,
@@ -284,6 +287,20 @@ class SafetyController:
             self.fit(dataset)
 
     # ------------------------------------------------------------------ state
+    def prepare_programs(self, n_constraints: int | None = None) -> None:
+        """Build clarabel's solver objects for programs of 1 to ``n_constraints`` barriers
+        (default: all of them) now, so that the control loop only updates them. The
+        constructor builds those up to :data:`PREPARED_PROGRAM_SIZES`; a larger program builds
+        its solver on first use (~1 ms once per size; the answer does not depend on when:
+        :mod:`~afvsgp_gym.cbf.cone_programs`). A hard real-time loop calls this with no
+        argument before it starts."""
+        n = self.n_barriers if n_constraints is None else check_count(n_constraints,
+                                                                      "n_constraints")
+        n = min(n, self.n_barriers)
+        self.socp.prepare(n, cones=False)  # the QP: known model, mean fallback
+        if self.learns and self.config.beta > 0:
+            self.socp.prepare(n, cones=True)
+
     @property
     def beta(self) -> float:
         return self.config.beta

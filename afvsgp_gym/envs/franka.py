@@ -577,7 +577,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         self._setup_spheres(safety_spheres)
         self._arm_geoms = fm.arm_collision_geoms(m)
         self._arm_rbound = m.geom_rbound[self._arm_geoms].copy()
-        self._self_contact_pairs = self._self_contact_geoms()
+        self._self_contact_pairs = self_contact_geom_pairs(self.model)
         self._obstacle_geoms = np.array([m.geom(f"obstacle{i}").id for i in range(n_obs)])
         # their orientations change per reset (the tabletop's clutter): the compiler's
         # "same frame as the body" shortcut would keep the compiled one in data.geom_xmat
@@ -696,10 +696,6 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
         offsets = np.array([s.offset for s in PANDA_BASE_SPHERES])
         fixed = d.xpos[base] + offsets @ d.xmat[base].reshape(3, 3).T
         return SelfCollisionPairs.of(PANDA_SELF_COLLISION_SPHERES, fixed_centres=fixed)
-
-    def _self_contact_geoms(self) -> _GeomPairs:
-        """The pairs of :func:`self_contact_geom_pairs` of this env's model."""
-        return self_contact_geom_pairs(self.model)
 
     @property
     def n_obstacle_barriers(self) -> int:
@@ -1699,7 +1695,7 @@ class FrankaObstacleEnv(ObstacleTask, MujocoEnv):
 
     def _self_contact(self) -> bool:
         """Some two collision geoms of the robot (the arm's and the base's) on non-adjacent
-        links touch (``mj_geomDistance`` < 0; the pairs of :meth:`_self_contact_geoms`, those
+        links touch (``mj_geomDistance`` < 0; the pairs of :func:`self_contact_geom_pairs`, those
         whose bounding spheres overlap)."""
         return self._self_contact_pairs.touching(self.model, self.data)
 

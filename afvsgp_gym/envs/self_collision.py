@@ -249,18 +249,26 @@ class SelfCollisionPairs:
         Delta q''``."""
         return np.einsum("pi,pij->pj", geometry.n, self._pair_difference(jac))
 
+    def lf(self, geometry: SelfPairGeometry, acceleration: np.ndarray) -> np.ndarray:
+        """``lf`` (P,) from the moving centres' accelerations at zero action ``acceleration``
+        (M, 3): ``n'(a_a - a_b)`` plus the curvature term of ``h''``."""
+        lf = np.einsum("pi,pi->p", geometry.n, self._difference[0] @ acceleration)
+        lf += geometry.curvature
+        return lf
+
+    def lg(self, geometry: SelfPairGeometry, gain: np.ndarray) -> np.ndarray:
+        """``lg`` (P, n_actions) from the moving centres' gain per action unit ``gain`` (M, 3,
+        n_actions; ``J_s M^-1 diag(action_scale)``)."""
+        return np.einsum("pi,pij->pj", geometry.n, self._pair_difference(gain))
+
     def terms(self, geometry: SelfPairGeometry, acceleration: np.ndarray,
               gain: np.ndarray | None, n_actions: int) -> tuple[np.ndarray, np.ndarray]:
-        """``lf`` (P,) and ``lg`` (P, n_actions) from the moving centres' accelerations at
-        zero action ``acceleration`` (M, 3) and their gain per action unit ``gain`` (M, 3,
-        n_actions; ``J_s M^-1 diag(action_scale)``), or ``lg = 0`` when ``gain`` is None (a
+        """:meth:`lf` and :meth:`lg`, or ``lg = 0`` (P, n_actions) when ``gain`` is None (a
         model that knows the kinematics only)."""
-        n = geometry.n
-        lf = np.einsum("pi,pi->p", n, self._difference[0] @ acceleration)
-        lf += geometry.curvature
+        lf = self.lf(geometry, acceleration)
         if gain is None:
             return lf, np.zeros((len(self), n_actions))
-        return lf, np.einsum("pi,pij->pj", n, self._pair_difference(gain))
+        return lf, self.lg(geometry, gain)
 
     def features(self, geometry: SelfPairGeometry, q: np.ndarray, qd: np.ndarray,
                  feature_dim: int) -> np.ndarray:

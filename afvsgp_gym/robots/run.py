@@ -69,6 +69,7 @@ def make_controller(barriers: BarrierModel, learner: str = "none", **filter_kwar
     if ctrl.uses_true_terms:
         raise ValueError(f"learner {learner!r} needs the true terms, which a robot does not "
                          "have; use a learner or 'none'")
+    ctrl.prepare_programs()  # every program size: no solver is built inside the 1 kHz loop
     return ctrl
 
 

@@ -331,7 +331,7 @@ class BarrierModel:
         end = k + len(pairs)
         geometry = pairs.geometry(p, v)
         pair_rows = pairs.rows(geometry, jac)
-        lf[k:end] = pairs.terms(geometry, acc, None, 7)[0]
+        lf[k:end] = pairs.lf(geometry, acc)
         lg[k:end] = pair_rows @ (minv * self.action_scale)
         derivs[k:end, 0], derivs[k:end, 1] = geometry.h, geometry.hd
         xi[k:end] = pairs.features(geometry, q, qd, FEATURE_DIM)

@@ -134,3 +134,21 @@ def test_nan_action_gives_flagged_fallback():
 def test_bad_options(kwargs, match):
     with pytest.raises(ValueError, match=match):
         SafetyController(-np.ones(2), np.ones(2), **kwargs)
+
+
+def test_programs_are_built_ahead_up_to_a_cap_then_on_demand():
+    """The constructor builds the solvers of programs up to ``PREPARED_PROGRAM_SIZES``
+    barriers; ``prepare_programs()`` builds every size (a real-time loop's call); a bad size
+    is refused by name."""
+    from afvsgp_gym.cbf.controller import PREPARED_PROGRAM_SIZES
+
+    n = PREPARED_PROGRAM_SIZES + 5
+    ctrl = SafetyController(-np.ones(2), np.ones(2), n, learner="afvsgp")
+    built = ctrl.socp.programs._solvers
+    assert {k for _, k in built} == set(range(1, PREPARED_PROGRAM_SIZES + 1))
+    assert {kind for kind, _ in built} == {"qp", "socp"}
+    ctrl.prepare_programs()
+    assert {k for _, k in built} == set(range(1, n + 1))
+    assert len(built) == 2 * n
+    with pytest.raises(ValueError, match="n_constraints"):
+        ctrl.prepare_programs(0)

@@ -100,7 +100,8 @@ def test_the_kalman_estimate_beats_the_raw_reading():
     (``info["obstacle_estimate_error"]``) is well below the raw reading's
     (``info["obstacle_error"]``, which lags by the speed times the latency and age); the raw
     baseline's terms carry no covariance and the estimate's do."""
-    kwargs = {"obstacle_noise": 0.01, "obstacle_rate": 30.0, "obstacle_delay": 0.06}
+    kwargs = {"obstacle_noise": 0.01, "obstacle_rate": 30.0, "obstacle_delay": 0.06,
+              "self_collision": False}  # about the obstacle's estimate: its barriers only
     env = SafetyFilter(gym.make(DYNAMIC, **kwargs), learner="oracle")
     base = env.unwrapped
     env.reset(seed=0)
