@@ -256,7 +256,7 @@ class SafetyController:
         self.learns = self.bank.learns
         #: barriers projected onto the learners (``BarrierSet.projection``), if any
         self._projected = bool(self.learns and layout.projected.any())
-        self.prepare_programs(min(self.n_barriers, PREPARED_PROGRAM_SIZES))
+        self.prepare_programs(PREPARED_PROGRAM_SIZES)  # (at most n_barriers)
         self.exploration = Exploration(self.low, self.high, cfg.exploration_noise,
                                        cfg.online_exploration, cfg.seed)
         self.residuals = ResidualObserver(self.n_barriers, cfg.residual_correction,
