@@ -1,6 +1,6 @@
 """The compiled extensions and the backend switch: the one place that imports them.
 
-``setup.py`` builds three optional C extensions where a C compiler is there (without one the
+``setup.py`` builds four optional C extensions where a C compiler is there (without one the
 install goes on and the package runs its numpy paths, the reference of the compiled ones):
 
 - ``afvsgp_gym.cbf._cones`` (``"cones"``): the cone program's one-cone and several-cones
@@ -8,7 +8,10 @@ install goes on and the package runs its numpy paths, the reference of the compi
 - ``afvsgp_gym.cbf._step`` (``"step"``): the controller's per-step glue (cone matrices,
   exploration gate, barriers in the program, learned terms, eq. 48 samples, residuals);
 - ``afvsgp_gym.gp._bank`` (``"bank"``): the AFVSGP learners' per-step arithmetic
-  (:class:`~afvsgp_gym.gp.afvsgp_bank.AFVSGPBank`).
+  (:class:`~afvsgp_gym.gp.afvsgp_bank.AFVSGPBank`);
+- ``afvsgp_gym.robots._arm`` (``"arm"``): the Franka bridge's sphere kinematics and pair
+  terms (:class:`~afvsgp_gym.robots.kinematics.SphereKinematics`,
+  :class:`~afvsgp_gym.robots.terms.BarrierModel`).
 
 A module that runs compiled code takes its extension from :func:`extension` and is told by a
 :class:`Backend` whether to use it. One setting selects the backend of the whole filter,
@@ -40,18 +43,19 @@ EXTENSIONS = {
     "cones": "afvsgp_gym.cbf._cones",
     "step": "afvsgp_gym.cbf._step",
     "bank": "afvsgp_gym.gp._bank",
+    "arm": "afvsgp_gym.robots._arm",
 }
 
 #: The calling convention (the module's ``ABI``, 1 when it has none) each extension must have:
 #: one built from older sources (an editable install not rebuilt) counts as not built.
-ABI = {"cones": 1, "step": 1, "bank": 2}
+ABI = {"cones": 1, "step": 1, "bank": 2, "arm": 1}
 
 _loaded: dict[str, ModuleType | None] = {}
 
 
 def extension(name: str) -> ModuleType | None:
-    """The extension ``name`` (``"cones"``, ``"step"`` or ``"bank"``), imported on the first
-    call; None when it was not built (or does not load, or was built from other sources: a
+    """The extension ``name`` (``"cones"``, ``"step"``, ``"bank"`` or ``"arm"``), imported on
+    the first call; None when it was not built (or does not load, or was built from other sources: a
     ``RuntimeWarning`` says to rebuild it)."""
     try:
         return _loaded[name]
@@ -72,7 +76,7 @@ def extension(name: str) -> ModuleType | None:
 
 
 def available() -> dict[str, bool]:
-    """``{module: built}`` of the three extensions (e.g. ``"afvsgp_gym.gp._bank": True``)."""
+    """``{module: built}`` of the extensions (e.g. ``"afvsgp_gym.gp._bank": True``)."""
     return {path: extension(name) is not None for name, path in EXTENSIONS.items()}
 
 
@@ -86,18 +90,20 @@ class Backend:
     cones: bool = False
     step: bool = False
     bank: bool = False
+    arm: bool = False
 
     def __reduce__(self):
-        return (_unpickled, (self.name, self.cones, self.step, self.bank))
+        return (_unpickled, (self.name, self.cones, self.step, self.bank, self.arm))
 
 
-def _unpickled(name: str, cones: bool, step: bool, bank: bool) -> Backend:
+def _unpickled(name: str, cones: bool, step: bool, bank: bool, arm: bool = False) -> Backend:
     return Backend(name, *(flag and extension(part) is not None
-                           for part, flag in (("cones", cones), ("step", step), ("bank", bank))))
+                           for part, flag in (("cones", cones), ("step", step), ("bank", bank),
+                                              ("arm", arm))))
 
 
 def resolve(backend: str | Backend = "auto",
-            parts: Iterable[str] = ("cones", "step", "bank")) -> Backend:
+            parts: Iterable[str] = tuple(EXTENSIONS)) -> Backend:
     """The :class:`Backend` of ``backend`` (one of :data:`BACKENDS`; a ``Backend`` is returned
     as it is) for the extensions ``parts``, the others off. ``ValueError`` for another value;
     ``ImportError`` naming the extensions of ``parts`` not built when ``backend="compiled"``."""

@@ -19,9 +19,13 @@ SOURCE = RESULTS / "robot.jsonl"
 PAGE = DOCS / "robot.md"
 BLOCK = "robot-runs"
 
-WALL_CLOCK = ("60s-fifo", "10s-fifo", "10s-normal", "10s-fifo-self-collision")
+WALL_CLOCK = ("60s-fifo", "10s-fifo", "10s-normal", "60s-fifo-self-collision",
+              "10s-fifo-self-collision")
 BOUNDS = ("bound-default", "bound-small", "bound-none", "bound-none-no-payload",
           "bound-default-self-collision")
+#: a stepped run and the same run with the sphere kinematics and pair terms in numpy
+ARM_PAIRS = (("bound-default", "bound-default-numpy-arm"),
+             ("bound-default-self-collision", "bound-default-self-collision-numpy-arm"))
 PERCEPTION = ("perception-exact", "perception-noise-1cm")
 LEARNER = "learner-afvsgp"
 PERCENTILES = ("p50", "p90", "p99", "p99.9", "max")
@@ -32,6 +36,12 @@ ACCEPTED_MISSES = 0.005
 def latest(recs: list[dict]) -> dict[str, dict]:
     """The last record of each label."""
     return {r["label"]: r for r in recs}
+
+
+def repeats(recs: list[dict], label: str) -> list[dict]:
+    """Every record of ``label`` with the code of its last one (runs repeated at that code)."""
+    mine = [r for r in recs if r["label"] == label]
+    return [r for r in mine if r["code"] == mine[-1]["code"]] if mine else []
 
 
 def meta(recs: list[dict]) -> dict:
@@ -104,7 +114,7 @@ def wall_clock_table(runs: dict[str, dict]) -> str:
 
 def stepped_table(runs: dict[str, dict]) -> str:
     rows = []
-    for label in BOUNDS + PERCEPTION:
+    for label in BOUNDS + tuple(slow for _, slow in ARM_PAIRS) + PERCEPTION:
         if label not in runs:
             continue
         r = runs[label]
@@ -144,6 +154,40 @@ def bound_sentences(runs: dict[str, dict]) -> list[str]:
     return out
 
 
+def arm_sentences(runs: dict[str, dict]) -> list[str]:
+    """The compiled kinematics and pair terms against their numpy path, same ticks."""
+    parts = []
+    for fast, slow in ARM_PAIRS:
+        if fast not in runs or slow not in runs:
+            continue
+        a, b = runs[fast]["step_time_ms"], runs[slow]["step_time_ms"]
+        parts.append(f"`{fast}` {ms(b['p50'])} -> {ms(a['p50'])} ms at the median "
+                     f"({b['p50'] / a['p50']:.2f}x) and {ms(b['p99'])} -> {ms(a['p99'])} ms at "
+                     f"p99 ({b['p99'] / a['p99']:.2f}x)")
+    if not parts:
+        return []
+    return ["The compiled sphere kinematics and pair terms (`afvsgp_gym.robots._arm`, "
+            "the backend switch's `\"arm\"`) against their numpy path in the same ticks "
+            "(the `-numpy-arm` runs, the filter compiled in both), the step from the read to "
+            "the write: " + "; ".join(parts) + "."]
+
+
+def repeat_sentences(recs: list[dict]) -> list[str]:
+    """The wall-clock runs repeated at the same code: every run's misses."""
+    out = []
+    for label in WALL_CLOCK:
+        same = repeats(recs, label)
+        if len(same) < 2:
+            continue
+        r = same[-1]
+        misses = ", ".join(count(x["deadline_misses"], x["steps"]) for x in same)
+        out.append(f"The {r['requested_seconds']:g} s run{with_self(r).replace(',', ' with')}"
+                   f" ran {len(same)} times at this code (the table gives the last): deadline "
+                   f"misses {misses}; steps with cost "
+                   f"{', '.join(str(x['cost_steps']) for x in same)}.")
+    return out
+
+
 def sentences(runs: dict[str, dict]) -> list[str]:
     out = []
     verdicts = []
@@ -174,6 +218,7 @@ def sentences(runs: dict[str, dict]) -> list[str]:
         out.append(f"In {span} the rate limiter changed the filter's torque in "
                    f"{count(long['rate_limited_steps'], long['steps'])} of the steps.")
     out += bound_sentences(runs)
+    out += arm_sentences(runs)
     exact, noisy = runs.get("perception-exact"), runs.get("perception-noise-1cm")
     if exact and noisy:
         out.append(f"With the camera at {100 * noisy['obstacle_noise_m']:g} cm noise the "
@@ -222,7 +267,7 @@ def build() -> dict:
              "",
              stepped_table(runs),
              "",
-             " ".join(sentences(runs))]
+             " ".join(sentences(runs) + repeat_sentences(read_jsonl(SOURCE)))]
     with_pairs = [r for r in recs if r.get("self_collision")]
     if with_pairs:
         block += ["", "The runs with `self-collision` in their name had the bridge's "

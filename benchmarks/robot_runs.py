@@ -1,6 +1,6 @@
 """The measured runs of the Franka bridge on its MuJoCo stand-in, behind docs/robot.md.
 
-    python benchmarks/robot_runs.py                  # every run (about 3 minutes)
+    python benchmarks/robot_runs.py                  # every run (about 5 minutes)
     python benchmarks/robot_runs.py --only 60s-fifo  # one run again (``--list``: the labels)
     python benchmarks/page_robot.py                  # then the page
 
@@ -24,12 +24,17 @@ Two kinds of run, with the default agent (``nominal``), learner (``none``) and t
   true clearance (the stand-in's ``clearance``), ``min_h`` the measured one (from the
   obstacle estimate).
 
+The ``-numpy-arm`` runs repeat a stepped run with the bridge's sphere kinematics and pair
+terms on their numpy path (``arm_backend``; the extension ``afvsgp_gym.robots._arm`` off, the
+filter's extensions on): the same ticks, to time what the compiled ones save on the loop.
+
 Run it with ``OPENBLAS_NUM_THREADS=1`` (the bridge's setting) and ``MUJOCO_GL=egl``.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import datetime
 import json
 import math
@@ -38,6 +43,7 @@ import platform
 import subprocess
 from pathlib import Path
 
+from afvsgp_gym._compiled import resolve
 from afvsgp_gym.benchmarks._machine import machine
 from afvsgp_gym.robots.run import build_bridge, realtime_priority, run_simulated
 from afvsgp_gym.robots.simulated import SimulatedFranka, Torques
@@ -68,9 +74,25 @@ RUNS: dict[str, dict] = {
     "10s-fifo-self-collision": dict(kind="wall-clock", seconds=10.0, rt_priority=50,
                                     self_collision=True),
     "bound-default-self-collision": dict(kind="stepped", seconds=16.0, self_collision=True),
+    "60s-fifo-self-collision": dict(kind="wall-clock", seconds=60.0, rt_priority=50,
+                                    self_collision=True),
+    # the compiled sphere kinematics and pair terms against their numpy path (the extension
+    # "arm" off, the filter's on): the same ticks, the step's time
+    "bound-default-numpy-arm": dict(kind="stepped", seconds=16.0, arm_backend="numpy"),
+    "bound-default-self-collision-numpy-arm": dict(kind="stepped", seconds=16.0,
+                                                   self_collision=True, arm_backend="numpy"),
 }
 SETTINGS = dict(agent="nominal", learner="none", torque_error_nm=DEFAULT_BOUND,
-                payload_kg=1.0, obstacle_noise_m=0.0, rt_priority=None, self_collision=False)
+                payload_kg=1.0, obstacle_noise_m=0.0, rt_priority=None, self_collision=False,
+                arm_backend="auto")
+
+
+def filter_kwargs(s: dict) -> dict:
+    """The bridge's ``filter_kwargs``: the default backend, or the default with the
+    extension ``"arm"`` (the kinematics and terms) off."""
+    if s["arm_backend"] == "auto":
+        return {}
+    return {"backend": dataclasses.replace(resolve("auto"), arm=False)}
 
 
 def code_version() -> str:
@@ -109,7 +131,7 @@ def stepped(s: dict) -> dict:
                           agent=s["agent"], learner=s["learner"], spheres=robot.spheres,
                           budget=s["budget_ms"] * 1e-3, cost=cost,
                           torque_error=list(s["torque_error_nm"]),
-                          self_collision=s["self_collision"])
+                          self_collision=s["self_collision"], filter_kwargs=filter_kwargs(s))
     report = bridge.run(s["seconds"])
     report.lost_commands = robot.lost_commands
     return {**report.to_dict(),
@@ -123,7 +145,7 @@ def wall_clock(s: dict) -> dict:
                            torque_error=list(s["torque_error_nm"]),
                            robot_kwargs={"payload_mass": s["payload_kg"],
                                          "obstacle_noise": s["obstacle_noise_m"]},
-                           self_collision=s["self_collision"])
+                           self_collision=s["self_collision"], filter_kwargs=filter_kwargs(s))
     return report.to_dict()
 
 

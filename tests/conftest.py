@@ -19,7 +19,7 @@ from afvsgp_gym import _compiled  # noqa: E402
 @pytest.fixture
 def without_extensions(monkeypatch):
     """``hide(*names)``: the compiled extensions ``names`` (``"cones"``, ``"step"``,
-    ``"bank"``) count as not built for the rest of the test (as installed without a C
+    ``"bank"``, ``"arm"``) count as not built for the rest of the test (as installed without a C
     compiler), for the backends resolved from then on."""
 
     def hide(*names):

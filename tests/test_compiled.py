@@ -14,7 +14,7 @@ from afvsgp_gym import _compiled
 from afvsgp_gym._compiled import Backend, resolve
 from afvsgp_gym.cbf import FilterConfig, SafetyController
 
-ALL = ("cones", "step", "bank")
+ALL = ("cones", "step", "bank", "arm")
 
 
 def _c_compiler_fails(tmp_path) -> str | None:
@@ -57,10 +57,11 @@ def test_backends_resolve_to_the_extensions_they_run(without_extensions):
     with pytest.raises(ValueError, match=r"backend must be one of \['auto', 'numpy', 'compiled'\]"):
         resolve("fast")
     without_extensions("cones", "bank")
-    assert resolve("auto") == Backend("auto", step=built["step"])
+    assert resolve("auto") == Backend("auto", step=built["step"], arm=built["arm"])
     step = "afvsgp_gym.cbf._step, " if not built["step"] else ""
+    arm = ", afvsgp_gym.robots._arm" if not built["arm"] else ""
     with pytest.raises(ImportError, match=rf"needs afvsgp_gym\.cbf\._cones, {step}"
-                                          r"afvsgp_gym\.gp\._bank, which were not built"):
+                                          rf"afvsgp_gym\.gp\._bank{arm}, which were not built"):
         resolve("compiled")
     if built["step"]:
         assert resolve("compiled", ("step",)) == Backend("compiled", step=True)

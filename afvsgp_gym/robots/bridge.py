@@ -280,7 +280,8 @@ class Bridge:
         self.kinematics_error: dict[str, float] | None = None
         kin = barriers.kinematics  # the spheres and the end-effector point in one pass
         self._kinematics = SphereKinematics(kin.chain, [*kin.links, 7],
-                                            np.vstack([kin.offsets, END_EFFECTOR_OFFSET]))
+                                            np.vstack([kin.offsets, END_EFFECTOR_OFFSET]),
+                                            backend=kin.backend)
         self._filter_time = 0.0  # running mean of the filter's time (s)
 
     # ------------------------------------------------------------------ one tick

@@ -62,6 +62,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from afvsgp_gym import _compiled
+
+_arm = _compiled.extension("arm")
+
 __all__ = ["END_EFFECTOR_OFFSET", "FLANGE_OFFSET", "FRANKA_PANDA", "GYMNASIUM_PANDA", "DHChain",
            "SphereKinematics"]
 
@@ -175,9 +179,13 @@ class SphereKinematics:
         The link (1-7) each point is fixed to.
     offsets : array_like of shape (S, 3)
         Each point in its link's frame (m).
+    backend : {"auto", "numpy", "compiled"}
+        :meth:`__call__`'s arithmetic (:mod:`afvsgp_gym._compiled`, the extension ``"arm"``;
+        the numpy path is the reference, the two agree to rounding).
     """
 
-    def __init__(self, chain: DHChain, links: Sequence[int], offsets) -> None:
+    def __init__(self, chain: DHChain, links: Sequence[int], offsets, *,
+                 backend: str | _compiled.Backend = "auto") -> None:
         if not isinstance(chain, DHChain):
             raise ValueError(f"chain must be a DHChain. Got: {chain!r}")
         link = np.asarray(links)
@@ -196,9 +204,15 @@ class SphereKinematics:
         self._mask_cols = (np.arange(7)[:, None] <= self._frame[None, :]).astype(
             np.float64)[:, :, None]
         self._offset_cols = np.ascontiguousarray(self.offsets[:, :, None])
+        self.backend = _compiled.resolve(backend, ("arm",))
+        self._frame_c = np.ascontiguousarray(self._frame, dtype=np.int64)
+        self._offsets_c = np.ascontiguousarray(self.offsets)
+        self._chain_c = (np.ascontiguousarray(chain.theta_offset),
+                         np.ascontiguousarray(chain._rx), np.ascontiguousarray(chain._shift))
 
     @classmethod
-    def from_spheres(cls, chain: DHChain, spheres: Sequence) -> SphereKinematics:
+    def from_spheres(cls, chain: DHChain, spheres: Sequence, *,
+                     backend: str | _compiled.Backend = "auto") -> SphereKinematics:
         """From :class:`~afvsgp_gym.envs.safety_spheres.SafetySphere` entries on bodies named
         ``...link<i>`` (i = 1-7)."""
         links = []
@@ -208,10 +222,12 @@ class SphereKinematics:
             if not tail.isdigit() or not 1 <= int(tail) <= 7:
                 raise ValueError(f"spheres[{k}].body must name link1..link7. Got: {name!r}")
             links.append(int(tail))
-        return cls(chain, links, [s.offset for s in spheres])
+        return cls(chain, links, [s.offset for s in spheres], backend=backend)
 
     def positions(self, q: np.ndarray) -> np.ndarray:
         """``(S, 3)`` point positions at ``q``."""
+        if self.backend.arm:  # the same digits as __call__'s
+            return self(q, np.zeros(7))[0]
         rot, org = self.chain.frames(q)
         f = self._frame
         return np.matmul(rot[f], self._offset_cols)[:, :, 0] + org[f]
@@ -223,6 +239,13 @@ class SphereKinematics:
         frames' velocities and velocity-product accelerations, summed over the chain once)."""
         q = np.asarray(q, dtype=np.float64)
         qd = np.asarray(qd, dtype=np.float64)
+        if self.backend.arm:
+            n = len(self._frame_c)
+            p, v, acc = np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3))
+            jac = np.empty((n, 3, 7))
+            _arm.kinematics(n, np.ascontiguousarray(q), np.ascontiguousarray(qd),
+                            *self._chain_c, self._frame_c, self._offsets_c, p, v, jac, acc)
+            return p, v, jac, acc
         rot, org = self.chain.frames(q)
         f = self._frame
         p = np.matmul(rot[f], self._offset_cols)[:, :, 0] + org[f]

@@ -89,19 +89,21 @@ def build_bridge(robot: Any, model: Any, torques: Callable, *, chain: DHChain,
     arm spheres; off by default: on the stand-in at 1 kHz on 2 cores their step does not
     fit the deadline, docs/robot.md), the policy ``agent``
     (:data:`~afvsgp_gym.robots.policies.ROBOT_AGENTS`) from the robot's current pose and a
-    filter with ``learner``. ``chain`` is first checked against the robot's own flange pose
+    filter with ``learner`` (``filter_kwargs``: its options; their ``backend`` selects the
+    kinematics' and the terms' too). ``chain`` is first checked against the robot's own flange pose
     and Jacobian (:func:`~afvsgp_gym.robots.libfranka.check_kinematics`; ``RuntimeError``
     when they disagree)."""
     state = robot.read_once()
     checked = check_kinematics(state, model, chain)  # RuntimeError: not the robot's
-    kin = SphereKinematics.from_spheres(chain, spheres)
+    backend = (filter_kwargs or {}).get("backend", "auto")  # the one switch, as the filter's
+    kin = SphereKinematics.from_spheres(chain, spheres, backend=backend)
     if self_collision and tuple(spheres) != PANDA_ARM_SPHERES:
         raise ValueError("self_collision=True needs the Panda's arm spheres (its pairs are "
                          "chosen for them). Got: other spheres")
     pairs = panda_self_collision_pairs() if self_collision else None
     barriers = BarrierModel(kin, sphere_arrays(spheres)[2], obstacle_radii, limits,
                             torque_error=torque_error, shapes=obstacle_shapes,
-                            self_collision=pairs)
+                            self_collision=pairs, backend=backend)
     controller = make_controller(barriers, learner, **(filter_kwargs or {}))
     q0 = np.asarray(state.q, dtype=np.float64)
     policy = make_robot_policy(agent, chain, q0)

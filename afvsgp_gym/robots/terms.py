@@ -53,6 +53,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from afvsgp_gym import _compiled
 from afvsgp_gym.envs.joint_limits import (
     FRANKA_MAX_ACCELERATION,
     JointLimits,
@@ -76,6 +77,8 @@ from afvsgp_gym.envs.scenario import bounding_radius, sphere_barriers
 from afvsgp_gym.envs.self_collision import PANDA_SELF_COLLISION_SPHERES, SelfCollisionPairs
 from afvsgp_gym.robots.kinematics import SphereKinematics
 from afvsgp_gym.types import BarrierLayout, BarrierSet
+
+_arm = _compiled.extension("arm")
 
 __all__ = ["FEATURE_DIM", "BarrierModel", "ObstacleEstimate", "panda_self_collision_pairs"]
 
@@ -156,6 +159,10 @@ class BarrierModel:
         Pairs of the kinematics' spheres (and fixed spheres at centres in the base frame)
         kept apart, after the obstacle pairs (:func:`panda_self_collision_pairs`: the
         simulation's 93 for the Panda's arm spheres). None (default): none.
+    backend : {"auto", "numpy", "compiled"}
+        The sphere pairs' arithmetic (:mod:`afvsgp_gym._compiled`, the extension ``"arm"``)
+        in a scene of spheres without an obstacle covariance; the numpy path (the reference,
+        equal to rounding) runs otherwise.
     """
 
     #: The filter settings :class:`~afvsgp_gym.envs.franka.FrankaObstacleEnv` suggests
@@ -166,7 +173,8 @@ class BarrierModel:
 
     def __init__(self, kinematics: SphereKinematics, sphere_radii, obstacle_radii,
                  limits: JointLimits | None, action_scale=1.0, torque_error=0.0, *,
-                 shapes=None, self_collision: SelfCollisionPairs | None = None) -> None:
+                 shapes=None, self_collision: SelfCollisionPairs | None = None,
+                 backend: str | _compiled.Backend = "auto") -> None:
         if not isinstance(kinematics, SphereKinematics):
             raise ValueError(f"kinematics must be a SphereKinematics. Got: {kinematics!r}")
         n_s = len(kinematics.links)
@@ -209,6 +217,8 @@ class BarrierModel:
         #: the rows of sphere pairs (obstacle, then self-collision), before the limits
         self.n_pair_rows = self.n_pairs + (0 if self_collision is None else len(self_collision))
         self.n_barriers = self.n_pair_rows + (0 if limits is None else limits.n_barriers)
+        self.backend = _compiled.resolve(backend, ("arm",))
+        self._pair_index = self._pair_table() if self.backend.arm else None
         if limits is not None:  # h = sign * [q, q'][source] + offset for every limit row
             n = limits.n_joints
             self._limit_source = limits.joint + np.repeat([0, n], 2 * n)
@@ -217,6 +227,27 @@ class BarrierModel:
                 np.ravel(np.column_stack([-(limits.lower + limits.range_margin),
                                           limits.upper - limits.range_margin])),
                 np.repeat(top, 2)])
+
+    def _pair_table(self) -> tuple[np.ndarray, ...]:
+        """The compiled pairs' ``(first, second, radius, fixed)``: each pair row's moving
+        sphere, its other end (a sphere >= 0, obstacle ``o`` as ``-1 - o``, fixed sphere
+        ``f`` as ``-1 - O - f``) and radius sum, and the fixed spheres' centres."""
+        n_s, n_o = self.n_spheres, self.n_obstacles
+        first = np.tile(np.arange(n_s), n_o)
+        second = np.repeat(-1 - np.arange(n_o), n_s)
+        radius, fixed = self._radius, np.zeros((0, 3))
+        pairs = self.self_collision
+        if pairs is not None:
+            moving = pairs.second < n_s
+            other = np.where(moving, pairs.second, -1 - n_o - (pairs.second - n_s))
+            first = np.concatenate([first, pairs.first])
+            second = np.concatenate([second, other])
+            radius = np.concatenate([radius, pairs.radius])
+            fixed = pairs.fixed
+        return (np.ascontiguousarray(first, dtype=np.int64),
+                np.ascontiguousarray(second, dtype=np.int64),
+                np.ascontiguousarray(radius, dtype=np.float64),
+                np.ascontiguousarray(fixed, dtype=np.float64))
 
     @property
     def layout(self) -> BarrierLayout:
@@ -271,10 +302,63 @@ class BarrierModel:
             raise ValueError(f"obstacles must be an ObstacleEstimate of {self.n_obstacles} "
                              f"obstacles. Got: {obstacles!r}")
         p, v, jac, bias = self.kinematics(q, qd) if spheres is None else spheres
-        n_s, n_o, k = self.n_spheres, self.n_obstacles, self.n_pairs
         # M^-1 itself: q''_0 = -M^-1 c and the gains J M^-1 (M symmetric)
         minv = np.linalg.inv(mass)
         qacc0 = -(minv @ coriolis)
+        nb = self.n_barriers  # the pairs' rows, then the joint limits' (filled in place)
+        lf = np.empty(nb)
+        lg = np.empty((nb, 7))
+        derivs = np.empty((nb, 2))
+        xi = np.empty((nb, FEATURE_DIM))
+        if self._pair_index is not None and self._shape_const is None \
+                and obstacles.covariance is None:
+            k, cov = self.n_pair_rows, None
+            rows = self._compiled_pairs(q, qd, p, v, jac, bias, qacc0, minv, obstacles,
+                                        derivs, lf, lg, xi)
+            if self.limits is None:
+                rows = None
+        else:
+            k, rows, cov = self._pair_terms(q, qd, p, v, jac, bias, qacc0, minv, obstacles,
+                                            derivs, lf, lg, xi)
+        lim, projection = self.limits, None
+        if lim is not None:  # JointLimits.terms, .derivatives and .features, in place
+            joint, sign = lim.joint, lim.sign
+            lf[k:] = sign * qacc0[joint]
+            lg[k:] = sign[:, None] * (minv * self.action_scale)[joint]
+            derivs[k:, 0] = sign * np.concatenate((q, qd))[self._limit_source] + self._limit_offset
+            r = k + 2 * lim.n_joints
+            derivs[k:r, 1] = sign[: r - k] * qd[joint[: r - k]]
+            derivs[r:, 1] = 0.0
+            xi[k:, :7], xi[k:, 7:14] = q, qd
+            xi[k:, 14:] = 0.0
+            projection = joint_projection(rows, lim)
+        if self._error_per_action.any():  # the worst residual torque within the bound
+            lf -= np.abs(lg) @ self._error_per_action
+        return BarrierSet(derivs, lf, lg, xi, cov, projection=projection)
+
+    def _compiled_pairs(self, q, qd, p, v, jac, bias, qacc0, minv, obstacles, derivs, lf, lg,
+                        xi) -> np.ndarray:
+        """:meth:`_pair_terms` of a scene of spheres without a covariance in compiled code
+        (``_arm.pair_terms``): fills the pair rows in place, returns their projection rows
+        ``n'(J_a - J_b)``."""
+        first, second, radius, fixed = self._pair_index
+        n = self.n_pair_rows
+        rows = np.empty((n, 7))
+        c = np.ascontiguousarray
+        _arm.pair_terms(self.n_spheres, n, self.n_obstacles, len(fixed), first, second, radius,
+                        c(p, dtype=np.float64), c(v, dtype=np.float64),
+                        c(jac, dtype=np.float64), c(bias, dtype=np.float64), qacc0,
+                        c(obstacles.position), c(obstacles.velocity),
+                        c(obstacles.acceleration), fixed, minv * self.action_scale, c(q),
+                        c(qd), derivs[:n], lf[:n], lg[:n], xi[:n], rows)
+        return rows
+
+    def _pair_terms(self, q, qd, p, v, jac, bias, qacc0, minv, obstacles, derivs, lf, lg,
+                    xi) -> tuple:
+        """The pair rows (obstacle pairs, then self-collision pairs) of :meth:`terms` in
+        numpy, in place; ``(first limit row, projection rows or None, covariance or
+        None)``."""
+        n_s, n_o, k = self.n_spheres, self.n_obstacles, self.n_pairs
         d = (p[None, :, :] - obstacles.position[:, None, :]).reshape(k, 3)
         vr = (v[None, :, :] - obstacles.velocity[:, None, :]).reshape(k, 3)
         h, hd, n, curv, offset, hess = self._pair_geometry(d, vr,
@@ -282,11 +366,7 @@ class BarrierModel:
         acc = jac @ qacc0 + bias  # (S, 3) sphere accelerations at zero action
         a_obs = np.repeat(obstacles.acceleration, n_s, axis=0)
         ns = n.reshape(n_o, n_s, 3)
-        nb = self.n_barriers  # the pairs' rows, then the joint limits' (filled in place)
-        lf = np.empty(nb)
-        lg = np.empty((nb, 7))
-        derivs = np.empty((nb, 2))
-        xi = np.empty((nb, FEATURE_DIM))
+        nb = self.n_barriers
         lf[:k] = np.einsum("osi,si->os", ns, acc).ravel()
         lf[:k] -= np.einsum("ki,ki->k", n, a_obs)
         lf[:k] += curv
@@ -307,20 +387,7 @@ class BarrierModel:
         if self.self_collision is not None:
             k, rows = self._self_rows(k, q, qd, p, v, jac, acc, minv, lf, lg, derivs, xi,
                                       rows)
-        lim, projection = self.limits, None
-        if lim is not None:  # JointLimits.terms, .derivatives and .features, in place
-            joint, sign = lim.joint, lim.sign
-            lf[k:] = sign * qacc0[joint]
-            lg[k:] = sign[:, None] * (minv * self.action_scale)[joint]
-            derivs[k:, 0] = sign * np.concatenate((q, qd))[self._limit_source] + self._limit_offset
-            r = k + 2 * lim.n_joints
-            derivs[k:r, 1] = sign[: r - k] * qd[joint[: r - k]]
-            derivs[r:, 1] = 0.0
-            xi[k:, 14:] = 0.0
-            projection = joint_projection(rows, lim)
-        if self._error_per_action.any():  # the worst residual torque within the bound
-            lf -= np.abs(lg) @ self._error_per_action
-        return BarrierSet(derivs, lf, lg, xi, cov, projection=projection)
+        return k, rows, cov
 
     def _self_rows(self, k, q, qd, p, v, jac, acc, minv, lf, lg, derivs, xi, rows):
         """Fill the self-collision rows after the ``k`` obstacle rows, in place; returns the
