@@ -722,7 +722,7 @@ def build_parser() -> argparse.ArgumentParser:
                          "moving sphere too)")
     rb.add_argument("--self-collision", action="store_true",
                     help="keep the arm's links apart too (the simulation's 93 self-collision "
-                         "barriers; off by default: their step does not fit 1 kHz on 2 cores)")
+                         "barriers; off by default, docs/robot.md)")
     rb.add_argument("--payload", type=float, default=1.0, metavar="KG",
                     help="the stand-in's payload its model does not know (default 1.0)")
     rb.add_argument("--obstacle-noise", type=float, default=0.0, metavar="M",

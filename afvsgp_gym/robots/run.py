@@ -86,8 +86,7 @@ def build_bridge(robot: Any, model: Any, torques: Callable, *, chain: DHChain,
     :class:`~afvsgp_gym.robots.terms.BarrierModel`'s ``shapes``, None: spheres) and
     perception callback (``self_collision``: the self-collision barriers of
     :func:`~afvsgp_gym.robots.terms.panda_self_collision_pairs` too, chosen for the Panda's
-    arm spheres; off by default: on the stand-in at 1 kHz on 2 cores their step does not
-    fit the deadline, docs/robot.md), the policy ``agent``
+    arm spheres; off by default, docs/robot.md has their timing), the policy ``agent``
     (:data:`~afvsgp_gym.robots.policies.ROBOT_AGENTS`) from the robot's current pose and a
     filter with ``learner`` (``filter_kwargs``: its options; their ``backend`` selects the
     kinematics' and the terms' too). ``chain`` is first checked against the robot's own flange pose
