@@ -434,11 +434,15 @@ class Bridge:
                     reason = f"robot_error: {exc}"
                     break
                 t0 = self.clock()
-                if self._last_tau is None:  # the robot's last command: continuity
-                    self._last_tau = np.asarray(getattr(state, "tau_J_d", np.zeros(7)),
-                                                dtype=np.float64).copy()
-                    if not _finite(self._last_tau):
-                        self._last_tau = np.zeros(7)
+                # the robot's last command received (libfranka's limitRate takes
+                # tau_J_d): after a lost command the next one steps from what the robot
+                # holds, not from what was sent
+                received = getattr(state, "tau_J_d", None)
+                received = None if received is None else np.asarray(received, dtype=np.float64)
+                if received is not None and received.shape == (7,) and _finite(received):
+                    self._last_tau = received.copy()
+                elif self._last_tau is None:
+                    self._last_tau = np.zeros(7)
                 dt = float(period.to_sec())  # 0 at the first read
                 if dt > 1.5 * CONTROL_PERIOD:
                     rep.late_reads += 1

@@ -105,6 +105,26 @@ def test_a_torque_step_is_rate_limited_so_the_robot_does_not_abort():
     assert report.stop_reason == "completed" and report.rate_limited_steps >= 9
 
 
+def test_after_a_lost_command_the_next_steps_from_what_the_robot_holds():
+    """A command lost on the way (the robot holds the previous one): the next is rate
+    limited from the state's ``tau_J_d``, the command the robot received last (libfranka's
+    ``limitRate``), so a torque ramp goes on without the robot's torque-step reflex."""
+    bridge, rec, robot = _bridge(agent="zero")
+    bridge.policy = lambda obs: np.full(7, 10.0) * (obs.t > 0.02)
+
+    def lose(tick, _robot):
+        if tick == 25:  # the command written after the 24th read never arrives
+            rec.control._written = None
+    rec.on_read = lose
+    report = bridge.run(0.06)
+    assert report.stop_reason == "completed" and robot.lost_commands == 1
+    for state, (tau, _) in zip(rec.states, rec.commands[:-1], strict=True):  # (-1: finish)
+        assert np.abs(tau - np.asarray(state.tau_J_d)).max() <= 1000.0 * DT * (1 + 1e-12)
+    held = rec.states[25].tau_J_d  # the robot holds the command before the lost one
+    np.testing.assert_array_equal(held, rec.commands[23][0])
+    assert not np.array_equal(rec.commands[25][0], rec.commands[24][0] + 1.0)
+
+
 def _slow_policy(bridge, ticks, seconds=0.05):
     """The policy takes ``seconds`` (fake clock) at the given robot ticks."""
     inner = bridge.policy
