@@ -172,22 +172,37 @@ def arm_sentences(runs: dict[str, dict]) -> list[str]:
             "the write: " + "; ".join(parts) + "."]
 
 
+def batches(recs: list[dict], label: str, last: int = 2) -> list[tuple[str, list[dict]]]:
+    """The runs of ``label`` grouped by code, the ``last`` codes it ran at (newest first)."""
+    groups: dict[str, list[dict]] = {}
+    for r in recs:
+        if r["label"] == label:
+            groups.setdefault(r["code"], []).append(r)
+    return list(reversed(list(groups.items())))[:last]
+
+
 def repeat_sentences(recs: list[dict]) -> list[str]:
-    """The wall-clock runs repeated at the same code: every run's misses."""
+    """The wall-clock runs repeated (at the newest code, and at the code before): every
+    run's misses, lost commands, median step and end, so that runs on a slower or busier
+    machine are seen beside the others."""
     out = []
     for label in WALL_CLOCK:
-        same = repeats(recs, label)
-        if len(same) < 2:
+        groups = batches(recs, label)
+        if sum(len(runs) for _, runs in groups) < 2:
             continue
-        r = same[-1]
-        each = "; ".join(f"{count(x['deadline_misses'], x['steps'])} misses, "
-                         f"{x['lost_commands'] or 0:,} lost commands, "
-                         f"{x['cost_steps']:,} steps with cost, "
-                         + ("completed" if x["stop_reason"] == "completed"
-                            else f"stopped by {stop(x)}")
-                         for x in same)
-        out.append(f"The {r['requested_seconds']:g} s run{with_self(r).replace(',', ' with')}"
-                   f" ran {len(same)} times at this code (the table gives the last): {each}.")
+        r = groups[0][1][-1]
+        parts = []
+        for code, runs in groups:
+            each = "; ".join(
+                f"{count(x['deadline_misses'], x['steps'])} misses, "
+                f"{x['lost_commands'] or 0:,} lost commands, step p50 "
+                f"{ms(x['step_time_ms']['p50'])} ms, "
+                + ("completed" if x["stop_reason"] == "completed" else f"stopped by {stop(x)}")
+                for x in runs)
+            parts.append(f"at `{code}`, {len(runs)} run{'s' if len(runs) > 1 else ''}: {each}")
+        out.append(f"The {r['requested_seconds']:g} s run{with_self(r).replace(',', ' with')} "
+                   f"at `{r['scheduler']}` (the table gives the last): " + "; ".join(parts)
+                   + ".")
     return out
 
 
