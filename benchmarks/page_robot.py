@@ -38,12 +38,6 @@ def latest(recs: list[dict]) -> dict[str, dict]:
     return {r["label"]: r for r in recs}
 
 
-def repeats(recs: list[dict], label: str) -> list[dict]:
-    """Every record of ``label`` with the code of its last one (runs repeated at that code)."""
-    mine = [r for r in recs if r["label"] == label]
-    return [r for r in mine if r["code"] == mine[-1]["code"]] if mine else []
-
-
 def meta(recs: list[dict]) -> dict:
     def one(key: str) -> str | None:
         return " / ".join(sorted({str(r[key]) for r in recs if r.get(key)})) or None
@@ -227,7 +221,7 @@ def sentences(runs: dict[str, dict], recs: list[dict]) -> list[str]:
         r = runs[label]
         name = (f"the {r['requested_seconds']:g} s run{with_self(r).replace(',', ' with')} "
                 f"at `{r['scheduler']}`")
-        same = repeats(recs, label)
+        same = batches(recs, label, 1)[0][1]  # every run at the newest code
         if len(same) > 1:  # every run at this code, not only the last
             met = sum(not failures(x) for x in same)
             verdicts.append(f"{name} met it in {met} of its {len(same)} runs at this code")

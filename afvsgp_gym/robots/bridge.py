@@ -437,9 +437,8 @@ class Bridge:
                 # the robot's last command received (libfranka's limitRate takes
                 # tau_J_d): after a lost command the next one steps from what the robot
                 # holds, not from what was sent
-                received = getattr(state, "tau_J_d", None)
-                received = None if received is None else np.asarray(received, dtype=np.float64)
-                if received is not None and received.shape == (7,) and _finite(received):
+                received = np.asarray(getattr(state, "tau_J_d", ()), dtype=np.float64)
+                if received.shape == (7,) and _finite(received):
                     self._last_tau = received.copy()
                 elif self._last_tau is None:
                     self._last_tau = np.zeros(7)

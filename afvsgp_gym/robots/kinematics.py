@@ -205,10 +205,7 @@ class SphereKinematics:
             np.float64)[:, :, None]
         self._offset_cols = np.ascontiguousarray(self.offsets[:, :, None])
         self.backend = _compiled.resolve(backend, ("arm",))
-        self._frame_c = np.ascontiguousarray(self._frame, dtype=np.int64)
-        self._offsets_c = np.ascontiguousarray(self.offsets)
-        self._chain_c = (np.ascontiguousarray(chain.theta_offset),
-                         np.ascontiguousarray(chain._rx), np.ascontiguousarray(chain._shift))
+        self._chain_c = (chain.theta_offset, chain._rx, chain._shift)  # the extension's
 
     @classmethod
     def from_spheres(cls, chain: DHChain, spheres: Sequence, *,
@@ -240,11 +237,11 @@ class SphereKinematics:
         q = np.asarray(q, dtype=np.float64)
         qd = np.asarray(qd, dtype=np.float64)
         if self.backend.arm:
-            n = len(self._frame_c)
+            n = len(self._frame)
             p, v, acc = np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3))
             jac = np.empty((n, 3, 7))
             _arm.kinematics(n, np.ascontiguousarray(q), np.ascontiguousarray(qd),
-                            *self._chain_c, self._frame_c, self._offsets_c, p, v, jac, acc)
+                            *self._chain_c, self._frame, self.offsets, p, v, jac, acc)
             return p, v, jac, acc
         rot, org = self.chain.frames(q)
         f = self._frame

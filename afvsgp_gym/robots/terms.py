@@ -373,7 +373,7 @@ class BarrierModel:
         gain = np.matmul(jac, minv) * self.action_scale  # (S, 3, 7)
         lg[:k] = np.einsum("osi,sij->osj", ns, gain).reshape(k, 7)
         derivs[:k, 0], derivs[:k, 1] = h, hd
-        xi[:, :7], xi[:, 7:14] = q, qd
+        xi[:k, :7], xi[:k, 7:14] = q, qd  # (the self rows' and limits' below)
         xi[:k, 14:17], xi[:k, 17:] = offset, vr
         cov = None
         if obstacles.covariance is not None:

@@ -214,12 +214,12 @@ def test_the_extension_refuses_arrays_of_the_wrong_size_naming_them():
     n = len(k.links)
     out = [np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3, 7)), np.empty((n, 3))]
     with pytest.raises(ValueError, match="offsets must hold"):
-        arm.kinematics(n, np.zeros(7), np.zeros(7), *k._chain_c, k._frame_c,
+        arm.kinematics(n, np.zeros(7), np.zeros(7), *k._chain_c, k._frame,
                        np.zeros((n - 1, 3)), *out)
     with pytest.raises(ValueError, match="frame must be of dtype int64"):
-        arm.kinematics(n, np.zeros(7), np.zeros(7), *k._chain_c, k._frame_c.astype(float),
-                       k._offsets_c, *out)
-    bad = k._frame_c.copy()
+        arm.kinematics(n, np.zeros(7), np.zeros(7), *k._chain_c, k._frame.astype(float),
+                       k.offsets, *out)
+    bad = k._frame.copy()
     bad[0] = 7
     with pytest.raises(ValueError, match="frame must hold link indices 0-6"):
-        arm.kinematics(n, np.zeros(7), np.zeros(7), *k._chain_c, bad, k._offsets_c, *out)
+        arm.kinematics(n, np.zeros(7), np.zeros(7), *k._chain_c, bad, k.offsets, *out)
