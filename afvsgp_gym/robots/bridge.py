@@ -12,7 +12,7 @@ millisecond:
 5. libfranka's torque-rate limiter (:func:`~afvsgp_gym.robots.libfranka.limit_rate`,
    1000 Nm/s) and ``writeOnce(Torques)``;
 6. after the write, in the time left before the next state: ``SafetyController.observe``
-   (learning) and the cost check.
+   (learning) and the cost check (or its record, :class:`~afvsgp_gym.robots.simulated.CostLog`).
 
 **Deadlines.** The steps from the read to the write have a budget (``budget``, 0.9 ms by
 default). Python cannot pre-empt the filter, so the bridge checks twice: before the filter,
@@ -245,8 +245,11 @@ class Bridge:
         The command type, ``torques(tau_list)`` (``pylibfranka.Torques``).
     budget : float
         s from the read to the write (default 0.9 ms).
-    cost : callable or None
-        ``cost() -> bool`` of the true state after each tick (a stand-in's); None: the
+    cost : callable, CostLog or None
+        ``cost() -> bool`` of the true state after each tick (a stand-in's); an object with
+        ``record()`` and ``count() -> int`` (a stand-in's
+        :class:`~afvsgp_gym.robots.simulated.CostLog`): ``record()`` after each tick,
+        ``count()`` after the run, so the check's time stays off the loop; None: the
         measured state's (some pair with ``h < 0``).
     learn : bool
         Call ``controller.observe`` after each write.
@@ -259,7 +262,7 @@ class Bridge:
                  policy: Callable[[Observation], np.ndarray],
                  obstacles: Callable[[float], ObstacleEstimate], limits: JointLimits,
                  torques: Callable[[list], Any], *, budget: float = 0.9e-3,
-                 cost: Callable[[], bool] | None = None, learn: bool = True,
+                 cost: Callable[[], bool] | Any | None = None, learn: bool = True,
                  brake: Brake | None = None,
                  clock: Callable[[], float] = time.perf_counter) -> None:
         if not isinstance(barriers, BarrierModel):
@@ -274,6 +277,12 @@ class Bridge:
         self.limits, self.torques = limits, torques
         self.budget = check_real(budget, "budget", low=0.0, low_open=True)
         self.cost, self.learn = cost, bool(learn)
+        #: ``cost`` records in the loop and counts after it (a CostLog)
+        self._cost_deferred = callable(getattr(cost, "record", None)) and callable(
+            getattr(cost, "count", None))
+        if cost is not None and not (self._cost_deferred or callable(cost)):
+            raise ValueError(f"cost must be a callable, an object with record() and count() "
+                             f"or None. Got: {cost!r}")
         self.brake = Brake() if brake is None else brake
         self.clock = clock
         #: The kinematics check's figures, reported (``build_bridge`` sets them).
@@ -476,8 +485,11 @@ class Bridge:
                 observe_times[rep.steps] = self.clock() - t3
                 h = float(terms.h[:k_pairs].min()) if k_pairs else math.inf
                 rep.min_h = min(rep.min_h, h)
-                bad = self.cost() if self.cost is not None else h < 0.0
-                rep.cost_steps += int(bool(bad))
+                if self._cost_deferred:
+                    self.cost.record()
+                else:
+                    bad = self.cost() if self.cost is not None else h < 0.0
+                    rep.cost_steps += int(bool(bad))
                 rep.steps += 1
         except KeyboardInterrupt:
             reason = "interrupted" + self._finish(control, self._stop_torque())
@@ -489,6 +501,8 @@ class Bridge:
             if gc_was_enabled:
                 gc.enable()
         rep.seconds = self.clock() - start
+        if self._cost_deferred:  # the true states of the run, checked now
+            rep.cost_steps = int(self.cost.count())
         rep.rate_hz = rep.steps / rep.seconds if rep.seconds > 0 else 0.0
         rep.stop_reason = reason
         rep.step_time_ms = _percentiles(step_times[: rep.steps])

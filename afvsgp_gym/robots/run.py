@@ -77,7 +77,7 @@ def build_bridge(robot: Any, model: Any, torques: Callable, *, chain: DHChain,
                  obstacle_radii: Sequence[float], obstacles: Callable[[float], ObstacleEstimate],
                  limits: JointLimits, agent: str = "nominal", learner: str = "none",
                  spheres: Sequence[SafetySphere] = PANDA_ARM_SPHERES, budget: float = 0.9e-3,
-                 cost: Callable[[], bool] | None = None, torque_error=0.0,
+                 cost: Callable[[], bool] | Any | None = None, torque_error=0.0,
                  filter_kwargs: dict | None = None,
                  obstacle_shapes: Sequence | None = None,
                  self_collision: bool = False) -> Bridge:
@@ -121,7 +121,8 @@ def run_simulated(seconds: float, *, agent: str = "nominal", learner: str = "non
     :class:`~afvsgp_gym.robots.simulated.SimulatedFranka` (``robot_kwargs``: its arguments;
     by default a 1 kg payload the served model does not know and the simulation's moving
     sphere; ``obstacles``: specs or the envs' dicts of any type); cost from the stand-in's
-    true state (the arm touching itself included); ``self_collision`` as
+    true state (the arm touching itself included), recorded in the loop and checked after
+    it (:class:`~afvsgp_gym.robots.simulated.CostLog`); ``self_collision`` as
     :func:`build_bridge`'s."""
     from afvsgp_gym.robots.simulated import SimulatedFranka, Torques
 
@@ -130,7 +131,7 @@ def run_simulated(seconds: float, *, agent: str = "nominal", learner: str = "non
                           obstacle_radii=[o.radius for o in robot.obstacles],
                           obstacles=robot.obstacle_estimate, limits=robot.joint_limits,
                           agent=agent, learner=learner, spheres=robot.spheres, budget=budget,
-                          cost=robot.cost, torque_error=torque_error,
+                          cost=robot.cost_log(), torque_error=torque_error,
                           filter_kwargs=filter_kwargs,
                           obstacle_shapes=[o.shape for o in robot.obstacles],
                           self_collision=self_collision)

@@ -67,13 +67,14 @@ def bridge_model(robot):
 
 
 def _bridge(robot=None, agent="hold", budget=0.9e-3, on_read=None, on_state=None,
-            torque_error=(3, 3, 3, 3, 1, 1, 1), learner="none", **kwargs):
+            torque_error=(3, 3, 3, 3, 1, 1, 1), learner="none", cost=None, **kwargs):
     robot = SimulatedFranka(realtime=False, **kwargs) if robot is None else robot
     rec = Recording(robot, on_read, on_state)
     bridge = build_bridge(rec, robot.load_model(), Torques, chain=robot.kinematics,
                           obstacle_radii=[o.radius for o in robot.obstacles],
                           obstacles=robot.obstacle_estimate, limits=robot.joint_limits,
-                          agent=agent, spheres=robot.spheres, budget=budget, cost=robot.cost,
+                          agent=agent, spheres=robot.spheres, budget=budget,
+                          cost=robot.cost if cost is None else cost(robot),
                           torque_error=torque_error, learner=learner,
                           obstacle_shapes=[o.shape for o in robot.obstacles])
     bridge.clock = FakeClock()
@@ -339,6 +340,35 @@ def test_the_bound_keeps_the_undeclared_payload_out_of_the_moving_sphere(bound, 
     assert report.stop_reason == "completed" and report.filter_active_steps > 500
     assert (report.cost_steps == 0) == safe
     assert report.min_h < 0.05
+
+
+def test_the_cost_log_counts_after_the_run_what_the_check_in_the_loop_counts():
+    """``robot --simulate`` records the true states in the loop and checks them after it
+    (:class:`CostLog`): the same count and clearance as the check at each tick, on a run
+    whose undeclared payload takes the hand into the sphere (bound 0)."""
+    closest = [np.inf]
+
+    def checked(robot):
+        def cost():
+            closest[0] = min(closest[0], float(robot.clearance().min()))
+            return robot.cost()
+        return cost
+
+    in_loop = _bridge(agent="nominal", torque_error=0.0, cost=checked)[0].run(10.0)
+    bridge, _, robot = _bridge(agent="nominal", torque_error=0.0,
+                               cost=SimulatedFranka.cost_log)
+    deferred = bridge.run(10.0)
+    assert deferred.steps == in_loop.steps == len(bridge.cost) == 10000
+    assert deferred.cost_steps == in_loop.cost_steps > 0
+    assert bridge.cost.min_clearance == closest[0] < 0.0
+    assert deferred.cost_source == in_loop.cost_source == "true_state"
+    # the replay leaves the plant as it was (and counts alike again)
+    ticks, qpos, data = robot.ticks, robot.data.qpos.copy(), robot.data
+    assert bridge.cost.count() == deferred.cost_steps
+    assert robot.ticks == ticks and robot.data is data
+    np.testing.assert_array_equal(robot.data.qpos, qpos)
+    with pytest.raises(ValueError, match="cost must be"):
+        _bridge(cost=lambda robot: 3.0)
 
 
 def test_the_brake_keeps_its_hold_point_across_short_feasible_gaps():
