@@ -28,6 +28,7 @@ ARM_PAIRS = (("bound-default", "bound-default-numpy-arm"),
              ("bound-default-self-collision", "bound-default-self-collision-numpy-arm"))
 PERCEPTION = ("perception-exact", "perception-noise-1cm")
 LEARNER = "learner-afvsgp"
+LEARNER_WALL = "10s-fifo-learner-afvsgp"
 PERCENTILES = ("p50", "p90", "p99", "p99.9", "max")
 #: the acceptance of a run: at most this share of deadline misses (and no step with cost)
 ACCEPTED_MISSES = 0.005
@@ -260,7 +261,29 @@ def sentences(runs: dict[str, dict], recs: list[dict]) -> list[str]:
                    f"{ms(st['p50'])} ms at the median, {ms(st['p99'])} ms at p99 and "
                    f"{ms(st['max'])} ms at most, and the learning after the write "
                    f"(`observe`) {ms(ob['p50'])} ms at the median and {ms(ob['max'])} ms in "
-                   "its slowest step (the learners' first fit, after the warm-up samples).")
+                   "its slowest step (the learners' first fit, after the warm-up samples, in "
+                   "the loop in this run).")
+    wall = runs.get(LEARNER_WALL)
+    if wall:
+        st, ob = wall["step_time_ms"], wall["observe_time_ms"]
+        fit = ("the learners' warm-up fit ran in its own process and was installed "
+               f"{wall['fit_ticks']:,} ticks after the warm-up samples were in"
+               if wall.get("fit_ticks") is not None else
+               "the learners' warm-up fit did not come back before the run ended"
+               + (f" ({wall['fit_error']})" if wall.get("fit_error") else ""))
+        out.append(f"On the wall clock with the learner ({wall['requested_seconds']:g} s at "
+                   f"`{wall['scheduler']}`, code `{wall['code']}`) {fit}; the loop ran "
+                   f"{wall['steps']:,} steps with {count(wall['deadline_misses'], wall['steps'])}"
+                   f" deadline misses and {wall['lost_commands'] or 0:,} lost commands (step "
+                   f"p50 {ms(st['p50'])} ms, p99 {ms(st['p99'])} ms; `observe` p50 "
+                   f"{ms(ob['p50'])} ms, at most {ms(ob['max'])} ms), "
+                   + ("and completed." if wall["stop_reason"] == "completed" else
+                      f"and was stopped by {stop(wall)}."))
+        if lrn and lrn["step_time_ms"]["p99"] > 1.0:
+            out.append(f"The stepped run's p99 step with the learner "
+                       f"({ms(lrn['step_time_ms']['p99'])} ms, the learned cones of the "
+                       "obstacle's pairs in the program) is above the 1 ms period: with a "
+                       "learner the bridge needs a faster computer than this one.")
     return out
 
 

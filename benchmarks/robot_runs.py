@@ -81,6 +81,9 @@ RUNS: dict[str, dict] = {
     "bound-default-numpy-arm": dict(kind="stepped", seconds=16.0, arm_backend="numpy"),
     "bound-default-self-collision-numpy-arm": dict(kind="stepped", seconds=16.0,
                                                    self_collision=True, arm_backend="numpy"),
+    # a learner at 1 kHz: its warm-up fit in a process of its own (the default on the loop)
+    "10s-fifo-learner-afvsgp": dict(kind="wall-clock", seconds=10.0, rt_priority=50,
+                                    learner="afvsgp"),
 }
 SETTINGS = dict(agent="nominal", learner="none", torque_error_nm=DEFAULT_BOUND,
                 payload_kg=1.0, obstacle_noise_m=0.0, rt_priority=None, self_collision=False,
@@ -89,10 +92,13 @@ SETTINGS = dict(agent="nominal", learner="none", torque_error_nm=DEFAULT_BOUND,
 
 def filter_kwargs(s: dict) -> dict:
     """The bridge's ``filter_kwargs``: the default backend, or the default with the
-    extension ``"arm"`` (the kinematics and terms) off."""
-    if s["arm_backend"] == "auto":
-        return {}
-    return {"backend": dataclasses.replace(resolve("auto"), arm=False)}
+    extension ``"arm"`` (the kinematics and terms) off; a stepped run with a learner seeds
+    the warm-up's exploration noise (its figures then depend on the code only)."""
+    out = {} if s["arm_backend"] == "auto" else {
+        "backend": dataclasses.replace(resolve("auto"), arm=False)}
+    if s["kind"] == "stepped" and s["learner"] != "none":
+        out["seed"] = 0
+    return out
 
 
 def code_version() -> str:
@@ -131,7 +137,8 @@ def stepped(s: dict) -> dict:
                           agent=s["agent"], learner=s["learner"], spheres=robot.spheres,
                           budget=s["budget_ms"] * 1e-3, cost=cost,
                           torque_error=list(s["torque_error_nm"]),
-                          self_collision=s["self_collision"], filter_kwargs=filter_kwargs(s))
+                          self_collision=s["self_collision"], filter_kwargs=filter_kwargs(s),
+                          background_fit=False)  # the fit in the loop: the same ticks each run
     report = bridge.run(s["seconds"])
     report.lost_commands = robot.lost_commands
     return {**report.to_dict(),

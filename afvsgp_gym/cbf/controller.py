@@ -29,6 +29,7 @@ from __future__ import annotations
 import math
 import time
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -53,7 +54,7 @@ from afvsgp_gym.cbf.socp import SOCPFilter
 from afvsgp_gym.types import BarrierLayout, BarrierSet
 from afvsgp_gym.validation import check_count
 
-__all__ = ["FilterResult", "SafetyController", "StepPrediction"]
+__all__ = ["FilterResult", "SafetyController", "StepPrediction", "fit_bank", "split_samples"]
 
 _step = _compiled.extension("step")
 
@@ -276,6 +277,10 @@ class SafetyController:
         self._calibration: CalibrationCounts | None = None
         self.fitted = not self.learns
         self._buffer: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        #: fit in :meth:`observe` once the warm-up samples are in (False: the caller fits
+        #: :meth:`warmup_samples` elsewhere and calls :meth:`install_fitted`; the samples
+        #: after the warm-up's are not kept meanwhile)
+        self.fit_at_warmup = True
         self._pending: StepPrediction | None = None
         self.n_update_failures = 0
         self.n_skipped_samples = 0
@@ -324,20 +329,49 @@ class SafetyController:
         """True until the learners are fitted (Algorithm 1 warm-up)."""
         return not self.fitted
 
+    def warmup_samples(self, out: Sequence[np.ndarray] | None = None
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The warm-up samples collected so far as arrays: ``xi`` (K, N, b), ``u`` (N, m),
+        ``z`` (K, N) (None before any; into ``out``, three arrays of
+        :meth:`warmup_shapes`, when given); :func:`split_samples` makes :meth:`dataset` of
+        them."""
+        buf = self._buffer
+        if not buf:
+            return None
+        if out is None:
+            out = [None, None, None]
+        xi = np.stack([b[0] for b in buf], axis=1, out=out[0])
+        u = np.stack([b[1] for b in buf], out=out[1])
+        z = np.stack([b[2] for b in buf], axis=1, out=out[2])
+        return xi, u, z
+
+    def warmup_shapes(self, n_samples: int | None = None, feature_dim: int | None = None
+                      ) -> tuple[tuple[int, ...], ...]:
+        """The shapes of :meth:`warmup_samples`' arrays with ``n_samples`` (default: those
+        collected so far) of ``feature_dim`` features (default: the collected ones')."""
+        n = len(self._buffer) if n_samples is None else int(n_samples)
+        b = self._buffer[0][0].shape[1] if feature_dim is None else int(feature_dim)
+        k, m = self.n_barriers, self.action_dim
+        return (k, n, b), (n, m), (k, n)
+
     def dataset(self) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """Warm-up samples collected so far, one ``(xi, u, z)`` tuple per barrier (rows with
         non-finite values left out)."""
-        K, m = self.n_barriers, self.action_dim
-        if not self._buffer:
-            return [(np.zeros((0, 0)), np.zeros((0, m)), np.zeros(0)) for _ in range(K)]
-        xi = np.stack([b[0] for b in self._buffer], axis=1)  # (K, N, b)
-        u = np.array([b[1] for b in self._buffer])
-        z = np.stack([b[2] for b in self._buffer], axis=1)  # (K, N)
-        out = []
-        for k in range(K):
-            ok = np.isfinite(z[k]) & np.all(np.isfinite(xi[k]), axis=1)
-            out.append((xi[k][ok], u[ok], z[k][ok]))
-        return out
+        samples = self.warmup_samples()
+        if samples is None:
+            m = self.action_dim
+            return [(np.zeros((0, 0)), np.zeros((0, m)), np.zeros(0))
+                    for _ in range(self.n_barriers)]
+        return split_samples(*samples)
+
+    @property
+    def warmup_complete(self) -> bool:
+        """Warming up with :attr:`~afvsgp_gym.cbf.config.FilterConfig.warmup_samples` samples
+        collected: what :meth:`observe` fits on, unless ``fit_at_warmup`` is False (then
+        whoever turned it off fits, e.g. in another process, and calls
+        :meth:`install_fitted`)."""
+        return self.learns and not self.fitted and \
+            len(self._buffer) >= self.config.warmup_samples
 
     def fit(self, dataset) -> SafetyController:
         """Fit every learner offline on ``dataset`` (one tuple, or one per barrier)."""
@@ -347,16 +381,19 @@ class SafetyController:
             raise ValueError(
                 f"dataset must hold one (xi, u, z) tuple or {self.n_barriers}. Got: {len(dataset)}"
             )
-        clean = []
-        for xi, u, z in dataset:
-            xi = np.asarray(xi, np.float64)
-            u = np.asarray(u, np.float64).reshape(len(xi), self.action_dim)
-            z = np.asarray(z, np.float64).ravel()
-            ok = np.all(np.isfinite(xi), axis=1) & np.all(np.isfinite(u), axis=1) & np.isfinite(z)
-            clean.append((xi[ok], u[ok], z[ok]))
-        self.bank.fit(clean, self.config.learn_hyperparameters)
+        fit_bank(self.bank, dataset, self.action_dim, self.config.learn_hyperparameters)
         self.fitted = True
         return self
+
+    def install_fitted(self, bank) -> None:
+        """Use ``bank``, this controller's bank fitted elsewhere on :meth:`warmup_samples`
+        (:func:`fit_bank`; the bridge's :class:`~afvsgp_gym.robots.background_fit.BackgroundFit`),
+        from the next step on; the warm-up samples are dropped."""
+        if type(bank) is not type(self.bank):
+            raise ValueError(f"bank must be a fitted {type(self.bank).__name__}. Got: {bank!r}")
+        self.bank = bank
+        self.fitted = True
+        self._buffer = []
 
     # ------------------------------------------------------------------ filter
     def _terms(self, terms, name: str) -> BarrierSet:
@@ -672,8 +709,10 @@ class SafetyController:
         if not math.isfinite(float(u.sum())):
             return z
         if self.warming_up:
-            self._buffer.append((xi, u.copy(), z))
-            if len(self._buffer) >= self.config.warmup_samples:
+            if len(self._buffer) < self.config.warmup_samples:
+                self._buffer.append((xi, u.copy(), z))
+            # (absent from a controller pickled before the switch existed)
+            if self.warmup_complete and getattr(self, "fit_at_warmup", True):
                 self._fit_warmup()
             return z
         self._update_residuals(u, z)
@@ -752,3 +791,27 @@ class SafetyController:
         if not self.learns or self.warming_up:
             return None
         return self.bank.noise_variance(np.arange(self.n_barriers))
+
+
+def split_samples(xi: np.ndarray, u: np.ndarray,
+                  z: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """One ``(xi, u, z)`` tuple per barrier of the stacked samples ``xi`` (K, N, b), ``u``
+    (N, m), ``z`` (K, N), the rows with non-finite values left out."""
+    out = []
+    for k in range(len(z)):
+        ok = np.isfinite(z[k]) & np.all(np.isfinite(xi[k]), axis=1)
+        out.append((xi[k][ok], u[ok], z[k][ok]))
+    return out
+
+
+def fit_bank(bank, dataset, action_dim: int, learn_hyperparameters: bool) -> None:
+    """Fit ``bank`` on ``dataset`` (one ``(xi, u, z)`` per barrier; rows with a non-finite
+    value left out): Algorithm 1, line 3."""
+    clean = []
+    for xi, u, z in dataset:
+        xi = np.asarray(xi, np.float64)
+        u = np.asarray(u, np.float64).reshape(len(xi), action_dim)
+        z = np.asarray(z, np.float64).ravel()
+        ok = np.all(np.isfinite(xi), axis=1) & np.all(np.isfinite(u), axis=1) & np.isfinite(z)
+        clean.append((xi[ok], u[ok], z[ok]))
+    bank.fit(clean, learn_hyperparameters)

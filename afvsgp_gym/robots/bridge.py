@@ -55,9 +55,10 @@ import numpy as np
 
 from afvsgp_gym.envs.braking import admissible_share
 from afvsgp_gym.envs.joint_limits import FRANKA_MAX_TORQUE_RATE, JointLimits
+from afvsgp_gym.robots.background_fit import BackgroundFit
 from afvsgp_gym.robots.kinematics import END_EFFECTOR_OFFSET, SphereKinematics
 from afvsgp_gym.robots.libfranka import CONTROL_PERIOD, TAU_MAX, as_matrix, limit_rate
-from afvsgp_gym.robots.terms import BarrierModel, ObstacleEstimate
+from afvsgp_gym.robots.terms import FEATURE_DIM, BarrierModel, ObstacleEstimate
 from afvsgp_gym.validation import check_real
 
 __all__ = ["Brake", "Bridge", "BridgeReport", "Observation"]
@@ -169,7 +170,9 @@ class BridgeReport:
     stand-in's) the ticks the robot went without a new command; ``min_h`` the smallest
     measured obstacle barrier (m); ``kinematics_error`` the start's check of the kinematics
     against the robot's own; ``barriers`` and ``self_collision_barriers`` the program's
-    barriers (all of them, and the self-collision pairs among them)."""
+    barriers (all of them, and the self-collision pairs among them); ``fit_ticks`` the ticks
+    the learners' warm-up fit took in its own process (``fit_error`` its failure), None
+    without one."""
 
     steps: int = 0
     seconds: float = 0.0
@@ -191,6 +194,8 @@ class BridgeReport:
     kinematics_error: dict[str, float] | None = None
     barriers: int = 0
     self_collision_barriers: int = 0
+    fit_ticks: int | None = None
+    fit_error: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
         out = asdict(self)
@@ -253,6 +258,10 @@ class Bridge:
         measured state's (some pair with ``h < 0``).
     learn : bool
         Call ``controller.observe`` after each write.
+    background_fit : bool
+        With ``learn``, fit the learners on the warm-up samples in a process of their own
+        (:class:`~afvsgp_gym.robots.background_fit.BackgroundFit`; the default: the fit takes
+        hundreds of ticks); False: in ``observe``, inside the loop (deterministic stepped runs).
     brake : Brake or None
     clock : callable
         Seconds (``time.perf_counter``).
@@ -263,7 +272,7 @@ class Bridge:
                  obstacles: Callable[[float], ObstacleEstimate], limits: JointLimits,
                  torques: Callable[[list], Any], *, budget: float = 0.9e-3,
                  cost: Callable[[], bool] | Any | None = None, learn: bool = True,
-                 brake: Brake | None = None,
+                 background_fit: bool = True, brake: Brake | None = None,
                  clock: Callable[[], float] = time.perf_counter) -> None:
         if not isinstance(barriers, BarrierModel):
             raise ValueError(f"barriers must be a BarrierModel. Got: {barriers!r}")
@@ -277,6 +286,8 @@ class Bridge:
         self.limits, self.torques = limits, torques
         self.budget = check_real(budget, "budget", low=0.0, low_open=True)
         self.cost, self.learn = cost, bool(learn)
+        self.background_fit = bool(background_fit)
+        self._fit_sent = 0  # the step the warm-up samples went to the fitting process
         #: ``cost`` records in the loop and counts after it (a CostLog)
         self._cost_deferred = callable(getattr(cost, "record", None)) and callable(
             getattr(cost, "count", None))
@@ -391,6 +402,21 @@ class Bridge:
             return f" (the final command failed: {exc})"
         return ""
 
+    def _advance_fit(self, fitter: BackgroundFit) -> None:
+        """After a write: send the warm-up samples to the fitting process once they are
+        in; install the fitted learners once they are back (``fit_ticks`` later)."""
+        ctrl, rep = self.controller, self.report
+        if not fitter.pending and ctrl.warmup_complete and fitter.error is None:
+            fitter.submit(ctrl)
+            self._fit_sent = rep.steps
+        if fitter.pending:
+            bank = fitter.poll()
+            if bank is not None:
+                ctrl.install_fitted(bank)
+                rep.fit_ticks = rep.steps - self._fit_sent
+            elif fitter.error is not None:
+                rep.fit_error = fitter.error
+
     # ------------------------------------------------------------------ the run
     def warm_up(self, steps: int = 50) -> None:
         """Run the tick's computations ``steps`` times on the robot's current state
@@ -429,6 +455,12 @@ class Bridge:
         prev: tuple | None = None  # (terms, torque) of the previous tick, for observe
         t_first = None
         k_pairs = self.barriers.n_pairs
+        ctrl, fitter = self.controller, None
+        if self.learn and self.background_fit and ctrl.warming_up:
+            # (a second or so, before the robot's clock starts; the samples' block too)
+            fitter = BackgroundFit().start(ctrl.warmup_shapes(ctrl.config.warmup_samples,
+                                                              FEATURE_DIM))
+            ctrl.fit_at_warmup = False
         gc_was_enabled = gc.isenabled()
         gc.collect()
         gc.disable()  # no collector pauses inside the loop (its garbage is freed by refcount)
@@ -480,7 +512,9 @@ class Bridge:
                 # after the write: learning and the cost check
                 t3 = self.clock()
                 if self.learn and prev is not None and dt > 0:
-                    self.controller.observe(prev[0], prev[1], terms, dt)
+                    ctrl.observe(prev[0], prev[1], terms, dt)
+                if fitter is not None:
+                    self._advance_fit(fitter)
                 prev = (terms, tau)
                 observe_times[rep.steps] = self.clock() - t3
                 h = float(terms.h[:k_pairs].min()) if k_pairs else math.inf
@@ -500,6 +534,9 @@ class Bridge:
         finally:
             if gc_was_enabled:
                 gc.enable()
+            if fitter is not None:
+                fitter.close()
+                ctrl.fit_at_warmup = True
         rep.seconds = self.clock() - start
         if self._cost_deferred:  # the true states of the run, checked now
             rep.cost_steps = int(self.cost.count())

@@ -80,7 +80,7 @@ def build_bridge(robot: Any, model: Any, torques: Callable, *, chain: DHChain,
                  cost: Callable[[], bool] | Any | None = None, torque_error=0.0,
                  filter_kwargs: dict | None = None,
                  obstacle_shapes: Sequence | None = None,
-                 self_collision: bool = False) -> Bridge:
+                 self_collision: bool = False, background_fit: bool = True) -> Bridge:
     """The :class:`~afvsgp_gym.robots.bridge.Bridge` of one robot: its kinematics ``chain``,
     safety ``spheres``, joint ``limits``, the obstacles' radii (and ``obstacle_shapes``:
     :class:`~afvsgp_gym.robots.terms.BarrierModel`'s ``shapes``, None: spheres) and
@@ -89,9 +89,11 @@ def build_bridge(robot: Any, model: Any, torques: Callable, *, chain: DHChain,
     arm spheres; off by default, docs/robot.md has their timing), the policy ``agent``
     (:data:`~afvsgp_gym.robots.policies.ROBOT_AGENTS`) from the robot's current pose and a
     filter with ``learner`` (``filter_kwargs``: its options; their ``backend`` selects the
-    kinematics' and the terms' too). ``chain`` is first checked against the robot's own flange pose
-    and Jacobian (:func:`~afvsgp_gym.robots.libfranka.check_kinematics`; ``RuntimeError``
-    when they disagree)."""
+    kinematics' and the terms' too; ``background_fit``: the learners' warm-up fit in a
+    process of its own, :class:`~afvsgp_gym.robots.bridge.Bridge`'s). ``chain`` is first
+    checked against the robot's own flange pose and Jacobian
+    (:func:`~afvsgp_gym.robots.libfranka.check_kinematics`; ``RuntimeError`` when they
+    disagree)."""
     state = robot.read_once()
     checked = check_kinematics(state, model, chain)  # RuntimeError: not the robot's
     backend = (filter_kwargs or {}).get("backend", "auto")  # the one switch, as the filter's
@@ -107,7 +109,8 @@ def build_bridge(robot: Any, model: Any, torques: Callable, *, chain: DHChain,
     q0 = np.asarray(state.q, dtype=np.float64)
     policy = make_robot_policy(agent, chain, q0)
     bridge = Bridge(robot, model, barriers, controller, policy, obstacles, limits, torques,
-                    budget=budget, cost=cost, learn=learner != "none")
+                    budget=budget, cost=cost, learn=learner != "none",
+                    background_fit=background_fit)
     bridge.kinematics_error = checked
     return bridge
 

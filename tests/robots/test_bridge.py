@@ -67,7 +67,8 @@ def bridge_model(robot):
 
 
 def _bridge(robot=None, agent="hold", budget=0.9e-3, on_read=None, on_state=None,
-            torque_error=(3, 3, 3, 3, 1, 1, 1), learner="none", cost=None, **kwargs):
+            torque_error=(3, 3, 3, 3, 1, 1, 1), learner="none", cost=None,
+            background_fit=False, filter_kwargs=None, **kwargs):
     robot = SimulatedFranka(realtime=False, **kwargs) if robot is None else robot
     rec = Recording(robot, on_read, on_state)
     bridge = build_bridge(rec, robot.load_model(), Torques, chain=robot.kinematics,
@@ -76,7 +77,8 @@ def _bridge(robot=None, agent="hold", budget=0.9e-3, on_read=None, on_state=None
                           agent=agent, spheres=robot.spheres, budget=budget,
                           cost=robot.cost if cost is None else cost(robot),
                           torque_error=torque_error, learner=learner,
-                          obstacle_shapes=[o.shape for o in robot.obstacles])
+                          obstacle_shapes=[o.shape for o in robot.obstacles],
+                          background_fit=background_fit, filter_kwargs=filter_kwargs)
     bridge.clock = FakeClock()
     return bridge, rec, robot
 
