@@ -525,12 +525,12 @@ def _cmd_robot(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int
                                                      "obstacle_noise": args.obstacle_noise,
                                                      "obstacles": obstacles or None},
                                        filter_kwargs=filter_kwargs,
-                                       self_collision=args.self_collision)
+                                       self_collision=args.self_collision, seed=args.seed)
             else:
                 report = run_robot(args.host, args.seconds, obstacles=obstacles, agent=agent,
                                    learner=args.learner, budget=budget,
                                    torque_error=torque_error, filter_kwargs=filter_kwargs,
-                                   self_collision=args.self_collision)
+                                   self_collision=args.self_collision, seed=args.seed)
         except (RuntimeError, OSError) as exc:  # no priority, no connection, a state that
             print(f"{parser.prog}: error: {exc}", file=sys.stderr)  # stops the start
             return 1
@@ -699,8 +699,11 @@ def build_parser() -> argparse.ArgumentParser:
                     help="the robot's address (extra 'robot': pylibfranka)")
     rb.add_argument("--seconds", type=float, default=10.0, help="run length (default 10)")
     rb.add_argument("--agent", default=None,
-                    help="nominal | hold | zero (default nominal with --simulate, hold with "
+                    help="nominal | hold | zero, or one built to break the filter: ram | "
+                         "swing1..swing7 | random (default nominal with --simulate, hold with "
                          "--host)")
+    rb.add_argument("--seed", type=int, default=0,
+                    help="the swings' first direction and the random torques (default 0)")
     rb.add_argument("--learner", default="none",
                     help="filter learner (default none: the robot's model; a learner's "
                          "updates do not fit in 1 ms here, docs/robot.md)")
@@ -720,9 +723,10 @@ def build_parser() -> argparse.ArgumentParser:
                     help="a fixed sphere in the base frame (m), repeatable; added after "
                          "--obstacles' entries (with --simulate they replace the stand-in's "
                          "moving sphere too)")
-    rb.add_argument("--self-collision", action="store_true",
+    rb.add_argument("--self-collision", action=argparse.BooleanOptionalAction, default=None,
                     help="keep the arm's links apart too (the simulation's 93 self-collision "
-                         "barriers; off by default, docs/robot.md)")
+                         "barriers; on by default, as in the simulation; --no-self-collision "
+                         "turns them off, docs/robot.md)")
     rb.add_argument("--payload", type=float, default=1.0, metavar="KG",
                     help="the stand-in's payload its model does not know (default 1.0)")
     rb.add_argument("--obstacle-noise", type=float, default=0.0, metavar="M",

@@ -1,6 +1,6 @@
 """The measured runs of the Franka bridge on its MuJoCo stand-in, behind docs/robot.md.
 
-    python benchmarks/robot_runs.py                  # every run (about 5 minutes)
+    python benchmarks/robot_runs.py                  # every run (about 15 minutes)
     python benchmarks/robot_runs.py --only 60s-fifo  # one run again (``--list``: the labels)
     python benchmarks/page_robot.py                  # then the page
 
@@ -23,6 +23,11 @@ Two kinds of run, with the default agent (``nominal``), learner (``none``) and t
   noise is seeded), the step times are still the wall clock's. ``min_true_h`` is the smallest
   true clearance (the stand-in's ``clearance``), ``min_h`` the measured one (from the
   obstacle estimate).
+
+The ``adversarial-`` runs are stepped runs of the policies built to break the filter
+(``ram``, ``swing1``-``swing7``, ``random``; seeds 0 and 1), with the self-collision barriers
+(the bridge's default) and, ``-no-self-collision``, without them; ``cost_kinds`` counts the
+ticks of each kind of cost.
 
 The ``-numpy-arm`` runs repeat a stepped run with the bridge's sphere kinematics and pair
 terms on their numpy path (``arm_backend``; the extension ``afvsgp_gym.robots._arm`` off, the
@@ -54,6 +59,8 @@ OUT = ROOT / "benchmarks" / "results" / "robot.jsonl"
 DEFAULT_BOUND = (3.0, 3.0, 3.0, 3.0, 1.0, 1.0, 1.0)
 SMALL_BOUND = (2.0, 2.0, 2.0, 2.0, 0.5, 0.5, 0.5)
 NO_BOUND = (0.0,) * 7
+#: The bridge's policies built to break the filter (``afvsgp_gym.robots.policies``).
+ADVERSARIAL = ("ram", *(f"swing{j}" for j in range(1, 8)), "random")
 
 #: label -> settings. ``realtime``: wall-clock; ``rt_priority``: SCHED_FIFO priority or None;
 #: ``payload_kg``: the stand-in's payload its model does not know (0: none, the model exact
@@ -84,10 +91,16 @@ RUNS: dict[str, dict] = {
     # a learner at 1 kHz: its warm-up fit in a process of its own (the default on the loop)
     "10s-fifo-learner-afvsgp": dict(kind="wall-clock", seconds=10.0, rt_priority=50,
                                     learner="afvsgp"),
+    # the policies built to break the filter, two seeds each, with the self-collision
+    # barriers (the bridge's default) and without them
+    **{f"adversarial-{agent}-{seed}{suffix}": dict(kind="stepped", seconds=16.0, agent=agent,
+                                                    seed=seed, self_collision=on)
+       for agent in ADVERSARIAL for seed in (0, 1)
+       for suffix, on in (("", True), ("-no-self-collision", False))},
 }
 SETTINGS = dict(agent="nominal", learner="none", torque_error_nm=DEFAULT_BOUND,
                 payload_kg=1.0, obstacle_noise_m=0.0, rt_priority=None, self_collision=False,
-                arm_backend="auto")
+                arm_backend="auto", seed=0)
 
 
 def filter_kwargs(s: dict) -> dict:
@@ -121,14 +134,22 @@ def kernel() -> str:
 
 
 def stepped(s: dict) -> dict:
-    """A run one tick per call with a budget no step reaches; the report and the smallest
-    true clearance."""
+    """A run one tick per call with a budget no step reaches; the report, the smallest
+    true clearance and the ticks of each kind of cost (``cost_kinds``: a sphere inside an
+    obstacle, an arm geom touching one, a joint limit, the arm touching itself)."""
     robot = SimulatedFranka(realtime=False, payload_mass=s["payload_kg"],
                             obstacle_noise=s["obstacle_noise_m"])
     closest = [math.inf]
+    kinds = dict(inside=0, contact=0, limit=0, self_contact=0)
 
     def cost() -> bool:
-        closest[0] = min(closest[0], float(robot.clearance().min()))
+        h = float(robot.clearance().min())
+        closest[0] = min(closest[0], h)
+        d = robot.data
+        for kind, hit in (("inside", h < 0.0), ("contact", robot.contact()),
+                          ("limit", robot.joint_limits.violation(d.qpos[:7], d.qvel[:7])),
+                          ("self_contact", robot.self_contact())):
+            kinds[kind] += int(bool(hit))
         return robot.cost()
 
     bridge = build_bridge(robot, robot.load_model(), Torques, chain=robot.kinematics,
@@ -138,10 +159,11 @@ def stepped(s: dict) -> dict:
                           budget=s["budget_ms"] * 1e-3, cost=cost,
                           torque_error=list(s["torque_error_nm"]),
                           self_collision=s["self_collision"], filter_kwargs=filter_kwargs(s),
-                          background_fit=False)  # the fit in the loop: the same ticks each run
+                          background_fit=False,  # the fit in the loop: the same ticks each run
+                          seed=s["seed"])
     report = bridge.run(s["seconds"])
     report.lost_commands = robot.lost_commands
-    return {**report.to_dict(),
+    return {**report.to_dict(), "cost_kinds": kinds,
             "min_true_h": closest[0] if math.isfinite(closest[0]) else None}
 
 
@@ -152,7 +174,8 @@ def wall_clock(s: dict) -> dict:
                            torque_error=list(s["torque_error_nm"]),
                            robot_kwargs={"payload_mass": s["payload_kg"],
                                          "obstacle_noise": s["obstacle_noise_m"]},
-                           self_collision=s["self_collision"], filter_kwargs=filter_kwargs(s))
+                           self_collision=s["self_collision"], filter_kwargs=filter_kwargs(s),
+                           seed=s["seed"])
     return report.to_dict()
 
 

@@ -1,14 +1,15 @@
 """The learners' warm-up fit in a process of its own, so that the 1 kHz loop goes on.
 
 Algorithm 1 fits the learners once, on the warm-up samples (line 3: the hyperparameters and
-the first inducing sets). For the bridge's barriers that takes 0.3-0.7 s, 300-700 ticks of a
-1 kHz loop; a robot answers 20 lost commands in 100 with ``communication_constraints_violation``.
-:class:`BackgroundFit` runs the fit in a spawned process, started (and ready) before the
-loop:
+the first inducing sets). For the bridge's barriers that takes about half a second, hundreds
+of ticks of a 1 kHz loop; a robot answers 20 lost commands in 100 with
+``communication_constraints_violation``. :class:`BackgroundFit` runs the fit in a worker (a
+fresh interpreter, ``python -m`` this module), started and ready before the loop:
 
 1. after a write, once the warm-up samples are in (``SafetyController.warmup_complete``),
-   :meth:`BackgroundFit.submit` copies them into shared memory (about 1.5 MB for 49
-   barriers) and sends the worker a few bytes: the unfitted bank, pickled;
+   :meth:`BackgroundFit.submit` writes them into a shared memory block (1.6 MB for 49
+   barriers, mapped and touched before the loop) and sends the worker a few kilobytes: the
+   unfitted bank, pickled;
 2. the worker fits the bank (:func:`~afvsgp_gym.cbf.controller.fit_bank`, the code
    ``SafetyController.fit`` runs), pickles it with its arrays out of band into a new shared
    memory block, and sends their places;
@@ -17,9 +18,9 @@ loop:
    bridge installs it (``SafetyController.install_fitted``).
 
 Meanwhile the filter runs as in the warm-up, and the samples of those ticks are not learned.
-The fitted bank is the one ``SafetyController.fit`` makes of the same samples (tested: the
-same predictions, bit for bit). The worker runs at normal priority: it must not take a core
-from a loop at ``SCHED_FIFO``.
+The fitted bank is the one ``SafetyController.fit`` makes of the same samples (tested: with
+the answer awaited, the run is the fit-in-the-loop run bit for bit). The worker runs at
+normal priority: it must not take a core from a loop at ``SCHED_FIFO``.
 """
 
 from __future__ import annotations
@@ -124,7 +125,7 @@ def _worker(conn: Any) -> None:
 
 class BackgroundFit:
     """The warm-up fit of a :class:`~afvsgp_gym.cbf.controller.SafetyController`'s learners in
-    a process of its own (module docstring). :meth:`start` before the loop (it waits until
+    a worker process (module docstring). :meth:`start` before the loop (it waits until
     the worker has imported the package: about a second) with the samples' ``shapes`` (their
     block is then mapped and touched before the loop, not in it), :meth:`submit` and
     :meth:`poll` after writes, :meth:`close` after the loop. ``error`` holds a failed fit's

@@ -13,7 +13,18 @@ env, so it offers the subset that needs only the robot's state and model:
   to 0.28 m, period 4 s) around the end-effector's start;
 - ``"hold"``: hold the start pose, ``tau = M (kp (q_0 - q) - kd q') + c`` (kp = 100 1/s^2,
   kd = 20 1/s);
-- ``"zero"``: no torque (the arm floats on the robot's gravity compensation).
+- ``"zero"``: no torque (the arm floats on the robot's gravity compensation);
+
+and the policies built to break the filter, as ``evaluate``'s
+(:mod:`afvsgp_gym.agents.adversarial`), from the robot's state and the obstacle estimate:
+
+- ``"ram"``: ``tau = J' k (p_o - p)``, a spring of ``k`` = 400 N/m without damping pulling
+  the end-effector point at the nearest obstacle's reference point (it overshoots and rams);
+- ``"swing1"`` to ``"swing7"``: full torque on one joint, its sign switching every second
+  (the first sign from ``seed``), the other joints damped (``-q'`` per rad/s of the torque
+  limit, clipped);
+- ``"random"``: torques uniform within the limits, seeded (the rate limiter turns them into
+  a random walk of 1 Nm steps).
 
 The output is clipped to the torque limits.
 """
@@ -32,7 +43,8 @@ from afvsgp_gym.validation import check_choice
 __all__ = ["ROBOT_AGENTS", "make_robot_policy"]
 
 #: Agents of ``afvsgp-gym robot --agent``.
-ROBOT_AGENTS = ("nominal", "hold", "zero")
+ROBOT_AGENTS = ("nominal", "hold", "zero", "ram", *(f"swing{j}" for j in range(1, 8)),
+                "random")
 #: s of the ``"nominal"`` tracker's warm-up (the small motion before the ramp); a moving
 #: obstacle given without ``start_time`` starts then, as in the simulation.
 WARMUP_SECONDS = 2.0
@@ -84,12 +96,63 @@ class PoseHold:
         return np.clip(obs.mass @ acc + obs.coriolis, -TAU_MAX, TAU_MAX)
 
 
-def make_robot_policy(agent: str, chain: DHChain, q0: np.ndarray) -> Callable:
+class TaskSpaceRam:
+    """The ``"ram"`` policy (module docstring)."""
+
+    def __init__(self, chain: DHChain, stiffness: float = 400.0) -> None:
+        self.ee = SphereKinematics(chain, [7], [END_EFFECTOR_OFFSET])
+        self.stiffness = float(stiffness)
+
+    def __call__(self, obs) -> np.ndarray:
+        if obs.ee is None:
+            p, _, jac, _ = (x[0] for x in self.ee(obs.q, obs.dq))
+        else:
+            p, _, jac, _ = obs.ee
+        centres = np.asarray(obs.obstacles.position, dtype=np.float64)
+        if not len(centres):
+            return np.zeros(7)
+        target = centres[np.argmin(np.linalg.norm(centres - p, axis=1))]
+        return np.clip(jac.T @ (self.stiffness * (target - p)), -TAU_MAX, TAU_MAX)
+
+
+class JointSwing:
+    """The ``"swing{joint}"`` policies (module docstring)."""
+
+    def __init__(self, joint: int, seed: int = 0, half_period: float = 1.0,
+                 damping: float = 1.0) -> None:
+        self.joint = int(joint) - 1
+        self.sign = -1.0 if seed % 2 else 1.0
+        self.half_period, self.damping = float(half_period), float(damping)
+
+    def __call__(self, obs) -> np.ndarray:
+        tau = np.clip(-self.damping * np.asarray(obs.dq, dtype=np.float64), -1.0, 1.0) * TAU_MAX
+        phase = int(obs.t // self.half_period) % 2
+        tau[self.joint] = self.sign * (1.0 if phase == 0 else -1.0) * TAU_MAX[self.joint]
+        return tau
+
+
+class UniformTorque:
+    """The ``"random"`` policy (module docstring)."""
+
+    def __init__(self, seed: int = 0) -> None:
+        self.rng = np.random.default_rng(seed)
+
+    def __call__(self, obs) -> np.ndarray:
+        return self.rng.uniform(-TAU_MAX, TAU_MAX)
+
+
+def make_robot_policy(agent: str, chain: DHChain, q0: np.ndarray, seed: int = 0) -> Callable:
     """The policy ``agent`` (one of :data:`ROBOT_AGENTS`) for an arm of kinematics ``chain``
-    starting at ``q0``."""
+    starting at ``q0`` (``seed``: the swings' first sign, the random torques)."""
     check_choice("agent", agent, ROBOT_AGENTS)
     if agent == "nominal":
         return TaskTracker(chain, q0)
     if agent == "hold":
         return PoseHold(q0)
+    if agent == "ram":
+        return TaskSpaceRam(chain)
+    if agent.startswith("swing"):
+        return JointSwing(int(agent[5:]), seed)
+    if agent == "random":
+        return UniformTorque(seed)
     return lambda obs: np.zeros(7)

@@ -80,14 +80,17 @@ def build_bridge(robot: Any, model: Any, torques: Callable, *, chain: DHChain,
                  cost: Callable[[], bool] | Any | None = None, torque_error=0.0,
                  filter_kwargs: dict | None = None,
                  obstacle_shapes: Sequence | None = None,
-                 self_collision: bool = False, background_fit: bool = True) -> Bridge:
+                 self_collision: bool | None = None, background_fit: bool = True,
+                 seed: int = 0) -> Bridge:
     """The :class:`~afvsgp_gym.robots.bridge.Bridge` of one robot: its kinematics ``chain``,
     safety ``spheres``, joint ``limits``, the obstacles' radii (and ``obstacle_shapes``:
     :class:`~afvsgp_gym.robots.terms.BarrierModel`'s ``shapes``, None: spheres) and
     perception callback (``self_collision``: the self-collision barriers of
     :func:`~afvsgp_gym.robots.terms.panda_self_collision_pairs` too, chosen for the Panda's
-    arm spheres; off by default, docs/robot.md has their timing), the policy ``agent``
-    (:data:`~afvsgp_gym.robots.policies.ROBOT_AGENTS`) from the robot's current pose and a
+    arm spheres; None, the default: on with those spheres, as in the simulation, off with
+    others; docs/robot.md has what they prevent and cost), the policy ``agent``
+    (:data:`~afvsgp_gym.robots.policies.ROBOT_AGENTS`; ``seed`` for those that draw) from the
+    robot's current pose and a
     filter with ``learner`` (``filter_kwargs``: its options; their ``backend`` selects the
     kinematics' and the terms' too; ``background_fit``: the learners' warm-up fit in a
     process of its own, :class:`~afvsgp_gym.robots.bridge.Bridge`'s). ``chain`` is first
@@ -98,6 +101,8 @@ def build_bridge(robot: Any, model: Any, torques: Callable, *, chain: DHChain,
     checked = check_kinematics(state, model, chain)  # RuntimeError: not the robot's
     backend = (filter_kwargs or {}).get("backend", "auto")  # the one switch, as the filter's
     kin = SphereKinematics.from_spheres(chain, spheres, backend=backend)
+    if self_collision is None:
+        self_collision = tuple(spheres) == PANDA_ARM_SPHERES
     if self_collision and tuple(spheres) != PANDA_ARM_SPHERES:
         raise ValueError("self_collision=True needs the Panda's arm spheres (its pairs are "
                          "chosen for them). Got: other spheres")
@@ -107,7 +112,7 @@ def build_bridge(robot: Any, model: Any, torques: Callable, *, chain: DHChain,
                             self_collision=pairs, backend=backend)
     controller = make_controller(barriers, learner, **(filter_kwargs or {}))
     q0 = np.asarray(state.q, dtype=np.float64)
-    policy = make_robot_policy(agent, chain, q0)
+    policy = make_robot_policy(agent, chain, q0, seed)
     bridge = Bridge(robot, model, barriers, controller, policy, obstacles, limits, torques,
                     budget=budget, cost=cost, learn=learner != "none",
                     background_fit=background_fit)
@@ -119,13 +124,13 @@ def run_simulated(seconds: float, *, agent: str = "nominal", learner: str = "non
                   realtime: bool = True, budget: float = 0.9e-3, torque_error=0.0,
                   robot_kwargs: dict | None = None,
                   filter_kwargs: dict | None = None,
-                  self_collision: bool = False) -> BridgeReport:
+                  self_collision: bool | None = None, seed: int = 0) -> BridgeReport:
     """Run the bridge for ``seconds`` against a
     :class:`~afvsgp_gym.robots.simulated.SimulatedFranka` (``robot_kwargs``: its arguments;
     by default a 1 kg payload the served model does not know and the simulation's moving
     sphere; ``obstacles``: specs or the envs' dicts of any type); cost from the stand-in's
     true state (the arm touching itself included), recorded in the loop and checked after
-    it (:class:`~afvsgp_gym.robots.simulated.CostLog`); ``self_collision`` as
+    it (:class:`~afvsgp_gym.robots.simulated.CostLog`); ``self_collision`` and ``seed`` as
     :func:`build_bridge`'s."""
     from afvsgp_gym.robots.simulated import SimulatedFranka, Torques
 
@@ -137,7 +142,7 @@ def run_simulated(seconds: float, *, agent: str = "nominal", learner: str = "non
                           cost=robot.cost_log(), torque_error=torque_error,
                           filter_kwargs=filter_kwargs,
                           obstacle_shapes=[o.shape for o in robot.obstacles],
-                          self_collision=self_collision)
+                          self_collision=self_collision, seed=seed)
     report = bridge.run(seconds)
     report.lost_commands = robot.lost_commands
     return report
@@ -200,11 +205,11 @@ def scripted_obstacles(specs: Sequence[ObstacleSpec]) -> Callable[[float], Obsta
 def run_robot(host: str, seconds: float, *, obstacles: Sequence = (),
               agent: str = "hold", learner: str = "none", budget: float = 0.9e-3,
               torque_error=0.0, filter_kwargs: dict | None = None,
-              self_collision: bool = False) -> BridgeReport:
+              self_collision: bool | None = None, seed: int = 0) -> BridgeReport:
     """Run the bridge for ``seconds`` on the robot at ``host`` (pylibfranka, Franka's DH
     table and the Panda's datasheet limits) with virtual ``obstacles`` (:func:`obstacle_specs`:
     specs, the envs' dicts of any type or fixed spheres ``(x, y, z, r)``); ``self_collision``
-    as :func:`build_bridge`'s."""
+    and ``seed`` as :func:`build_bridge`'s."""
     specs = obstacle_specs(obstacles)  # (ValueError before connecting)
     robot, model, torques = connect(host)
     bridge = build_bridge(robot, model, torques, chain=FRANKA_PANDA,
@@ -213,5 +218,5 @@ def run_robot(host: str, seconds: float, *, obstacles: Sequence = (),
                           agent=agent, learner=learner, budget=budget,
                           torque_error=torque_error, filter_kwargs=filter_kwargs,
                           obstacle_shapes=[ob.shape for ob in specs],
-                          self_collision=self_collision)
+                          self_collision=self_collision, seed=seed)
     return bridge.run(seconds)

@@ -68,7 +68,7 @@ def bridge_model(robot):
 
 def _bridge(robot=None, agent="hold", budget=0.9e-3, on_read=None, on_state=None,
             torque_error=(3, 3, 3, 3, 1, 1, 1), learner="none", cost=None,
-            background_fit=False, filter_kwargs=None, **kwargs):
+            background_fit=False, filter_kwargs=None, self_collision=False, **kwargs):
     robot = SimulatedFranka(realtime=False, **kwargs) if robot is None else robot
     rec = Recording(robot, on_read, on_state)
     bridge = build_bridge(rec, robot.load_model(), Torques, chain=robot.kinematics,
@@ -78,7 +78,8 @@ def _bridge(robot=None, agent="hold", budget=0.9e-3, on_read=None, on_state=None
                           cost=robot.cost if cost is None else cost(robot),
                           torque_error=torque_error, learner=learner,
                           obstacle_shapes=[o.shape for o in robot.obstacles],
-                          background_fit=background_fit, filter_kwargs=filter_kwargs)
+                          background_fit=background_fit, filter_kwargs=filter_kwargs,
+                          self_collision=self_collision)
     bridge.clock = FakeClock()
     return bridge, rec, robot
 
@@ -546,19 +547,67 @@ def test_the_stand_ins_cost_counts_the_arm_touching_itself():
     env.close()
 
 
-def test_self_collision_barriers_are_opt_in_on_the_bridge():
-    """Off by default; ``self_collision=True`` adds the simulation's 93 pairs after the
-    obstacle pairs and the loop runs (stepped) without cost; with other spheres than the
-    Panda's arm spheres it is refused by name."""
+def test_self_collision_barriers_are_on_by_default_with_the_arm_spheres():
+    """On by default, as in the simulation: the simulation's 93 pairs after the obstacle
+    pairs, and the loop runs (stepped) without cost; ``self_collision=False`` leaves them
+    out; other spheres than the Panda's arm spheres have none by default, and asking for them
+    is refused by name."""
     from afvsgp_gym.robots.run import run_simulated
 
-    assert _bridge()[0].barriers.n_pair_rows == 21
-    report = run_simulated(0.5, realtime=False, budget=1.0, self_collision=True)
+    assert _bridge(self_collision=False)[0].barriers.n_pair_rows == 21
+    report = run_simulated(0.5, realtime=False, budget=1.0)
     assert report.stop_reason == "completed" and report.cost_steps == 0
     assert report.self_collision_barriers == 93 and report.barriers == 21 + 93 + 28
     robot = SimulatedFranka(realtime=False)
+    kwargs = dict(chain=robot.kinematics, obstacle_radii=[0.05],
+                  obstacles=robot.obstacle_estimate, limits=robot.joint_limits,
+                  spheres=robot.spheres[14:])
+    assert build_bridge(robot, robot.load_model(), Torques, **kwargs).barriers.n_pair_rows == 7
     with pytest.raises(ValueError, match="self_collision=True needs"):
-        build_bridge(robot, robot.load_model(), Torques, chain=robot.kinematics,
-                     obstacle_radii=[0.05], obstacles=robot.obstacle_estimate,
-                     limits=robot.joint_limits, spheres=robot.spheres[14:],
-                     self_collision=True)
+        build_bridge(robot, robot.load_model(), Torques, self_collision=True, **kwargs)
+
+
+@pytest.mark.parametrize("self_collision, safe", [(None, True), (False, False)],
+                         ids=["default", "without"])
+def test_the_self_collision_barriers_stop_a_swinging_joint_folding_the_arm(self_collision,
+                                                                          safe):
+    """``swing4`` (seed 1: full torque on joint 4, the others damped) folds the forearm onto
+    the upper arm 0.63 s in without the self-collision barriers (the test can fail); with
+    them, the default, no tick has cost."""
+    from afvsgp_gym.robots.run import run_simulated
+
+    report = run_simulated(1.2, agent="swing4", seed=1, realtime=False, budget=1.0,
+                           torque_error=[3, 3, 3, 3, 1, 1, 1], self_collision=self_collision)
+    assert report.stop_reason == "completed" and report.steps == 1200
+    assert (report.cost_steps == 0) == safe
+
+
+def test_the_policies_built_to_break_the_filter():
+    """``ram`` pulls the end-effector point at the nearest obstacle (its torque moves the
+    point toward it: ``(J tau) . (p_o - p) > 0``); ``swingN`` puts full torque on joint N, its
+    sign from the seed and switching every second, the others damped; ``random`` is uniform
+    within the limits and seeded. Every output is within the torque limits."""
+    from afvsgp_gym.robots.libfranka import TAU_MAX
+    from afvsgp_gym.robots.terms import ObstacleEstimate
+
+    robot = SimulatedFranka(realtime=False)
+    q0 = np.asarray(robot.read_once().q, dtype=np.float64)
+    kin = SphereKinematics(robot.kinematics, [7], [(0.0, 0.0, 0.21)])
+    p = kin.positions(q0)[0]
+    target = p + [0.1, -0.2, 0.05]
+    est = ObstacleEstimate(np.array([target, p + [2.0, 0, 0]]), np.zeros((2, 3)),
+                           np.zeros((2, 3)))
+    dq = np.full(7, 0.3)
+    obs = Observation(0.0, q0, dq, np.eye(7), np.zeros(7), est)
+    jac = kin(q0, np.zeros(7))[2][0]
+    tau = make_robot_policy("ram", robot.kinematics, q0)(obs)
+    assert (jac @ tau) @ (target - p) > 0 and np.all(np.abs(tau) <= TAU_MAX)
+    for seed, sign in ((0, 1.0), (1, -1.0)):
+        swing = make_robot_policy("swing4", robot.kinematics, q0, seed)
+        first, later = swing(obs), swing(obs._replace(t=1.5))
+        assert first[3] == sign * TAU_MAX[3] and later[3] == -first[3]
+        np.testing.assert_array_equal(np.delete(first, 3), -np.delete(dq * TAU_MAX, 3))
+    a, b = (make_robot_policy("random", robot.kinematics, q0, 7) for _ in range(2))
+    draws = np.array([a(obs) for _ in range(200)])
+    np.testing.assert_array_equal(draws[0], b(obs))
+    assert np.all(np.abs(draws) <= TAU_MAX) and np.all(draws.max(0) > 0.8 * TAU_MAX)
