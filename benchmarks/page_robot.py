@@ -29,6 +29,11 @@ ARM_PAIRS = (("bound-default", "bound-default-numpy-arm"),
 PERCEPTION = ("perception-exact", "perception-noise-1cm")
 LEARNER = "learner-afvsgp"
 LEARNER_WALL = "10s-fifo-learner-afvsgp"
+#: the policies built to break the filter (robot_runs.py's ``adversarial-`` runs)
+ADVERSARIAL = ("ram", *(f"swing{j}" for j in range(1, 8)), "random")
+ADVERSARIAL_SEEDS = (0, 1)
+COST_KINDS = (("inside", "inside an obstacle"), ("contact", "touching an obstacle"),
+              ("limit", "at a joint limit"), ("self_contact", "touching itself"))
 PERCENTILES = ("p50", "p90", "p99", "p99.9", "max")
 #: the acceptance of a run: at most this share of deadline misses (and no step with cost)
 ACCEPTED_MISSES = 0.005
@@ -125,6 +130,56 @@ def stepped_table(runs: dict[str, dict]) -> str:
                   "perception", "steps with cost", "closest true clearance",
                   "infeasible steps (brake)", "filter active", "step p50 / p99 (ms)",
                   "stop"), rows)
+
+
+def adversarial_runs(runs: dict[str, dict]) -> list[tuple[str, int, dict, dict | None]]:
+    """``(agent, seed, with the self-collision barriers, without them)`` of the runs there
+    are."""
+    out = []
+    for agent in ADVERSARIAL:
+        for seed in ADVERSARIAL_SEEDS:
+            on = runs.get(f"adversarial-{agent}-{seed}")
+            if on is not None:
+                out.append((agent, seed, on,
+                            runs.get(f"adversarial-{agent}-{seed}-no-self-collision")))
+    return out
+
+
+def kinds(r: dict) -> str:
+    """The ticks of each kind of cost of a run ("-" without any)."""
+    parts = [f"{r['cost_kinds'][key]:,} {name}" for key, name in COST_KINDS
+             if r.get("cost_kinds", {}).get(key)]
+    return ", ".join(parts) or "-"
+
+
+def adversarial_table(runs: dict[str, dict]) -> str:
+    rows = []
+    for agent, seed, on, off in adversarial_runs(runs):
+        rows.append((f"`{agent}`", str(seed), f"{on['cost_steps']:,}", cm(on["min_true_h"]),
+                     f"{on['filter_infeasible_steps']:,}",
+                     "n/a" if off is None else f"{off['cost_steps']:,}",
+                     "n/a" if off is None else kinds(off), stop(on)))
+    return table(("agent", "seed", "steps with cost", "closest true clearance",
+                  "infeasible steps (brake)", "without self-collision barriers: steps with "
+                  "cost", "without: cost by kind (ticks)", "stop"), rows)
+
+
+def adversarial_sentences(runs: dict[str, dict]) -> list[str]:
+    found = adversarial_runs(runs)
+    if not found:
+        return []
+    on = [r for _, _, r, _ in found]
+    off = [r for _, _, _, r in found if r is not None]
+    bad_on = sum(r["cost_steps"] > 0 for r in on)
+    bad_off = [r for r in off if r["cost_steps"] > 0]
+    what = sorted({name for r in bad_off for key, name in COST_KINDS
+                   if r.get("cost_kinds", {}).get(key)})
+    return [f"Against the policies built to break the filter (stepped, "
+            f"{on[0]['requested_seconds']:g} s each, the default bound and payload): with the "
+            f"self-collision barriers, the bridge's default, {bad_on} of {len(on)} runs had a "
+            f"step with cost (closest true clearance {cm(min(r['min_true_h'] for r in on))}); "
+            f"without them {len(bad_off)} of {len(off)} did"
+            + (f" (the arm {' and '.join(what)})" if what else "") + "."]
 
 
 def outcome(r: dict) -> str:
@@ -242,6 +297,7 @@ def sentences(runs: dict[str, dict], recs: list[dict]) -> list[str]:
         out.append(f"In {span} the rate limiter changed the filter's torque in "
                    f"{count(long['rate_limited_steps'], long['steps'])} of the steps.")
     out += bound_sentences(runs)
+    out += adversarial_sentences(runs)
     out += arm_sentences(runs)
     exact, noisy = runs.get("perception-exact"), runs.get("perception-noise-1cm")
     if exact and noisy:
@@ -314,13 +370,22 @@ def build() -> dict:
              "",
              stepped_table(runs),
              "",
+             "**Against the policies built to break the filter** (stepped as above, the "
+             "bridge's `--agent ram | swing1..swing7 | random` with `--seed`, the default "
+             "bound and the 1 kg payload; the moving sphere): the runs with the "
+             "self-collision barriers, the bridge's default, and without them "
+             "(`--no-self-collision`).",
+             "",
+             adversarial_table(runs),
+             "",
              " ".join(sentences(runs, all_recs) + repeat_sentences(all_recs))]
     with_pairs = [r for r in recs if r.get("self_collision")]
     if with_pairs:
-        block += ["", "The runs with `self-collision` in their name had the bridge's "
-                  f"self-collision barriers (`--self-collision`, "
-                  f"{with_pairs[0]['self_collision_barriers']} more barriers; off by "
-                  "default); the others ran without them."]
+        block += ["", "The wall-clock and `bound-` runs with `self-collision` in their name had "
+                  "the bridge's self-collision barriers "
+                  f"({with_pairs[0]['self_collision_barriers']} more barriers; the bridge's "
+                  "default since the runs of the policies built to break the filter, "
+                  "`--no-self-collision` leaves them out); the others ran without them."]
     text = PAGE.read_text(encoding="utf-8")
     return {PAGE: replace_block(text, BLOCK, "\n".join(block) + "\n")}
 
