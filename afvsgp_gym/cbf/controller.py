@@ -348,7 +348,10 @@ class SafetyController:
     def warmup_shapes(self, n_samples: int | None = None, feature_dim: int | None = None
                       ) -> tuple[tuple[int, ...], ...]:
         """The shapes of :meth:`warmup_samples`' arrays with ``n_samples`` (default: those
-        collected so far) of ``feature_dim`` features (default: the collected ones')."""
+        collected so far) of ``feature_dim`` features (default: the collected ones'; before
+        any, ``feature_dim`` is needed)."""
+        if feature_dim is None and not self._buffer:
+            raise ValueError("feature_dim is needed before any warm-up sample is collected")
         n = len(self._buffer) if n_samples is None else int(n_samples)
         b = self._buffer[0][0].shape[1] if feature_dim is None else int(feature_dim)
         k, m = self.n_barriers, self.action_dim

@@ -406,16 +406,20 @@ class Bridge:
         """After a write: send the warm-up samples to the fitting process once they are
         in; install the fitted learners once they are back (``fit_ticks`` later)."""
         ctrl, rep = self.controller, self.report
-        if not fitter.pending and ctrl.warmup_complete and fitter.error is None:
-            fitter.submit(ctrl)
-            self._fit_sent = rep.steps
-        if fitter.pending:
-            bank = fitter.poll()
-            if bank is not None:
-                ctrl.install_fitted(bank)
-                rep.fit_ticks = rep.steps - self._fit_sent
-            elif fitter.error is not None:
-                rep.fit_error = fitter.error
+        try:
+            if not fitter.pending and ctrl.warmup_complete and fitter.error is None:
+                fitter.submit(ctrl)
+                self._fit_sent = rep.steps
+            if fitter.pending:
+                bank = fitter.poll()
+                if bank is not None:
+                    ctrl.install_fitted(bank)
+                    rep.fit_ticks = rep.steps - self._fit_sent
+        except Exception as exc:  # a lost worker: the loop goes on, the learners unfitted
+            fitter.pending = False
+            fitter.error = f"{type(exc).__name__}: {exc}"
+        if fitter.error is not None:
+            rep.fit_error = fitter.error
 
     # ------------------------------------------------------------------ the run
     def warm_up(self, steps: int = 50) -> None:

@@ -82,3 +82,22 @@ def test_closing_mid_fit_stops_the_worker_and_leaves_no_shared_memory():
         assert not os.path.exists(f"/dev/shm/{name.lstrip('/')}")
     with pytest.raises(RuntimeError, match="before start"):
         fitter.submit(ctrl)
+
+
+def test_a_lost_worker_is_reported_and_the_loop_goes_on(monkeypatch):
+    """The worker killed before the samples go to it: the send fails inside the loop, which
+    reports it (``fit_error``) and goes on with the learners unfitted."""
+    start = BackgroundFit.start
+
+    def start_then_lose(self, *args, **kwargs):
+        start(self, *args, **kwargs)
+        self._process.kill()
+        self._process.wait(5.0)
+        return self
+
+    monkeypatch.setattr(BackgroundFit, "start", start_then_lose)
+    bridge, _, _ = _bridge(agent="hold", learner="afvsgp", background_fit=True)
+    report = bridge.run(0.4)
+    assert report.stop_reason == "completed" and report.steps == 400
+    assert report.fit_ticks is None and "Error" in report.fit_error
+    assert bridge.controller.warming_up
