@@ -473,6 +473,8 @@ def _cmd_robot(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int
         parser.error("give exactly one of --simulate and --host IP")
     if not args.seconds > 0:
         parser.error(f"--seconds must be > 0, got {args.seconds}")
+    if args.seed < 0:
+        parser.error(f"--seed must be >= 0, got {args.seed}")
     if not 0 < args.budget < 1.0:
         parser.error(f"--budget must be in (0, 1) ms, got {args.budget}")
     agent = args.agent or ("nominal" if args.simulate else "hold")

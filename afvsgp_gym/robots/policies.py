@@ -38,7 +38,7 @@ import numpy as np
 from afvsgp_gym.envs.scenario import CyclicReference
 from afvsgp_gym.robots.kinematics import END_EFFECTOR_OFFSET, DHChain, SphereKinematics
 from afvsgp_gym.robots.libfranka import TAU_MAX
-from afvsgp_gym.validation import check_choice
+from afvsgp_gym.validation import check_choice, check_count
 
 __all__ = ["ROBOT_AGENTS", "make_robot_policy"]
 
@@ -145,6 +145,7 @@ def make_robot_policy(agent: str, chain: DHChain, q0: np.ndarray, seed: int = 0)
     """The policy ``agent`` (one of :data:`ROBOT_AGENTS`) for an arm of kinematics ``chain``
     starting at ``q0`` (``seed``: the swings' first sign, the random torques)."""
     check_choice("agent", agent, ROBOT_AGENTS)
+    seed = check_count(seed, "seed", 0)
     if agent == "nominal":
         return TaskTracker(chain, q0)
     if agent == "hold":

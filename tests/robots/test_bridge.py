@@ -607,6 +607,11 @@ def test_the_policies_built_to_break_the_filter():
         first, later = swing(obs), swing(obs._replace(t=1.5))
         assert first[3] == sign * TAU_MAX[3] and later[3] == -first[3]
         np.testing.assert_array_equal(np.delete(first, 3), -np.delete(dq * TAU_MAX, 3))
+    for bad in (-1, 1.5, None, "0"):
+        with pytest.raises(ValueError, match="seed must be an integer"):
+            make_robot_policy("swing2", robot.kinematics, q0, bad)
+    with pytest.raises(ValueError, match="agent"):
+        make_robot_policy("greedy", robot.kinematics, q0)
     a, b = (make_robot_policy("random", robot.kinematics, q0, 7) for _ in range(2))
     draws = np.array([a(obs) for _ in range(200)])
     np.testing.assert_array_equal(draws[0], b(obs))

@@ -48,6 +48,7 @@ def test_host_without_pylibfranka_says_how_to_install_it(monkeypatch, capsys):
     (["robot", "--simulate", "--host", "1.2.3.4"], "exactly one of --simulate and --host"),
     (["robot", "--simulate", "--seconds", "0"], "--seconds"),
     (["robot", "--simulate", "--agent", "greedy"], "--agent"),
+    (["robot", "--simulate", "--agent", "swing2", "--seed", "-3"], "--seed must be >= 0"),
     (["robot", "--simulate", "--learner", "nope"], "--learner"),
     (["robot", "--simulate", "--learner", "oracle"], "--learner oracle needs the true terms"),
     (["robot", "--simulate", "--torque-error", "1,2"], "--torque-error"),
