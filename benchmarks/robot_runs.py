@@ -142,15 +142,16 @@ def stepped(s: dict) -> dict:
     closest = [math.inf]
     kinds = dict(inside=0, contact=0, limit=0, self_contact=0)
 
-    def cost() -> bool:
+    def cost() -> bool:  # SimulatedFranka.cost, its four checks counted apart
         h = float(robot.clearance().min())
         closest[0] = min(closest[0], h)
         d = robot.data
-        for kind, hit in (("inside", h < 0.0), ("contact", robot.contact()),
-                          ("limit", robot.joint_limits.violation(d.qpos[:7], d.qvel[:7])),
-                          ("self_contact", robot.self_contact())):
+        hits = {"inside": h < 0.0, "contact": robot.contact(),
+                "limit": robot.joint_limits.violation(d.qpos[:7], d.qvel[:7]),
+                "self_contact": robot.self_contact()}
+        for kind, hit in hits.items():
             kinds[kind] += int(bool(hit))
-        return robot.cost()
+        return any(hits.values())
 
     bridge = build_bridge(robot, robot.load_model(), Torques, chain=robot.kinematics,
                           obstacle_radii=[o.radius for o in robot.obstacles],
